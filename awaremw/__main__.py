@@ -1,0 +1,5 @@
+import sys
+
+from awaremw.cli import main
+
+sys.exit(main())

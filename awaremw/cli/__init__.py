@@ -1,0 +1,63 @@
+"""The ``awaremw`` command line: one entry point, one module per verb group.
+
+Each verb module exposes ``register(subparsers)`` that adds its sub-command(s)
+and sets ``func`` (a callable taking the parsed ``argparse.Namespace`` and
+returning an exit code). Modules are imported lazily so that ``awaremw --help``
+stays fast and a broken optional dependency does not break every verb.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+# Verb modules under awaremw.cli, in the order their verbs appear in --help.
+VERB_MODULES: tuple[str, ...] = (
+    "demo",
+    "fleet",
+    "gateway",
+    "router",
+    "client",
+    "experiment",
+    "bench",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="awaremw",
+        description="AWARE data-centric WSN middleware, emulated over Eclipse Zenoh.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    for name in VERB_MODULES:
+        try:
+            mod = importlib.import_module(f"awaremw.cli.{name}")
+        except ModuleNotFoundError as e:
+            if e.name == f"awaremw.cli.{name}":
+                continue  # verb not built yet
+            raise
+        mod.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        code: int = args.func(args)
+    except KeyboardInterrupt:
+        return 130
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

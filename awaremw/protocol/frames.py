@@ -1,0 +1,698 @@
+"""Radio frames: typed, validated, msgpack-encoded.
+
+A frame is what a real mote would put on the air. On the wire it is a msgpack
+array ``[type, src, dst, *body]``: integer type tag, 16-bit link addresses
+(``dst == BROADCAST`` for broadcast) and the body fields in declaration order.
+Nested objects (conditions, definitions, records) are arrays too; floats are
+packed as float32. Nothing here knows about the emulator's envelope (sender
+position, TX power): only these bytes count toward the MTU and the energy.
+
+Construction validates every field (a local bug raises ``ValueError``);
+:func:`decode` turns any malformed input into a :class:`FrameError` subclass
+and nothing else (a remote fault, to be counted and reported, never a crash).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any, ClassVar, TypeAlias
+
+import msgpack
+
+BROADCAST = 0xFFFF
+MAX_NODE_ID = 0x7FFF  # node ids 0..32767; rssi:<id> attributes use 0x8000 | id
+ANY_GROUP_TYPE = 0xFF
+ANY_GROUP_ID = 0xFFFF  # never a real group id (real ids are 1..0xFFFE)
+NO_ROUTE = 0xFFFF  # collection cost of a mote without a route
+MAX_CONDITIONS = 8
+MAX_COMMAND_NAME = 16
+MAX_COMMAND_ARGS = 8
+
+
+# --------------------------------------------------------------------------- errors
+
+
+class FrameError(ValueError):
+    """Malformed frame received from the radio (a remote fault)."""
+
+
+class TruncatedFrame(FrameError):
+    """The bytes are not one complete msgpack value."""
+
+
+class NotAFrame(FrameError):
+    """The msgpack value is not a frame array ``[type, src, dst, ...]``."""
+
+
+class UnknownFrameType(FrameError):
+    """The type tag names no frame this middleware knows."""
+
+
+class BadField(FrameError):
+    """A field has the wrong type, arity or range."""
+
+
+class FrameTooLarge(ValueError):
+    """Encoding would exceed the radio's MTU (a local error: we built it)."""
+
+    def __init__(self, frame: Frame, size: int, mtu: int) -> None:
+        super().__init__(f"{type(frame).__name__} encodes to {size} bytes > MTU {mtu}")
+        self.frame, self.size, self.mtu = frame, size, mtu
+
+
+# --------------------------------------------------------------------------- validators
+
+
+def _int(name: str, v: object, lo: int, hi: int) -> None:
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        raise ValueError(f"{name}={v!r} is not an integer in [{lo}, {hi}]")
+
+
+def _u8(name: str, v: object) -> None:
+    _int(name, v, 0, 0xFF)
+
+
+def _u16(name: str, v: object) -> None:
+    _int(name, v, 0, 0xFFFF)
+
+
+def _u32(name: str, v: object) -> None:
+    _int(name, v, 0, 0xFFFFFFFF)
+
+
+def _real(name: str, v: object) -> None:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ValueError(f"{name}={v!r} is not a finite number")
+
+
+def _node(name: str, v: object) -> None:
+    _int(name, v, 0, MAX_NODE_ID)
+
+
+def _addr(name: str, v: object) -> None:
+    if v != BROADCAST:
+        _node(name, v)
+
+
+# --------------------------------------------------------------------------- enums
+
+
+class Op(IntEnum):
+    """Comparison operator of a group condition."""
+
+    LT = 0
+    LE = 1
+    GT = 2
+    GE = 3
+    EQ = 4
+    NE = 5
+
+    @property
+    def symbol(self) -> str:
+        return ("<", "<=", ">", ">=", "==", "!=")[self]
+
+    @classmethod
+    def from_symbol(cls, s: str) -> Op:
+        try:
+            return cls(("<", "<=", ">", ">=", "==", "!=").index(s))
+        except ValueError:
+            raise ValueError(f"unknown operator {s!r}; use one of < <= > >= == !=") from None
+
+
+class ItemKind(IntEnum):
+    """Kinds of disseminated (Drip) items."""
+
+    GROUP_TYPE = 0
+    CHANNEL = 1
+    COMMAND = 2
+
+
+class TargetKind(IntEnum):
+    ALL = 0
+    NODE = 1
+    GROUP = 2
+
+
+class AggId(IntEnum):
+    """Wire ids of the aggregation functions (see ``aggregation.py``)."""
+
+    AVG = 0
+    MIN = 1
+    MAX = 2
+    SUM = 3
+    COUNT = 4
+
+
+class GroupStatus(IntEnum):
+    ALIVE = 0
+    GONE = 1
+
+
+# --------------------------------------------------------------------------- nested values
+
+
+@dataclass(frozen=True, slots=True)
+class Condition:
+    """``attribute op value``; attribute ids per ``attributes.py``."""
+
+    attr: int
+    op: Op
+    value: float
+
+    def __post_init__(self) -> None:
+        _u16("attr", self.attr)
+        if not isinstance(self.op, Op):
+            object.__setattr__(self, "op", Op(self.op))
+        _real("value", self.value)
+
+    def to_wire(self) -> list[Any]:
+        return [self.attr, int(self.op), float(self.value)]
+
+    @classmethod
+    def from_wire(cls, w: Any) -> Condition:
+        a, o, v = _arity(w, 3, "condition")
+        if not isinstance(o, int) or o not in Op._value2member_map_:
+            raise BadField(f"condition operator {o!r}")
+        return cls(a, Op(o), v)
+
+
+@dataclass(frozen=True, slots=True)
+class GroupTypeDef:
+    """Conjunction of conditions; ``hysteresis`` relaxes thresholds for members."""
+
+    conditions: tuple[Condition, ...]
+    hysteresis: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= len(self.conditions) <= MAX_CONDITIONS:
+            raise ValueError(f"a group type needs 1..{MAX_CONDITIONS} conditions")
+        _real("hysteresis", self.hysteresis)
+        if self.hysteresis < 0:
+            raise ValueError("hysteresis must be >= 0")
+
+    def to_wire(self) -> list[Any]:
+        return [[c.to_wire() for c in self.conditions], float(self.hysteresis)]
+
+    @classmethod
+    def from_wire(cls, w: Any) -> GroupTypeDef:
+        conds, hyst = _arity(w, 2, "group type")
+        if not isinstance(conds, list):
+            raise BadField("conditions is not an array")
+        return cls(tuple(Condition.from_wire(c) for c in conds), hyst)
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelDef:
+    """Which attribute, from which groups, how often, aggregated how."""
+
+    attr: int
+    group_type: int  # ANY_GROUP_TYPE for any
+    group_id: int  # ANY_GROUP_ID for any
+    period_ms: int
+    agg: int  # AggId or an extension id registered in aggregation.py
+
+    def __post_init__(self) -> None:
+        _u16("attr", self.attr)
+        _u8("group_type", self.group_type)
+        _u16("group_id", self.group_id)
+        _int("period_ms", self.period_ms, 1, 0xFFFFFFFF)
+        _u8("agg", self.agg)
+
+    def to_wire(self) -> list[Any]:
+        return [self.attr, self.group_type, self.group_id, self.period_ms, self.agg]
+
+    @classmethod
+    def from_wire(cls, w: Any) -> ChannelDef:
+        return cls(*_arity(w, 5, "channel"))
+
+
+ArgValue: TypeAlias = int | float | str | bool
+
+
+@dataclass(frozen=True, slots=True)
+class CommandDef:
+    """A command for the node kind's handler on each targeted mote."""
+
+    name: str
+    target_kind: TargetKind = TargetKind.ALL
+    target_a: int = 0  # node id, or group type
+    target_b: int = 0  # group id (TargetKind.GROUP)
+    args: tuple[tuple[str, ArgValue], ...] = ()
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not 1 <= len(self.name) <= MAX_COMMAND_NAME:
+            raise ValueError(f"command name must be 1..{MAX_COMMAND_NAME} characters")
+        if not isinstance(self.target_kind, TargetKind):
+            object.__setattr__(self, "target_kind", TargetKind(self.target_kind))
+        _u16("target_a", self.target_a)
+        _u16("target_b", self.target_b)
+        if len(self.args) > MAX_COMMAND_ARGS:
+            raise ValueError(f"at most {MAX_COMMAND_ARGS} command arguments")
+        for k, v in self.args:
+            if not isinstance(k, str) or not isinstance(v, int | float | str | bool):
+                raise ValueError(f"command argument {k!r}={v!r} is not a scalar")
+
+    def to_wire(self) -> list[Any]:
+        return [
+            self.name,
+            int(self.target_kind),
+            self.target_a,
+            self.target_b,
+            [[k, v] for k, v in self.args],
+        ]
+
+    @classmethod
+    def from_wire(cls, w: Any) -> CommandDef:
+        name, tk, a, b, args = _arity(w, 5, "command")
+        if not isinstance(tk, int) or tk not in TargetKind._value2member_map_:
+            raise BadField(f"command target kind {tk!r}")
+        if not isinstance(args, list):
+            raise BadField("command args is not an array")
+        pairs = tuple((p[0], p[1]) for p in (_arity(x, 2, "command arg") for x in args))
+        return cls(name, TargetKind(tk), a, b, pairs)
+
+
+ItemBody: TypeAlias = GroupTypeDef | ChannelDef | CommandDef
+_BODY_OF: dict[ItemKind, Callable[[Any], ItemBody]] = {
+    ItemKind.GROUP_TYPE: GroupTypeDef.from_wire,
+    ItemKind.CHANNEL: ChannelDef.from_wire,
+    ItemKind.COMMAND: CommandDef.from_wire,
+}
+_BODY_TYPE: dict[ItemKind, type] = {
+    ItemKind.GROUP_TYPE: GroupTypeDef,
+    ItemKind.CHANNEL: ChannelDef,
+    ItemKind.COMMAND: CommandDef,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class DataRecord:
+    """One aggregated result of one channel, group and epoch, for the gateway."""
+
+    channel: int
+    group_type: int
+    group_id: int
+    epoch: int
+    agg: int
+    value: float
+    count: int
+    leader: int
+
+    TAG: ClassVar[int] = 0
+
+    def __post_init__(self) -> None:
+        _u8("channel", self.channel)
+        _u8("group_type", self.group_type)
+        _u16("group_id", self.group_id)
+        _u32("epoch", self.epoch)
+        _u8("agg", self.agg)
+        _real("value", self.value)
+        _u32("count", self.count)
+        _node("leader", self.leader)
+
+    def to_wire(self) -> list[Any]:
+        return [
+            self.TAG,
+            self.channel,
+            self.group_type,
+            self.group_id,
+            self.epoch,
+            self.agg,
+            float(self.value),
+            self.count,
+            self.leader,
+        ]
+
+
+@dataclass(frozen=True, slots=True)
+class GroupReport:
+    """A leader's report of its group's state (heartbeat, or gone / merged)."""
+
+    group_type: int
+    group_id: int
+    leader: int
+    weight: int
+    members: int  # readings in the last epoch, 0 when unknown
+    status: GroupStatus = GroupStatus.ALIVE
+    successor: int = 0  # group id it merged into, or 0
+
+    TAG: ClassVar[int] = 1
+
+    def __post_init__(self) -> None:
+        _u8("group_type", self.group_type)
+        _u16("group_id", self.group_id)
+        _node("leader", self.leader)
+        _u32("weight", self.weight)
+        _u16("members", self.members)
+        if not isinstance(self.status, GroupStatus):
+            object.__setattr__(self, "status", GroupStatus(self.status))
+        _u16("successor", self.successor)
+
+    def to_wire(self) -> list[Any]:
+        return [
+            self.TAG,
+            self.group_type,
+            self.group_id,
+            self.leader,
+            self.weight,
+            self.members,
+            int(self.status),
+            self.successor,
+        ]
+
+
+Payload: TypeAlias = DataRecord | GroupReport
+
+
+def _payload_from_wire(w: Any) -> Payload:
+    if not isinstance(w, list) or not w:
+        raise BadField("collection payload is not a tagged array")
+    tag, *rest = w
+    if tag == DataRecord.TAG:
+        return DataRecord(*_arity(rest, 8, "data record"))
+    if tag == GroupReport.TAG:
+        g = _arity(rest, 7, "group report")
+        if not isinstance(g[5], int) or g[5] not in GroupStatus._value2member_map_:
+            raise BadField(f"group status {g[5]!r}")
+        return GroupReport(*g[:5], GroupStatus(g[5]), g[6])
+    raise BadField(f"unknown collection payload tag {tag!r}")
+
+
+# --------------------------------------------------------------------------- frames
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """Link header shared by every frame. Subclasses add body fields."""
+
+    TYPE: ClassVar[int] = -1
+    src: int
+    dst: int
+
+    def __post_init__(self) -> None:
+        _node("src", self.src)
+        _addr("dst", self.dst)
+
+    @property
+    def is_broadcast(self) -> bool:
+        return self.dst == BROADCAST
+
+    def body(self) -> list[Any]:
+        raise NotImplementedError
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> Frame:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True, slots=True)
+class Hello(Frame):
+    """Neighbour-discovery beacon; also the beacon a robot's mote emits."""
+
+    TYPE: ClassVar[int] = 1
+    seq: int = 0
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        _u16("seq", self.seq)
+
+    def body(self) -> list[Any]:
+        return [self.seq]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> Hello:
+        return cls(src, dst, *_arity(body, 1, "hello"))
+
+
+@dataclass(frozen=True, slots=True)
+class DripItem(Frame):
+    """One versioned item of epidemic dissemination; ``body=None`` deletes."""
+
+    TYPE: ClassVar[int] = 2
+    kind: ItemKind = ItemKind.GROUP_TYPE
+    item_id: int = 0
+    version: int = 0
+    item: ItemBody | None = None
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        if not isinstance(self.kind, ItemKind):
+            object.__setattr__(self, "kind", ItemKind(self.kind))
+        _u16("item_id", self.item_id)
+        _u32("version", self.version)
+        if self.item is not None and not isinstance(self.item, _BODY_TYPE[self.kind]):
+            raise ValueError(f"{self.kind.name} item carries a {type(self.item).__name__}")
+
+    def body(self) -> list[Any]:
+        return [
+            int(self.kind),
+            self.item_id,
+            self.version,
+            None if self.item is None else self.item.to_wire(),
+        ]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripItem:
+        kind, item_id, version, item = _arity(body, 4, "drip item")
+        if not isinstance(kind, int) or kind not in ItemKind._value2member_map_:
+            raise BadField(f"item kind {kind!r}")
+        k = ItemKind(kind)
+        return cls(src, dst, k, item_id, version, None if item is None else _BODY_OF[k](item))
+
+
+@dataclass(frozen=True, slots=True)
+class DripSummary(Frame):
+    """Digest of everything a mote holds; a mismatch makes neighbours speak up."""
+
+    TYPE: ClassVar[int] = 3
+    digest: int = 0
+    n_items: int = 0
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        _u32("digest", self.digest)
+        _u16("n_items", self.n_items)
+
+    def body(self) -> list[Any]:
+        return [self.digest, self.n_items]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripSummary:
+        return cls(src, dst, *_arity(body, 2, "drip summary"))
+
+
+@dataclass(frozen=True, slots=True)
+class CtpBeacon(Frame):
+    """Collection-tree routing beacon: the sender's path cost to a root."""
+
+    TYPE: ClassVar[int] = 4
+    cost: int = NO_ROUTE  # path ETX x 10; 0 at a root
+    parent: int = BROADCAST
+    pull: bool = False  # "I have no route": neighbours answer soon
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        _u16("cost", self.cost)
+        _addr("parent", self.parent)
+        if not isinstance(self.pull, bool):
+            raise ValueError("pull must be a bool")
+
+    def body(self) -> list[Any]:
+        return [self.cost, self.parent, self.pull]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> CtpBeacon:
+        return cls(src, dst, *_arity(body, 3, "ctp beacon"))
+
+
+@dataclass(frozen=True, slots=True)
+class CtpData(Frame):
+    """A payload travelling up the collection tree, hop by hop (unicast)."""
+
+    TYPE: ClassVar[int] = 5
+    origin: int = 0
+    seqno: int = 0
+    thl: int = 0  # time has lived: hops so far
+    cost: int = NO_ROUTE  # the forwarder's cost, for loop detection
+    payload: Payload | None = None
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        _node("origin", self.origin)
+        _u16("seqno", self.seqno)
+        _u8("thl", self.thl)
+        _u16("cost", self.cost)
+        if not isinstance(self.payload, DataRecord | GroupReport):
+            raise ValueError("CtpData needs a DataRecord or GroupReport payload")
+
+    def body(self) -> list[Any]:
+        assert self.payload is not None
+        return [self.origin, self.seqno, self.thl, self.cost, self.payload.to_wire()]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> CtpData:
+        origin, seqno, thl, cost, payload = _arity(body, 5, "ctp data")
+        return cls(src, dst, origin, seqno, thl, cost, _payload_from_wire(payload))
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderBeacon(Frame):
+    """A group leader's beacon, flooded by members (hops counts the flood)."""
+
+    TYPE: ClassVar[int] = 6
+    group_type: int = 0
+    group_id: int = 1
+    leader: int = 0
+    weight: int = 0
+    seq: int = 0
+    hops: int = 0
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        _u8("group_type", self.group_type)
+        _int("group_id", self.group_id, 1, 0xFFFE)
+        _node("leader", self.leader)
+        _u32("weight", self.weight)
+        _u16("seq", self.seq)
+        _u8("hops", self.hops)
+
+    def body(self) -> list[Any]:
+        return [self.group_type, self.group_id, self.leader, self.weight, self.seq, self.hops]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> LeaderBeacon:
+        return cls(src, dst, *_arity(body, 6, "leader beacon"))
+
+
+@dataclass(frozen=True, slots=True)
+class Handover(Frame):
+    """A leaving leader hands its group (id, weight, beacon seq) to a member."""
+
+    TYPE: ClassVar[int] = 7
+    group_type: int = 0
+    group_id: int = 1
+    weight: int = 0
+    seq: int = 0
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        _u8("group_type", self.group_type)
+        _int("group_id", self.group_id, 1, 0xFFFE)
+        _u32("weight", self.weight)
+        _u16("seq", self.seq)
+
+    def body(self) -> list[Any]:
+        return [self.group_type, self.group_id, self.weight, self.seq]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> Handover:
+        return cls(src, dst, *_arity(body, 4, "handover"))
+
+
+@dataclass(frozen=True, slots=True)
+class Partial(Frame):
+    """A partial aggregate of one channel epoch, sent up the group tree."""
+
+    TYPE: ClassVar[int] = 8
+    channel: int = 0
+    group_type: int = 0
+    group_id: int = 1
+    epoch: int = 0
+    agg: int = 0
+    count: int = 0
+    state: tuple[float, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        _u8("channel", self.channel)
+        _u8("group_type", self.group_type)
+        _int("group_id", self.group_id, 1, 0xFFFE)
+        _u32("epoch", self.epoch)
+        _u8("agg", self.agg)
+        _u32("count", self.count)
+        if len(self.state) > 4:
+            raise ValueError("an aggregate state has at most 4 numbers")
+        for i, v in enumerate(self.state):
+            _real(f"state[{i}]", v)
+
+    def body(self) -> list[Any]:
+        return [
+            self.channel,
+            self.group_type,
+            self.group_id,
+            self.epoch,
+            self.agg,
+            self.count,
+            [float(v) for v in self.state],
+        ]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> Partial:
+        ch, gt, gid, epoch, agg, count, state = _arity(body, 7, "partial")
+        if not isinstance(state, list):
+            raise BadField("partial state is not an array")
+        return cls(src, dst, ch, gt, gid, epoch, agg, count, tuple(state))
+
+
+FRAME_TYPES: dict[int, type[Frame]] = {
+    t.TYPE: t
+    for t in (Hello, DripItem, DripSummary, CtpBeacon, CtpData, LeaderBeacon, Handover, Partial)
+}
+
+
+# --------------------------------------------------------------------------- codec
+
+
+def _arity(w: Any, n: int, what: str) -> list[Any]:
+    if not isinstance(w, list) or len(w) != n:
+        raise BadField(f"{what}: expected an array of {n} fields, got {w!r:.60}")
+    return w
+
+
+def encode(frame: Frame, mtu: int | None = None) -> bytes:
+    """Encode ``frame``; raise :class:`FrameTooLarge` if it exceeds ``mtu`` bytes."""
+    data: bytes = msgpack.packb(
+        [frame.TYPE, frame.src, frame.dst, *frame.body()], use_single_float=True
+    )
+    if mtu is not None and len(data) > mtu:
+        raise FrameTooLarge(frame, len(data), mtu)
+    return data
+
+
+def peek_header(data: bytes) -> tuple[int, int, int]:
+    """Cheap ``(type, src, dst)`` of a frame, for filtering; raises FrameError."""
+    f = _unpack(data)
+    return f[0], f[1], f[2]
+
+
+def _unpack(data: bytes) -> list[Any]:
+    try:
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
+    except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as e:
+        raise TruncatedFrame(f"not one msgpack value: {e}") from None
+    except (ValueError, TypeError, UnicodeDecodeError) as e:
+        # msgpack raises ValueError for truncated input ("Unpack failed: incomplete input").
+        raise TruncatedFrame(f"undecodable: {e}") from None
+    if not isinstance(obj, list) or len(obj) < 3:
+        raise NotAFrame(f"expected [type, src, dst, ...], got {obj!r:.60}")
+    for name, v in zip(("type", "src", "dst"), obj[:3], strict=True):
+        if not isinstance(v, int) or isinstance(v, bool):
+            raise NotAFrame(f"header field {name}={v!r:.30} is not an integer")
+    return obj
+
+
+def decode(data: bytes) -> Frame:
+    """Decode one frame. Any malformed input raises a :class:`FrameError`."""
+    t, src, dst, *body = _unpack(data)
+    cls = FRAME_TYPES.get(t)
+    if cls is None:
+        raise UnknownFrameType(f"frame type {t}")
+    try:
+        return cls.from_body(src, dst, body)
+    except FrameError:
+        raise
+    except (ValueError, TypeError, KeyError, IndexError, OverflowError) as e:
+        raise BadField(f"{cls.__name__}: {e}") from None
