@@ -377,7 +377,7 @@ def _payload_from_wire(w: Any) -> Payload:
         g = _arity(rest, 7, "group report")
         if not isinstance(g[5], int) or g[5] not in GroupStatus._value2member_map_:
             raise BadField(f"group status {g[5]!r}")
-        return GroupReport(*g[:5], GroupStatus(g[5]), g[6])
+        return GroupReport(g[0], g[1], g[2], g[3], g[4], GroupStatus(g[5]), g[6])
     raise BadField(f"unknown collection payload tag {tag!r}")
 
 

@@ -1,0 +1,93 @@
+"""Attributes: numeric values a mote offers, by 16-bit wire id.
+
+The IP side names attributes (``temperature``, ``rssi:12``); the wire carries
+ids. Standard ids are fixed here; ``rssi:<node>`` is ``RSSI_BASE | node`` and is
+served by the middleware itself from the frames it hears. Node kinds may offer
+more attributes with ids from ``CUSTOM_BASE`` on, registered by name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Protocol, runtime_checkable
+
+from awaremw.protocol.frames import MAX_NODE_ID, CommandDef
+
+TEMPERATURE = 0  # deg C
+HUMIDITY = 1  # %RH
+LIGHT = 2  # lx
+X = 3  # m
+Y = 4  # m
+BATTERY = 5  # V
+GAS = 6  # ppm
+RSSI_BASE = 0x8000  # rssi:<node> = RSSI_BASE | node, dBm of frames heard from node
+
+STANDARD: Mapping[str, int] = {
+    "temperature": TEMPERATURE,
+    "humidity": HUMIDITY,
+    "light": LIGHT,
+    "x": X,
+    "y": Y,
+    "battery": BATTERY,
+    "gas": GAS,
+}
+UNITS: Mapping[int, str] = {
+    TEMPERATURE: "degC",
+    HUMIDITY: "%RH",
+    LIGHT: "lx",
+    X: "m",
+    Y: "m",
+    BATTERY: "V",
+    GAS: "ppm",
+}
+
+
+class UnknownAttribute(ValueError):
+    """An attribute name (IP side) or id (wire side) that nobody defines."""
+
+
+def attribute_id(name: str) -> int:
+    """Wire id of an IP-side attribute name; raises :class:`UnknownAttribute`."""
+    if name in STANDARD:
+        return STANDARD[name]
+    if name.startswith("rssi:"):
+        node = name[5:]
+        if node.isdigit() and 0 <= int(node) <= MAX_NODE_ID:
+            return RSSI_BASE | int(node)
+        raise UnknownAttribute(f"{name!r}: rssi:<node id> needs a node id in 0..{MAX_NODE_ID}")
+    known = ", ".join([*STANDARD, "rssi:<node id>"])
+    raise UnknownAttribute(f"unknown attribute {name!r}; known: {known}")
+
+
+def attribute_name(attr: int) -> str:
+    """IP-side name of a wire id (inverse of :func:`attribute_id`)."""
+    if attr & RSSI_BASE:
+        return f"rssi:{attr & MAX_NODE_ID}"
+    for name, i in STANDARD.items():
+        if i == attr:
+            return name
+    return f"attr{attr}"
+
+
+def rssi_attribute(node: int) -> int:
+    return RSSI_BASE | node
+
+
+def is_rssi(attr: int) -> bool:
+    return bool(attr & RSSI_BASE)
+
+
+@runtime_checkable
+class Application(Protocol):
+    """The application layer of a mote (its node kind), seen by the middleware.
+
+    ``read`` returns the attribute in SI units (the node kind converts raw
+    readings), or None when the mote does not offer it right now. RSSI
+    attributes are served by the middleware, not by the application.
+    """
+
+    def offers(self, attr: int) -> bool: ...
+
+    def read(self, attr: int, now: float) -> float | None: ...
+
+    def on_command(self, command: CommandDef, now: float) -> None: ...

@@ -1,0 +1,61 @@
+"""MiddlewareConfig: every timing and size of the middleware, in one place.
+
+Defaults follow the paper and TinyOS where those say something (Drip's Trickle
+1 s .. 17.5 min, k = 1) and are otherwise chosen for the emulation; all of them
+are configuration, not constants (a deployment may override any).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+
+@dataclass(frozen=True, slots=True)
+class MiddlewareConfig:
+    mtu: int = 100  # largest encoded frame (radio preset)
+
+    # Epidemic dissemination (Drip over Trickle)
+    drip_tau_l: float = 1.0
+    drip_tau_h: float = 1050.0  # 17.5 min
+    drip_k: int = 1
+
+    # Collection tree (CTP-like)
+    ctp_tau_l: float = 0.5
+    ctp_tau_h: float = 300.0
+    ctp_queue: int = 16
+    ctp_max_thl: int = 32
+    ctp_parent_switch_threshold: int = 15  # ETX x 10 improvement needed to switch parent
+    ctp_evict_after_failures: int = 2  # failed unicasts (after retries) before dropping a parent
+
+    # Groups
+    check_period: float = 1.0  # membership check
+    beacon_period: float = 2.0  # leader beacon
+    leader_timeout_periods: float = 3.5  # no beacon for this many periods: leader lost
+    create_backoff: float = 2.0  # max random wait for a nearby group before creating one
+    forward_jitter: float = 0.05  # max random delay before re-broadcasting a leader beacon
+    report_every_beacons: int = 5  # leader's GroupReport to the gateway, in beacon periods
+    max_group_types: int = 8
+    max_group_depth: int = 16  # hops; TAG slots per epoch are planned for this depth
+
+    # Channels
+    max_channels: int = 8
+    min_period_s: float = 0.5
+
+    # Attributes served by the middleware
+    rssi_ttl: float = 5.0  # an rssi:<node> reading older than this is "not available"
+    rssi_alpha: float = 0.5  # EWMA weight of the newest frame's RSSI
+
+    # Stand-in beacon (a robot's mote): period of Hello frames, None = off
+    hello_period: float | None = None
+
+    # Role
+    is_root: bool = False  # a gateway mote: root of the collection tree
+
+    def with_overrides(self, overrides: dict[str, Any]) -> MiddlewareConfig:
+        """A copy with ``overrides`` applied; unknown keys raise ValueError."""
+        known = {f.name for f in fields(self)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ValueError(f"unknown middleware settings: {', '.join(unknown)}")
+        return replace(self, **overrides)

@@ -1,0 +1,257 @@
+"""AwareMote: the middleware of one mote, composed of its components.
+
+The mote is the :class:`~awaremw.protocol.core.MoteCore` the runtime drives. It
+decodes frames once, keeps the RSSI table behind the ``rssi:<node>``
+attributes, dispatches frames by type to the components, merges their timers
+and routes link-layer outcomes back to the component that sent the frame.
+
+Components (one module each) share a :class:`MoteContext` and talk to each
+other through the small APIs they expose on the mote:
+
+* ``dissemination`` (Drip) holds the versioned definitions and calls
+  :meth:`AwareMote._on_item` when one changes;
+* ``collection`` (CTP-like) carries payloads to the gateway roots;
+* ``groups`` evaluates conditions, runs leader election, the group tree;
+* ``channels`` samples, aggregates along the group tree, emits records;
+* ``commands`` runs the node kind's handler for targeted commands.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from awaremw.protocol.attributes import RSSI_BASE, Application
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.core import MalformedFrame, Transmission
+from awaremw.protocol.frames import (
+    BROADCAST,
+    MAX_NODE_ID,
+    CtpBeacon,
+    CtpData,
+    DripItem,
+    DripSummary,
+    Frame,
+    FrameError,
+    Handover,
+    Hello,
+    ItemBody,
+    ItemKind,
+    LeaderBeacon,
+    Partial,
+    decode,
+    encode,
+)
+from awaremw.protocol.timers import TimerSet
+
+
+@dataclass(frozen=True, slots=True)
+class RssiSample:
+    dbm: float  # EWMA of recent frames
+    last_heard: float
+
+
+class MoteContext:
+    """What every component of one mote shares: identity, config, randomness,
+    the application, the outbox and the event list."""
+
+    def __init__(
+        self,
+        node_id: int,
+        config: MiddlewareConfig,
+        rng: random.Random,
+        app: Application | None,
+    ) -> None:
+        self.node_id = node_id
+        self.config = config
+        self.rng = rng
+        self.app = app
+        self.rssi: dict[int, RssiSample] = {}
+        self.outbox: list[Transmission] = []
+        self.pending: dict[int, tuple[Component, Frame]] = {}
+        self.event_list: list[object] = []
+
+    def send(self, owner: Component, frame: Frame) -> Transmission:
+        """Encode ``frame`` (MTU enforced: an oversize frame is our bug) and queue it."""
+        data = encode(frame, self.config.mtu)
+        if frame.dst == BROADCAST:
+            tx = Transmission.broadcast(data)
+        else:
+            tx = Transmission.unicast(data, frame.dst)
+            self.pending[tx.tx_id] = (owner, frame)
+        self.outbox.append(tx)
+        return tx
+
+    def emit(self, event: object) -> None:
+        self.event_list.append(event)
+
+    def read(self, attr: int, now: float) -> float | None:
+        """An attribute's current value, or None if this mote cannot give it."""
+        if attr & RSSI_BASE:
+            s = self.rssi.get(attr & MAX_NODE_ID)
+            if s is None or now - s.last_heard > self.config.rssi_ttl:
+                return None
+            return s.dbm
+        if self.app is None or not self.app.offers(attr):
+            return None
+        return self.app.read(attr, now)
+
+
+class Component:
+    """Base of the middleware's components: timers plus four hooks."""
+
+    def __init__(self, ctx: MoteContext) -> None:
+        self.ctx = ctx
+        self.timers = TimerSet()
+
+    def start(self, now: float) -> None:
+        """Called once when the mote boots."""
+
+    def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
+        """A decoded frame of a type this component owns."""
+
+    def on_timer(self, name: object, now: float) -> None:
+        """A timer this component set is due."""
+
+    def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
+        """Outcome of a unicast this component sent."""
+
+    def send(self, frame: Frame) -> Transmission:
+        return self.ctx.send(self, frame)
+
+
+class AwareMote:
+    """One mote running the AWARE middleware (a :class:`MoteCore`)."""
+
+    def __init__(
+        self,
+        node_id: int,
+        app: Application | None = None,
+        config: MiddlewareConfig | None = None,
+        rng: random.Random | None = None,
+    ) -> None:
+        # Imported here: the components import this module for Component.
+        from awaremw.protocol.channels import Channels
+        from awaremw.protocol.collection import Collection
+        from awaremw.protocol.commands import Commands
+        from awaremw.protocol.dissemination import Dissemination
+        from awaremw.protocol.groups import Groups
+
+        self.node_id = node_id
+        self.config = config or MiddlewareConfig()
+        self.ctx = MoteContext(node_id, self.config, rng or random.Random(node_id), app)
+        self.dissemination = Dissemination(self.ctx, on_item=self._on_item)
+        self.collection = Collection(self.ctx)
+        self.groups = Groups(self.ctx, self.collection)
+        self.channels = Channels(self.ctx, self.groups, self.collection)
+        self.commands = Commands(self.ctx, self.groups)
+        self.beacon = _HelloBeacon(self.ctx)
+        self._components: tuple[Component, ...] = (
+            self.dissemination,
+            self.collection,
+            self.groups,
+            self.channels,
+            self.commands,
+            self.beacon,
+        )
+        self._by_type: dict[int, Component] = {
+            Hello.TYPE: self.beacon,
+            DripItem.TYPE: self.dissemination,
+            DripSummary.TYPE: self.dissemination,
+            CtpBeacon.TYPE: self.collection,
+            CtpData.TYPE: self.collection,
+            LeaderBeacon.TYPE: self.groups,
+            Handover.TYPE: self.groups,
+            Partial.TYPE: self.channels,
+        }
+        self.started = False
+
+    # ----------------------------------------------------------------- MoteCore
+
+    def start(self, now: float) -> None:
+        self.started = True
+        for c in self._components:
+            c.start(now)
+
+    def receive(self, frame: bytes, rssi_dbm: float, now: float) -> None:
+        try:
+            f = decode(frame)
+        except FrameError as e:
+            self.ctx.emit(MalformedFrame(str(e), len(frame)))
+            return
+        if f.dst != BROADCAST and f.dst != self.node_id:
+            return  # overheard unicast for someone else
+        self._note_rssi(f.src, rssi_dbm, now)
+        self._by_type[f.TYPE].on_frame(f, rssi_dbm, now)
+
+    def handle_timer(self, now: float) -> None:
+        for c in self._components:
+            for name in c.timers.due(now):
+                c.on_timer(name, now)
+
+    def next_deadline(self) -> float | None:
+        return min(
+            (d for c in self._components if (d := c.timers.next_deadline()) is not None),
+            default=None,
+        )
+
+    def drain(self) -> list[Transmission]:
+        out, self.ctx.outbox = self.ctx.outbox, []
+        return out
+
+    def link_result(self, tx: Transmission, acked: bool, now: float) -> None:
+        entry = self.ctx.pending.pop(tx.tx_id, None)
+        if entry is None:
+            raise KeyError(f"link result for unknown transmission {tx.tx_id}")
+        owner, frame = entry
+        owner.on_link_result(frame, acked, now)
+
+    def events(self) -> list[object]:
+        out, self.ctx.event_list = self.ctx.event_list, []
+        return out
+
+    # ----------------------------------------------------------------- API for the gateway
+
+    def inject(
+        self, kind: ItemKind, item_id: int, version: int, item: ItemBody | None, now: float
+    ) -> None:
+        """Inject a definition, command or deletion (gateway motes)."""
+        self.dissemination.inject(kind, item_id, version, item, now)
+
+    # ----------------------------------------------------------------- internals
+
+    def _note_rssi(self, src: int, rssi_dbm: float, now: float) -> None:
+        old = self.ctx.rssi.get(src)
+        a = self.config.rssi_alpha
+        if old is None or now - old.last_heard > self.config.rssi_ttl:
+            self.ctx.rssi[src] = RssiSample(rssi_dbm, now)
+        else:
+            self.ctx.rssi[src] = RssiSample(a * rssi_dbm + (1 - a) * old.dbm, now)
+
+    def _on_item(self, kind: ItemKind, item_id: int, item: ItemBody | None, now: float) -> None:
+        handler: Callable[[int, ItemBody | None, float], None] = {
+            ItemKind.GROUP_TYPE: self.groups.define,
+            ItemKind.CHANNEL: self.channels.define,
+            ItemKind.COMMAND: self.commands.define,
+        }[kind]
+        handler(item_id, item, now)
+
+
+class _HelloBeacon(Component):
+    """Optional periodic Hello (the beacon of a robot's mote, for RSSI groups)."""
+
+    def __init__(self, ctx: MoteContext) -> None:
+        super().__init__(ctx)
+        self.seq = 0
+
+    def start(self, now: float) -> None:
+        if self.ctx.config.hello_period:
+            self.timers.set("hello", now + self.ctx.rng.uniform(0, self.ctx.config.hello_period))
+
+    def on_timer(self, name: object, now: float) -> None:
+        period = self.ctx.config.hello_period
+        assert period
+        self.seq = (self.seq + 1) & 0xFFFF
+        self.send(Hello(self.ctx.node_id, BROADCAST, self.seq))
+        self.timers.set("hello", now + period)
