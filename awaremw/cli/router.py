@@ -1,0 +1,55 @@
+"""``awaremw router [--listen ENDPOINT]...``: run an embedded Zenoh router until interrupted."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from types import FrameType
+
+from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser(
+        "router",
+        help="run an embedded Zenoh router (for multi-process or multi-host fleets)",
+        description="Run a Zenoh session in router mode until interrupted (Ctrl-C or SIGTERM). "
+        "Fleets and gateways join it with --connect ENDPOINT.",
+    )
+    p.add_argument(
+        "--listen",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"endpoint to listen on (repeatable; default {DEFAULT_ROUTER_ENDPOINT})",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="another router to link to (repeatable)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from awaremw.runtime.router import EmbeddedRouter
+
+    listen = args.listen or [DEFAULT_ROUTER_ENDPOINT]
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        router = EmbeddedRouter(listen, args.connect).start()
+    except Exception as e:  # bad endpoint, port in use: the user's input, not our bug
+        print(f"awaremw router: cannot start: {e}", file=sys.stderr)
+        return 2
+    print(f"awaremw router listening on {', '.join(listen)}", flush=True)
+    router.serve_forever(stop)
+    return 0

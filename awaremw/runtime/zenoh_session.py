@@ -1,0 +1,95 @@
+"""Zenoh session configuration: loopback, no multicast scouting, explicit endpoints.
+
+Every process of the emulation opens exactly ONE Zenoh session (through
+:func:`open_session`) and closes it explicitly. Defaults are chosen so that
+nothing leaks onto the host's network and nothing needs a daemon:
+
+* multicast scouting is off (peers find each other only through the endpoints
+  we give them, so parallel test runs never join each other's emulations);
+* a peer that is given no ``listen`` endpoint listens nowhere; a peer that is
+  given ``connect`` endpoints (the embedded router, ``awaremw router``) joins
+  the emulation through them;
+* gossip scouting stays on, so peers that do listen (on loopback) learn about
+  each other from the router and may link directly.
+
+Endpoints are Zenoh locators such as ``tcp/127.0.0.1:7447``.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import zenoh
+
+Mode = Literal["peer", "client", "router"]
+
+DEFAULT_ROUTER_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+@dataclass(frozen=True, slots=True)
+class SessionSettings:
+    """What a process needs to know to join (or host) an emulation."""
+
+    mode: Mode = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+
+    def config(self) -> zenoh.Config:
+        return make_config(self.mode, connect=self.connect, listen=self.listen)
+
+
+def make_config(
+    mode: Mode = "peer",
+    *,
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+) -> zenoh.Config:
+    """A Zenoh config with multicast scouting off and exactly these endpoints."""
+    for ep in (*connect, *listen):
+        check_endpoint(ep)
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps(mode))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        # Keep trying while the router is starting instead of failing at open().
+        cfg.insert_json5("connect/timeout_ms", "10000")
+        cfg.insert_json5("connect/exit_on_failure", "true")
+    return cfg
+
+
+def open_session(settings: SessionSettings | None = None) -> zenoh.Session:
+    """Open the process's one session. The caller closes it (``session.close()``)."""
+    return zenoh.open((settings or SessionSettings()).config())
+
+
+def close_quietly(obj: zenoh.Session | zenoh.Subscriber[object] | zenoh.Publisher) -> None:
+    """Close a session or undeclare a subscriber/publisher (the stubs leave these untyped)."""
+    if isinstance(obj, zenoh.Session):
+        obj.close()  # type: ignore[no-untyped-call]
+    else:
+        obj.undeclare()  # type: ignore[no-untyped-call]
+
+
+def check_endpoint(endpoint: str) -> None:
+    """Reject obviously malformed locators early, with a clear message."""
+    proto, sep, addr = endpoint.partition("/")
+    if not sep or not proto or not addr:
+        raise ValueError(f"bad Zenoh endpoint {endpoint!r}: expected e.g. tcp/127.0.0.1:7447")
+    if proto in ("tcp", "udp", "tls", "quic", "ws"):
+        host, colon, port = addr.rpartition(":")
+        if not colon or not host or not port.split("#")[0].isdigit():
+            raise ValueError(f"bad Zenoh endpoint {endpoint!r}: expected {proto}/HOST:PORT")
+
+
+def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
+    """A ``tcp/host:port`` endpoint on a port that was free a moment ago (tests, launcher)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        port = s.getsockname()[1]
+    return f"tcp/{host}:{port}"
