@@ -1,0 +1,363 @@
+"""Environmental fields: pure functions of (position, time, seed).
+
+The world the motes sense. Every value here is computed, never stored or
+drawn from a shared random generator, so motes in different processes (or on
+different hosts) read one consistent world without talking to each other:
+
+* **sources** (fires, gas leaks, lamps) follow a script of keyframes
+  ``(t, x, y, radius, peak)`` linearly interpolated in time; a source grows,
+  moves and fades by its keyframes, two sources that approach each other merge
+  into one hot area and two that part split it;
+* **fields** combine the sources over the ambient: temperature is ambient plus
+  the *hottest* fire at that point (overlapping fires do not add up to an
+  unphysical sum), gas concentrations and light add up, relative humidity
+  follows temperature at constant absolute humidity (Magnus formula);
+* **measurement noise** is a Gaussian drawn from a hash of
+  ``(seed, node, sensor, time step)`` (:func:`gauss_hash`).
+
+The deployment's ``[world]`` table configures it (see docs/world.md);
+:meth:`World.from_table` reports a bad table as :class:`WorldError` naming the
+offending key.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import math
+import struct
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+FIELDS = ("temperature", "humidity", "light", "gas")
+
+
+class WorldError(ValueError):
+    """A ``[world]`` table that cannot be understood (bad deployment file)."""
+
+
+# --------------------------------------------------------------------------- seeded hashing
+
+
+def hash_u64(*parts: int | float | str) -> int:
+    """A stable 64-bit hash of ``parts`` (same value in every process and run)."""
+    h = hashlib.blake2b(digest_size=8)
+    for p in parts:
+        if isinstance(p, str):
+            b = p.encode()
+            h.update(b"s" + struct.pack("<I", len(b)) + b)
+        elif isinstance(p, float):
+            h.update(b"f" + struct.pack("<d", p))
+        else:
+            h.update(b"i" + struct.pack("<q", p))
+    return int.from_bytes(h.digest(), "little")
+
+
+def uniform_hash(*parts: int | float | str) -> float:
+    """A uniform number in [0, 1) from a hash of ``parts``."""
+    return (hash_u64(*parts) >> 11) * (1.0 / (1 << 53))
+
+
+def gauss_hash(*parts: int | float | str) -> float:
+    """A standard normal number from a hash of ``parts`` (Box-Muller on 2 x 32 bits)."""
+    v = hash_u64(*parts)
+    u1 = ((v >> 32) + 0.5) / 4294967296.0  # in (0, 1): log never sees 0
+    u2 = (v & 0xFFFFFFFF) / 4294967296.0
+    return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+
+
+# --------------------------------------------------------------------------- sources
+
+
+@dataclass(frozen=True, slots=True)
+class Keyframe:
+    """State of a source at time ``t``; values between keyframes are interpolated."""
+
+    t: float
+    x: float
+    y: float
+    radius: float  # m: flat core of the profile (0 for a pure Gaussian plume)
+    peak: float  # value at the core (deg C above ambient, ppm, lx)
+
+
+@dataclass(frozen=True, slots=True)
+class SourceState:
+    x: float
+    y: float
+    radius: float
+    peak: float
+
+
+@dataclass(frozen=True, slots=True)
+class Source:
+    """A scripted emitter. Profile: ``peak`` inside ``radius``, Gaussian falloff of
+    width ``edge`` outside it. Absent before its first keyframe; after the last
+    it holds its final state when ``hold`` (a fire keeps burning), else is gone.
+
+    A fire also gives off ``gas`` (ppm at its core) and ``light`` (lx at its
+    core) with the same profile.
+    """
+
+    name: str
+    keyframes: tuple[Keyframe, ...]
+    edge: float = 1.0
+    hold: bool = True
+    gas: float = 0.0
+    light: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.keyframes:
+            raise WorldError(f"source {self.name!r} has no keyframes")
+        ts = [k.t for k in self.keyframes]
+        if any(b < a for a, b in itertools.pairwise(ts)):
+            raise WorldError(f"source {self.name!r}: keyframe times must not decrease")
+        if self.edge <= 0:
+            raise WorldError(f"source {self.name!r}: edge must be > 0")
+        for k in self.keyframes:
+            if k.radius < 0:
+                raise WorldError(f"source {self.name!r}: radius must be >= 0 (t={k.t})")
+
+    @property
+    def start(self) -> float:
+        return self.keyframes[0].t
+
+    @property
+    def end(self) -> float | None:
+        return None if self.hold else self.keyframes[-1].t
+
+    def state(self, t: float) -> SourceState | None:
+        """Interpolated state at ``t``, or None while the source does not exist."""
+        ks = self.keyframes
+        if t < ks[0].t:
+            return None
+        if t >= ks[-1].t:
+            if not self.hold and t > ks[-1].t:
+                return None
+            k = ks[-1]
+            return SourceState(k.x, k.y, k.radius, k.peak)
+        lo, hi = 0, len(ks) - 1  # binary search: ks[lo].t <= t < ks[hi].t
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if ks[mid].t <= t:
+                lo = mid
+            else:
+                hi = mid
+        a, b = ks[lo], ks[hi]
+        f = 0.0 if b.t == a.t else (t - a.t) / (b.t - a.t)
+        return SourceState(
+            a.x + f * (b.x - a.x),
+            a.y + f * (b.y - a.y),
+            a.radius + f * (b.radius - a.radius),
+            a.peak + f * (b.peak - a.peak),
+        )
+
+    def profile(self, x: float, y: float, t: float) -> float:
+        """0..1 shape at (x, y) times 1; multiply by the state's peak for the value."""
+        s = self.state(t)
+        if s is None:
+            return 0.0
+        d = math.hypot(x - s.x, y - s.y) - s.radius
+        if d <= 0:
+            return 1.0
+        z = d / self.edge
+        return 0.0 if z > 8.0 else math.exp(-0.5 * z * z)
+
+    def value(self, x: float, y: float, t: float) -> float:
+        s = self.state(t)
+        if s is None:
+            return 0.0
+        return s.peak * self.profile(x, y, t)
+
+
+# --------------------------------------------------------------------------- world
+
+
+def _magnus_psat(t_c: float) -> float:
+    """Saturation vapour pressure (hPa) over water, Magnus formula (Sonntag 1990)."""
+    return 6.112 * math.exp(17.62 * t_c / (243.12 + t_c))
+
+
+@dataclass(frozen=True, slots=True)
+class World:
+    """The environment: ambient values, scripted sources, noise seed."""
+
+    seed: int = 0
+    ambient_temperature: float = 20.0  # deg C
+    ambient_humidity: float = 50.0  # %RH at ambient temperature
+    ambient_light: float = 400.0  # lx
+    ambient_gas: float = 0.0  # ppm
+    # Static spatial texture of the ambient temperature (deg C amplitude, m scale):
+    # a smooth, seeded value-noise so that neighbouring motes differ a little.
+    variation: float = 0.0
+    variation_scale: float = 5.0
+    noise_step: float = 0.5  # s: a sensor's noise changes once per step
+    fires: tuple[Source, ...] = ()
+    gas_sources: tuple[Source, ...] = ()
+    lights: tuple[Source, ...] = ()
+    extra: Mapping[str, Any] = field(default_factory=dict)  # unknown keys, kept for others
+
+    # ------------------------------------------------------------------ noise-free fields
+
+    def temperature(self, x: float, y: float, t: float) -> float:
+        """Air temperature (deg C) at (x, y) at time t, without sensor noise."""
+        base = self.ambient_temperature + self._texture(x, y)
+        hottest = max((f.value(x, y, t) for f in self.fires), default=0.0)
+        return base + max(0.0, hottest)
+
+    def humidity(self, x: float, y: float, t: float) -> float:
+        """Relative humidity (%RH): ambient absolute humidity at the local temperature."""
+        ta = self.ambient_temperature
+        tl = self.temperature(x, y, t)
+        rh = self.ambient_humidity * _magnus_psat(ta) / _magnus_psat(tl)
+        return min(100.0, max(0.0, rh))
+
+    def light(self, x: float, y: float, t: float) -> float:
+        """Illuminance (lx): ambient plus lamps plus the glow of fires."""
+        v = self.ambient_light
+        v += sum(s.value(x, y, t) for s in self.lights)
+        v += sum(f.light * f.profile(x, y, t) for f in self.fires if f.light)
+        return max(0.0, v)
+
+    def gas(self, x: float, y: float, t: float) -> float:
+        """Gas concentration (ppm): ambient plus leaks plus the smoke of fires."""
+        v = self.ambient_gas
+        v += sum(s.value(x, y, t) for s in self.gas_sources)
+        v += sum(f.gas * f.profile(x, y, t) for f in self.fires if f.gas)
+        return max(0.0, v)
+
+    def value(self, name: str, x: float, y: float, t: float) -> float:
+        """A field by name (one of :data:`FIELDS`)."""
+        if name == "temperature":
+            return self.temperature(x, y, t)
+        if name == "humidity":
+            return self.humidity(x, y, t)
+        if name == "light":
+            return self.light(x, y, t)
+        if name == "gas":
+            return self.gas(x, y, t)
+        raise KeyError(f"unknown field {name!r}; known: {', '.join(FIELDS)}")
+
+    # ------------------------------------------------------------------ noise
+
+    def noise(self, node: int, sensor: str, t: float, sigma: float) -> float:
+        """Measurement noise of ``node``'s ``sensor`` at ``t``: N(0, sigma), constant
+        within one :attr:`noise_step`, identical in every process that asks."""
+        if sigma == 0:
+            return 0.0
+        step = math.floor(t / self.noise_step)
+        return sigma * gauss_hash(self.seed, node, sensor, step)
+
+    # ------------------------------------------------------------------ internals
+
+    def _texture(self, x: float, y: float) -> float:
+        if not self.variation:
+            return 0.0
+        # Bilinear value noise on a seeded lattice: smooth, static, bounded.
+        gx, gy = x / self.variation_scale, y / self.variation_scale
+        ix, iy = math.floor(gx), math.floor(gy)
+        fx, fy = gx - ix, gy - iy
+        fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+
+        def lat(i: int, j: int) -> float:
+            return 2.0 * uniform_hash(self.seed, "texture", i, j) - 1.0
+
+        top = lat(ix, iy) * (1 - fx) + lat(ix + 1, iy) * fx
+        bot = lat(ix, iy + 1) * (1 - fx) + lat(ix + 1, iy + 1) * fx
+        return self.variation * (top * (1 - fy) + bot * fy)
+
+    def active_sources(self, t: float) -> list[tuple[str, SourceState]]:
+        """Names and states of the sources that exist at ``t`` (for views and plots)."""
+        out: list[tuple[str, SourceState]] = []
+        for s in (*self.fires, *self.gas_sources, *self.lights):
+            st = s.state(t)
+            if st is not None:
+                out.append((s.name, st))
+        return out
+
+    # ------------------------------------------------------------------ parsing
+
+    @classmethod
+    def from_table(cls, table: Mapping[str, Any] | None, seed: int = 0) -> World:
+        """Build a world from a deployment's ``[world]`` table (None: all ambient)."""
+        t = dict(table or {})
+        known_scalars = {
+            "ambient_temperature": float,
+            "ambient_humidity": float,
+            "ambient_light": float,
+            "ambient_gas": float,
+            "variation": float,
+            "variation_scale": float,
+            "noise_step": float,
+        }
+        kw: dict[str, Any] = {}
+        for key, conv in known_scalars.items():
+            if key in t:
+                kw[key] = _number(t.pop(key), f"world.{key}", conv)
+        if "seed" in t:
+            seed = int(_number(t.pop("seed"), "world.seed", float))
+        if kw.get("noise_step", 1.0) <= 0:
+            raise WorldError("world.noise_step must be > 0")
+        if kw.get("variation_scale", 1.0) <= 0:
+            raise WorldError("world.variation_scale must be > 0")
+        fires = _sources(t.pop("fires", []), "fires")
+        gas = _sources(t.pop("gas", []), "gas")
+        lights = _sources(t.pop("lights", []), "lights")
+        return cls(seed=seed, fires=fires, gas_sources=gas, lights=lights, extra=t, **kw)
+
+
+def _number(v: object, where: str, conv: type[float] = float) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise WorldError(f"{where} must be a finite number, got {v!r}")
+    return conv(v)
+
+
+def _sources(raw: object, kind: str) -> tuple[Source, ...]:
+    if not isinstance(raw, list):
+        raise WorldError(f"world.{kind} must be an array of tables ([[world.{kind}]])")
+    out: list[Source] = []
+    for i, entry in enumerate(raw):
+        where = f"world.{kind}[{i}]"
+        if not isinstance(entry, Mapping):
+            raise WorldError(f"{where} must be a table")
+        e = dict(entry)
+        name = str(e.pop("name", f"{kind}{i}"))
+        where = f"world.{kind}[{name}]"
+        edge = _number(e.pop("edge", 1.0), f"{where}.edge")
+        hold = e.pop("hold", True)
+        if not isinstance(hold, bool):
+            raise WorldError(f"{where}.hold must be true or false")
+        gas = _number(e.pop("gas", 0.0), f"{where}.gas")
+        light = _number(e.pop("light", 0.0), f"{where}.light")
+        keys = _keyframes(e.pop("keyframes", None), where)
+        if e:
+            raise WorldError(f"{where}: unknown keys {', '.join(sorted(e))}")
+        out.append(Source(name, keys, edge, hold, gas, light))
+    return tuple(out)
+
+
+def _keyframes(raw: object, where: str) -> tuple[Keyframe, ...]:
+    """Keyframes as tables ``{t, x, y, radius, peak}``; omitted values carry over
+    from the previous keyframe (the first needs t, x, y and peak)."""
+    if not isinstance(raw, Sequence) or isinstance(raw, str) or not raw:
+        raise WorldError(f"{where}.keyframes must be a non-empty array of tables")
+    out: list[Keyframe] = []
+    prev: dict[str, float] = {"radius": 0.0}
+    for j, k in enumerate(raw):
+        if not isinstance(k, Mapping):
+            raise WorldError(f"{where}.keyframes[{j}] must be a table like {{t=0, x=1, y=2}}")
+        unknown = set(k) - {"t", "x", "y", "radius", "peak"}
+        if unknown:
+            raise WorldError(f"{where}.keyframes[{j}]: unknown keys {', '.join(sorted(unknown))}")
+        if "t" not in k:
+            raise WorldError(f"{where}.keyframes[{j}] needs t")
+        cur = dict(prev)
+        for name in ("t", "x", "y", "radius", "peak"):
+            if name in k:
+                cur[name] = _number(k[name], f"{where}.keyframes[{j}].{name}")
+        missing = [n for n in ("x", "y", "peak") if n not in cur]
+        if missing:
+            raise WorldError(f"{where}.keyframes[{j}] needs {', '.join(missing)}")
+        out.append(Keyframe(cur["t"], cur["x"], cur["y"], cur["radius"], cur["peak"]))
+        prev = cur
+    return tuple(out)

@@ -1,0 +1,192 @@
+"""The world model: scripted sources, fields, seeded noise, [world] parsing."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import subprocess
+import sys
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from awaremw.world.fields import Keyframe, Source, World, WorldError, gauss_hash
+
+
+def fire(name: str, *keys: tuple[float, float, float, float, float], edge: float = 1.0) -> Source:
+    return Source(name, tuple(Keyframe(*k) for k in keys), edge=edge)
+
+
+def test_source_absent_before_first_keyframe_and_holds_after_last() -> None:
+    s = fire("a", (10, 0, 0, 1, 100), (20, 10, 0, 3, 200))
+    assert s.state(9.99) is None
+    mid = s.state(15)
+    assert mid is not None
+    assert (mid.x, mid.radius, mid.peak) == pytest.approx((5, 2, 150))
+    late = s.state(1000)
+    assert late is not None and late.x == 10
+    gone = Source("g", s.keyframes, hold=False)
+    assert gone.state(20) is not None and gone.state(20.1) is None
+
+
+def test_profile_flat_core_and_gaussian_edge() -> None:
+    s = fire("a", (0, 0, 0, 2, 100), edge=1.5)
+    assert s.value(1.9, 0, 0) == 100
+    assert s.value(2 + 1.5, 0, 0) == pytest.approx(100 * math.exp(-0.5))
+    assert s.value(100, 0, 0) == 0
+
+
+def test_temperature_takes_hottest_fire_not_the_sum() -> None:
+    w = World(fires=(fire("a", (0, 0, 0, 2, 300)), fire("b", (0, 0, 0, 2, 300))))
+    assert w.temperature(0, 0, 0) == pytest.approx(20 + 300)
+
+
+def test_two_fires_merge_then_split_in_the_field() -> None:
+    """The hot area (T > 45) along the line between the fires is connected exactly
+    while the fires overlap."""
+    w = World(
+        fires=(
+            fire("a", (0, 2, 5, 1, 300)),
+            fire("b", (0, 14, 5, 1, 300), (50, 7, 5, 1, 300), (100, 18, 5, 1, 300)),
+        )
+    )
+
+    def hot_runs(t: float) -> int:
+        hot = [w.temperature(x / 4, 5, t) > 45 for x in range(0, 81)]
+        return sum(1 for i, h in enumerate(hot) if h and (i == 0 or not hot[i - 1]))
+
+    assert hot_runs(0) == 2
+    assert hot_runs(50) == 1
+    assert hot_runs(100) == 2
+
+
+def test_humidity_drops_as_temperature_rises() -> None:
+    w = World(ambient_humidity=60, fires=(fire("a", (0, 0, 0, 1, 30)),))
+    assert w.humidity(50, 50, 0) == pytest.approx(60)
+    assert w.humidity(0, 0, 0) < 20
+
+
+def test_gas_and_light_come_from_fires_and_sources() -> None:
+    w = World.from_table(
+        {
+            "ambient_light": 300,
+            "fires": [
+                {
+                    "name": "f",
+                    "gas": 80,
+                    "light": 1000,
+                    "keyframes": [{"t": 0, "x": 0, "y": 0, "peak": 300}],
+                }
+            ],
+            "gas": [
+                {"name": "leak", "keyframes": [{"t": 0, "x": 10, "y": 0, "peak": 50, "radius": 1}]}
+            ],
+            "lights": [{"keyframes": [{"t": 0, "x": 20, "y": 0, "peak": 500}]}],
+        }
+    )
+    assert w.gas(0, 0, 0) == pytest.approx(80)
+    assert w.gas(10, 0, 0) == pytest.approx(50)
+    assert w.light(0, 0, 0) == pytest.approx(1300)
+    assert w.light(20, 0, 0) == pytest.approx(800)
+    assert w.value("gas", 100, 100, 0) == 0
+
+
+def test_noise_is_a_pure_function_of_seed_node_sensor_step() -> None:
+    w = World(seed=7, noise_step=0.5)
+    a = w.noise(3, "temperature", 10.1, 1.0)
+    assert a == w.noise(3, "temperature", 10.4, 1.0)  # same step
+    assert a != w.noise(3, "temperature", 10.6, 1.0)  # next step
+    assert a != w.noise(4, "temperature", 10.1, 1.0)
+    assert a != World(seed=8).noise(3, "temperature", 10.1, 1.0)
+    assert w.noise(3, "temperature", 10.1, 0.0) == 0.0
+
+
+def test_noise_identical_in_another_process() -> None:
+    code = (
+        "from awaremw.world.fields import World; "
+        "print(repr(World(seed=5).noise(9, 'light', 3.3, 2.0)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert float(out.stdout) == World(seed=5).noise(9, "light", 3.3, 2.0)
+
+
+def test_gauss_hash_is_roughly_standard_normal() -> None:
+    xs = [gauss_hash(1, i) for i in range(20000)]
+    mean = sum(xs) / len(xs)
+    var = sum((x - mean) ** 2 for x in xs) / len(xs)
+    assert abs(mean) < 0.03
+    assert 0.95 < var < 1.05
+
+
+def test_texture_is_small_smooth_and_seeded() -> None:
+    w = World(seed=1, variation=0.5, variation_scale=5)
+    vals = [w.temperature(x * 0.5, 3, 0) for x in range(40)]
+    assert all(19.5 <= v <= 20.5 for v in vals)
+    assert max(abs(a - b) for a, b in itertools.pairwise(vals)) < 0.2
+    assert len(set(vals)) > 10
+    assert World(seed=2, variation=0.5).temperature(1, 3, 0) != vals[2]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=st.floats(-50, 50),
+    y=st.floats(-50, 50),
+    t=st.floats(0, 500),
+)
+def test_fields_are_finite_and_in_range(x: float, y: float, t: float) -> None:
+    w = World.from_table(
+        {
+            "variation": 0.3,
+            "fires": [
+                {
+                    "keyframes": [{"t": 0, "x": 0, "y": 0, "peak": 400}, {"t": 300, "radius": 5}],
+                    "gas": 10,
+                }
+            ],
+        }
+    )
+    assert 19 < w.temperature(x, y, t) <= 421
+    assert 0 <= w.humidity(x, y, t) <= 100
+    assert w.light(x, y, t) >= 0 and w.gas(x, y, t) >= 0
+
+
+@pytest.mark.parametrize(
+    ("table", "needle"),
+    [
+        ({"ambient_temperature": "hot"}, "world.ambient_temperature"),
+        ({"fires": {"x": 1}}, "array of tables"),
+        ({"fires": [{"keyframes": []}]}, "keyframes"),
+        ({"fires": [{"keyframes": [{"x": 1, "y": 1, "peak": 3}]}]}, "needs t"),
+        ({"fires": [{"keyframes": [{"t": 0, "x": 1, "peak": 3}]}]}, "needs y"),
+        (
+            {"fires": [{"name": "f", "keyframes": [{"t": 0, "x": 1, "y": 1, "peak": 3, "z": 1}]}]},
+            "unknown keys z",
+        ),
+        (
+            {
+                "fires": [
+                    {
+                        "name": "f",
+                        "color": "red",
+                        "keyframes": [{"t": 0, "x": 1, "y": 1, "peak": 3}],
+                    }
+                ]
+            },
+            "color",
+        ),
+        (
+            {"fires": [{"keyframes": [{"t": 5, "x": 1, "y": 1, "peak": 3}, {"t": 1}]}]},
+            "must not decrease",
+        ),
+        ({"noise_step": 0}, "noise_step"),
+    ],
+)
+def test_bad_world_tables_are_clear_errors(table: dict[str, object], needle: str) -> None:
+    with pytest.raises(WorldError, match=needle):
+        World.from_table(table)
+
+
+def test_unknown_world_keys_are_kept_for_others() -> None:
+    w = World.from_table({"area": [12.5, 11]}, seed=3)
+    assert w.extra == {"area": [12.5, 11]} and w.seed == 3
