@@ -19,6 +19,11 @@ class MiddlewareConfig:
     drip_tau_l: float = 1.0
     drip_tau_h: float = 1050.0  # 17.5 min
     drip_k: int = 1
+    drip_summary_delay: float = 0.5  # boot summary after a uniform wait in [0, this] s
+    drip_summary_repeats: int = 2  # boot summary sent again this many times (lost frames)
+    drip_summary_spacing: float = 2.0  # s before the first repeat; doubles for each next one
+    drip_summary_min_gap: float = 1.0  # s between two summaries answering summaries
+    max_command_slots: int = 8  # command items (slots) a mote holds, tombstones included
 
     # Collection tree (CTP-like)
     ctp_tau_l: float = 0.5
@@ -27,6 +32,17 @@ class MiddlewareConfig:
     ctp_max_thl: int = 32
     ctp_parent_switch_threshold: int = 15  # ETX x 10 improvement needed to switch parent
     ctp_evict_after_failures: int = 2  # failed unicasts (after retries) before dropping a parent
+    ctp_neighbours: int = 16  # routing table size (the parent is never the one replaced)
+    ctp_rssi_good: float = -85.0  # dBm at or above which a link costs ETX 1 (CC2420 default)
+    ctp_rssi_floor: float = -95.0  # dBm at or below which a link costs ctp_rssi_max_etx
+    ctp_rssi_max_etx: int = 100  # ETX x 10 of a link at the floor (cubic in between)
+    ctp_etx_alpha: float = 0.25  # EWMA weight of one unicast outcome in the link ETX
+    ctp_fail_etx: int = 60  # ETX x 10 sample for a unicast that failed all link retries
+    ctp_max_retries: int = 6  # routing-level attempts of one packet before it is dropped
+    ctp_retry_delay: float = 0.2  # s; wait uniform in [d/2, d] after a failed attempt
+    ctp_holddown: float = 2.0  # s without route (poisoned) before accepting a costlier parent
+    ctp_dup_cache: int = 32  # (origin, seqno, thl) entries remembered by a forwarder
+    ctp_root_window: int = 32  # per-origin seqnos remembered by a root for delivery
 
     # Groups
     check_period: float = 1.0  # membership check
@@ -37,6 +53,7 @@ class MiddlewareConfig:
     report_every_beacons: int = 5  # leader's GroupReport to the gateway, in beacon periods
     max_group_types: int = 8
     max_group_depth: int = 16  # hops; TAG slots per epoch are planned for this depth
+    handover_grace: float = 0.2  # after the ACK, wait this long for a refusal before leaving
 
     # Channels
     max_channels: int = 8
