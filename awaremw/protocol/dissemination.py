@@ -1,23 +1,311 @@
-"""PLACEHOLDER (engineer C replaces this): Drip over Trickle."""
+"""Epidemic dissemination of versioned items, in the style of Drip (Tolle & Culler).
+
+Every item is keyed ``(ItemKind, item_id)`` and carries a u32 version and a
+body (:class:`GroupTypeDef`, :class:`ChannelDef`, :class:`CommandDef`) or
+``None``: a deletion is a version too, kept as a tombstone so that an older
+copy still held by a mote that was off cannot come back to life.
+
+Each item has its own :class:`~awaremw.protocol.trickle.Trickle` (Drip's
+design). On hearing ``DripItem``:
+
+* an older version: the sender is behind, reset that item's Trickle (we will
+  tell it soon);
+* a newer version: adopt it, tell the mote (``on_item``), reset the Trickle
+  (we pass it on soon);
+* the same version: a consistent transmission (counts toward suppression).
+
+Catching up without the gateway: at boot a mote broadcasts a
+:class:`DripSummary` (an order-independent digest of every ``(kind, id,
+version)`` it holds, and their number) after a short random wait, and repeats
+it a couple of times in case it was lost. A neighbour whose digest differs and
+that holds items resets all its items' Trickles, so within about ``drip_tau_l``
+it re-broadcasts everything; the newcomer adopts what is newer, and whatever it
+holds that is newer makes the neighbour's copies look old to it, which resets
+its own Trickles. A neighbour that holds *fewer* items than the summary's
+sender may be behind it: it answers with its own summary (rate-limited), so
+the sender resets its Trickles. See docs/protocol-dissemination.md.
+
+Bounds: a mote holds at most ``max_group_types`` group types,
+``max_channels`` channels and ``max_command_slots`` commands, tombstones
+included. A new key on a full table evicts the tombstone of that kind changed
+longest ago; with no tombstone to evict the item is refused (an
+:class:`ItemRefused` event; :meth:`Dissemination.inject` raises instead,
+because the gateway should have checked :meth:`Dissemination.accepts`).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import NamedTuple
 
-from awaremw.protocol.frames import ItemBody, ItemKind
+from awaremw.protocol.frames import (
+    BROADCAST,
+    DripItem,
+    DripSummary,
+    Frame,
+    FrameTooLarge,
+    ItemBody,
+    ItemKind,
+    encode,
+)
 from awaremw.protocol.mote import Component, MoteContext
+from awaremw.protocol.trickle import Trickle
 
 OnItem = Callable[[ItemKind, int, ItemBody | None, float], None]
+ItemKey = tuple[ItemKind, int]
+
+_M64 = 0xFFFFFFFFFFFFFFFF
+_M32 = 0xFFFFFFFF
+
+
+class Item(NamedTuple):
+    """What a mote holds for one key: a version and a body (None: deleted)."""
+
+    version: int
+    body: ItemBody | None
+
+
+@dataclass(frozen=True, slots=True)
+class ItemAdopted:
+    """Event: this mote now holds ``version`` of an item (``source`` None: injected)."""
+
+    kind: ItemKind
+    item_id: int
+    version: int
+    deleted: bool
+    source: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class ItemRefused:
+    """Event: a newer item heard from the radio could not be stored (remote fault)."""
+
+    kind: ItemKind
+    item_id: int
+    version: int
+    source: int
+    reason: str
+
+
+class ItemTableFull(ValueError):
+    """``inject`` of a new key while the kind's table holds only live items."""
+
+
+def _mix64(x: int) -> int:
+    # splitmix64 finaliser: a well-mixed bijection, so digest terms look random.
+    x = (x + 0x9E3779B97F4A7C15) & _M64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _M64
+    return x ^ (x >> 31)
+
+
+def digest_term(kind: ItemKind, item_id: int, version: int) -> int:
+    """One item's contribution to the digest (a u32)."""
+    return _mix64((int(kind) << 48) | (item_id << 32) | version) & _M32
+
+
+def digest_of(entries: Mapping[ItemKey, Item]) -> int:
+    """Order-independent digest: sum of the terms modulo 2**32 (0 when empty)."""
+    return sum(digest_term(k, i, it.version) for (k, i), it in entries.items()) & _M32
 
 
 class Dissemination(Component):
+    """Drip: one Trickle per item, plus boot-time summaries for fast catch-up."""
+
     def __init__(self, ctx: MoteContext, on_item: OnItem) -> None:
         super().__init__(ctx)
         self.on_item = on_item
-        self.items: dict[tuple[ItemKind, int], tuple[int, ItemBody | None]] = {}
+        self._items: dict[ItemKey, Item] = {}
+        self._view: Mapping[ItemKey, Item] = MappingProxyType(self._items)
+        self._trickles: dict[ItemKey, Trickle] = {}
+        self._changed: dict[ItemKey, float] = {}  # local time of the last change
+        self._digest = 0
+        self._summary_repeats_left = 0
+        self._summary_spacing = 0.0
+        self._last_summary = float("-inf")
+        self.refused = 0  # counters for observers
+        self.item_tx = 0
+        self.summary_tx = 0
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def items(self) -> Mapping[ItemKey, Item]:
+        """Read-only live view of every held item, tombstones (body None) included."""
+        return self._view
+
+    @property
+    def digest(self) -> int:
+        return self._digest
+
+    def version_of(self, kind: ItemKind, item_id: int) -> int | None:
+        it = self._items.get((kind, item_id))
+        return None if it is None else it.version
+
+    def trickle(self, kind: ItemKind, item_id: int) -> Trickle | None:
+        """The item's Trickle timer (for observers and tests; do not drive it)."""
+        return self._trickles.get((kind, item_id))
+
+    def capacity(self, kind: ItemKind) -> int:
+        c = self.ctx.config
+        return {
+            ItemKind.GROUP_TYPE: c.max_group_types,
+            ItemKind.CHANNEL: c.max_channels,
+            ItemKind.COMMAND: c.max_command_slots,
+        }[kind]
+
+    def accepts(self, kind: ItemKind, item_id: int) -> bool:
+        """Whether an item for this key could be stored now (known key, free slot,
+        or a tombstone of the same kind to evict)."""
+        if (kind, item_id) in self._items:
+            return True
+        same = [it for (k, _), it in self._items.items() if k == kind]
+        return len(same) < self.capacity(kind) or any(it.body is None for it in same)
 
     def inject(
         self, kind: ItemKind, item_id: int, version: int, item: ItemBody | None, now: float
-    ) -> None:
-        self.items[(kind, item_id)] = (version, item)
-        self.on_item(kind, item_id, item, now)
+    ) -> bool:
+        """Inject an item at this (gateway) mote. Versions not newer than the one held
+        are ignored (returns False), so re-injecting is harmless.
+
+        Raises ValueError for a body of the wrong kind or out-of-range fields,
+        :class:`FrameTooLarge` if it cannot fit the MTU, :class:`ItemTableFull`
+        if the kind's table has no room (see :meth:`accepts`).
+        """
+        frame = DripItem(self.ctx.node_id, BROADCAST, kind, item_id, version, item)
+        encode(frame, self.ctx.config.mtu)  # raises FrameTooLarge before we keep it
+        cur = self._items.get((frame.kind, item_id))
+        if cur is not None and version <= cur.version:
+            return False
+        if not self.accepts(frame.kind, item_id):
+            raise ItemTableFull(
+                f"{frame.kind.name} table full ({self.capacity(frame.kind)} live items)"
+            )
+        self._adopt(frame, now, source=None)
+        return True
+
+    # ------------------------------------------------------------------ Component hooks
+
+    def start(self, now: float) -> None:
+        cfg = self.ctx.config
+        self._summary_repeats_left = cfg.drip_summary_repeats
+        self._summary_spacing = cfg.drip_summary_spacing
+        self.timers.set("summary", now + self.ctx.rng.uniform(0.0, cfg.drip_summary_delay))
+
+    def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
+        if isinstance(frame, DripItem):
+            self._on_item_frame(frame, now)
+        elif isinstance(frame, DripSummary):
+            self._on_summary(frame, now)
+
+    def on_timer(self, name: object, now: float) -> None:
+        if name == "summary":
+            self._send_summary(now)
+            if self._summary_repeats_left > 0:
+                self._summary_repeats_left -= 1
+                self.timers.set("summary", now + self._summary_spacing)
+                self._summary_spacing *= 2.0
+            return
+        assert isinstance(name, tuple) and name[0] == "item", name
+        key: ItemKey = (name[1], name[2])
+        trickle = self._trickles[key]
+        if trickle.handle_timer(now):
+            it = self._items[key]
+            self.send(DripItem(self.ctx.node_id, BROADCAST, key[0], key[1], it.version, it.body))
+            self.item_tx += 1
+        self._arm(key)
+
+    # ------------------------------------------------------------------ internals
+
+    def _on_item_frame(self, f: DripItem, now: float) -> None:
+        key = (f.kind, f.item_id)
+        cur = self._items.get(key)
+        if cur is None or f.version > cur.version:
+            self._adopt(f, now, source=f.src)
+        elif f.version < cur.version:
+            self._trickles[key].reset(now)
+            self._arm(key)
+        else:
+            self._trickles[key].hear_consistent()
+
+    def _on_summary(self, f: DripSummary, now: float) -> None:
+        n = len(self._items)
+        if f.digest == self._digest and f.n_items == n:
+            return
+        if n:
+            # We may be ahead of the sender: speak up about everything soon.
+            for key, trickle in self._trickles.items():
+                trickle.reset(now)
+                self._arm(key)
+        if f.n_items > n and now - self._last_summary >= self.ctx.config.drip_summary_min_gap:
+            # The sender may be ahead of us: ask it to speak up (it holds items).
+            due = now + self.ctx.rng.uniform(0.0, self.ctx.config.drip_summary_delay)
+            cur = self.timers.get("summary")
+            if cur is None or due < cur:
+                self.timers.set("summary", due)
+
+    def _send_summary(self, now: float) -> None:
+        self._last_summary = now
+        self.summary_tx += 1
+        n = min(len(self._items), 0xFFFF)
+        self.send(DripSummary(self.ctx.node_id, BROADCAST, self._digest, n))
+
+    def _adopt(self, f: DripItem, now: float, source: int | None) -> None:
+        key = (f.kind, f.item_id)
+        cur = self._items.get(key)
+        if source is not None:
+            reason = self._refusal(f, cur)
+            if reason is not None:
+                self.refused += 1
+                self.ctx.emit(ItemRefused(f.kind, f.item_id, f.version, source, reason))
+                return
+        if cur is None:
+            self._make_room(f.kind)
+        else:
+            self._digest = (self._digest - digest_term(f.kind, f.item_id, cur.version)) & _M32
+        self._digest = (self._digest + digest_term(f.kind, f.item_id, f.version)) & _M32
+        self._items[key] = Item(f.version, f.item)
+        self._changed[key] = now
+        trickle = self._trickles.get(key)
+        if trickle is None:
+            cfg = self.ctx.config
+            trickle = self._trickles[key] = Trickle(
+                cfg.drip_tau_l, cfg.drip_tau_h, cfg.drip_k, self.ctx.rng
+            )
+        trickle.reset(now)
+        self._arm(key)
+        self.ctx.emit(ItemAdopted(f.kind, f.item_id, f.version, f.item is None, source))
+        # Components hear about content changes only: a tombstone for a key we
+        # never held live changes nothing for them.
+        if f.item is not None or (cur is not None and cur.body is not None):
+            self.on_item(f.kind, f.item_id, f.item, now)
+
+    def _refusal(self, f: DripItem, cur: Item | None) -> str | None:
+        if cur is None and not self.accepts(f.kind, f.item_id):
+            return f"{f.kind.name} table full"
+        try:
+            encode(f, self.ctx.config.mtu)
+        except FrameTooLarge as e:
+            return str(e)  # could not pass it on
+        return None
+
+    def _make_room(self, kind: ItemKind) -> None:
+        same = [k for k in self._items if k[0] == kind]
+        if len(same) < self.capacity(kind):
+            return
+        tombs = [k for k in same if self._items[k].body is None]
+        victim = min(tombs, key=self._changed.__getitem__)  # accepts() guaranteed one
+        old = self._items.pop(victim)
+        self._digest = (self._digest - digest_term(victim[0], victim[1], old.version)) & _M32
+        del self._trickles[victim], self._changed[victim]
+        self.timers.cancel(("item", *victim))
+
+    def _arm(self, key: ItemKey) -> None:
+        d = self._trickles[key].next_deadline()
+        name = ("item", key[0], key[1])
+        if d is None:
+            self.timers.cancel(name)
+        else:
+            self.timers.set(name, d)

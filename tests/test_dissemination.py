@@ -1,0 +1,334 @@
+"""Drip dissemination: unit tests on a fake clock, and small in-memory networks."""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+
+import pytest
+
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.dissemination import (
+    Dissemination,
+    ItemAdopted,
+    ItemRefused,
+    ItemTableFull,
+    digest_of,
+    digest_term,
+)
+from awaremw.protocol.frames import (
+    BROADCAST,
+    ChannelDef,
+    CommandDef,
+    Condition,
+    DripItem,
+    DripSummary,
+    FrameTooLarge,
+    GroupTypeDef,
+    ItemBody,
+    ItemKind,
+    Op,
+    decode,
+)
+from awaremw.protocol.mote import MoteContext
+
+CH = ItemKind.CHANNEL
+GT = ItemKind.GROUP_TYPE
+CHAN = ChannelDef(attr=0, group_type=1, group_id=0xFFFF, period_ms=2000, agg=0)
+CHAN2 = ChannelDef(attr=1, group_type=1, group_id=0xFFFF, period_ms=1000, agg=1)
+HOT = GroupTypeDef((Condition(0, Op.GT, 45.0),))
+
+Calls = list[tuple[ItemKind, int, ItemBody | None, float]]
+
+
+def make(
+    node: int = 1, seed: int = 0, **cfg: object
+) -> tuple[Dissemination, MoteContext, Calls]:
+    ctx = MoteContext(node, MiddlewareConfig().with_overrides(cfg), random.Random(seed), None)
+    calls: Calls = []
+    d = Dissemination(ctx, lambda k, i, b, t: calls.append((k, i, b, t)))
+    return d, ctx, calls
+
+
+def sent(ctx: MoteContext) -> list[DripItem | DripSummary]:
+    out = [decode(t.frame) for t in ctx.outbox]
+    ctx.outbox.clear()
+    assert all(isinstance(f, DripItem | DripSummary) and f.dst == BROADCAST for f in out)
+    return out  # type: ignore[return-value]
+
+
+def advance(d: Dissemination, until: float) -> float:
+    """Fire d's timers on a fake clock up to ``until``; return the clock."""
+    now = 0.0
+    while (t := d.timers.next_deadline()) is not None and t <= until:
+        now = t
+        for name in d.timers.due(now):
+            d.on_timer(name, now)
+    return until
+
+
+# --------------------------------------------------------------------------- unit
+
+
+def test_digest_is_order_independent_and_version_sensitive() -> None:
+    a, _, _ = make()
+    b, _, _ = make(node=2)
+    a.inject(CH, 1, 3, CHAN, 0.0)
+    a.inject(GT, 4, 1, HOT, 0.0)
+    b.inject(GT, 4, 1, HOT, 0.0)
+    b.inject(CH, 1, 3, CHAN, 0.0)
+    assert a.digest == b.digest == digest_of(a.items) != 0
+    b.inject(CH, 1, 4, CHAN, 1.0)
+    assert a.digest != b.digest
+    assert digest_term(CH, 1, 3) != digest_term(CH, 1, 4) != digest_term(GT, 1, 4)
+
+
+def test_inject_adopts_once_and_is_idempotent() -> None:
+    d, ctx, calls = make()
+    assert d.inject(CH, 2, 5, CHAN, 1.0) is True
+    assert calls == [(CH, 2, CHAN, 1.0)]
+    assert ctx.event_list == [ItemAdopted(CH, 2, 5, False, None)]
+    assert d.inject(CH, 2, 5, CHAN, 2.0) is False  # same version again
+    assert d.inject(CH, 2, 4, CHAN2, 2.0) is False  # older
+    assert len(calls) == 1 and d.version_of(CH, 2) == 5 and d.items[(CH, 2)].body == CHAN
+    assert d.version_of(CH, 3) is None
+    with pytest.raises(TypeError):
+        d.items[(CH, 9)] = (1, None)  # type: ignore[index]  # read-only view
+
+
+def test_inject_rejects_bad_items_before_storing() -> None:
+    d, _, calls = make(mtu=40)
+    with pytest.raises(ValueError, match="carries"):
+        d.inject(CH, 1, 1, HOT, 0.0)  # a group type in a channel item
+    big = CommandDef("x" * 16, args=tuple((f"a{i}", "v" * 10) for i in range(8)))
+    with pytest.raises(FrameTooLarge):
+        d.inject(ItemKind.COMMAND, 0, 1, big, 0.0)
+    assert not d.items and not calls
+
+
+def test_first_broadcast_in_first_interval_then_intervals_double() -> None:
+    d, ctx, _ = make(drip_tau_l=1.0, drip_tau_h=8.0)
+    d.start(0.0)
+    d.inject(CH, 1, 1, CHAN, 0.0)
+    advance(d, 0.999)
+    items = [f for f in sent(ctx) if isinstance(f, DripItem)]
+    assert [(f.kind, f.item_id, f.version, f.item) for f in items] == [(CH, 1, 1, CHAN)]
+    advance(d, 60.0)
+    n = len([f for f in sent(ctx) if isinstance(f, DripItem)])
+    # intervals 2, 4, 8, 8, ... within 60 s: 1 + 1 + 1 + 6 more (59 - 7) / 8 ~ 6.5
+    assert 8 <= n <= 10
+
+
+def test_newer_adopted_same_suppresses_older_resets() -> None:
+    d, ctx, calls = make(drip_tau_l=1.0, drip_tau_h=64.0)
+    d.start(0.0)
+    d.on_frame(DripItem(7, BROADCAST, CH, 1, 3, CHAN), -70.0, 0.0)
+    assert calls == [(CH, 1, CHAN, 0.0)]
+    assert [e for e in ctx.event_list if isinstance(e, ItemAdopted)] == [
+        ItemAdopted(CH, 1, 3, False, 7)
+    ]
+    # The same version heard in this interval suppresses our transmission (k = 1).
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 3, CHAN), -70.0, 0.1)
+    advance(d, 0.999)
+    assert not [f for f in sent(ctx) if isinstance(f, DripItem)]
+    advance(d, 40.0)
+    sent(ctx)
+    t = d.trickle(CH, 1)
+    assert t is not None and t.interval is not None and t.interval > 8.0
+    # Someone still has version 2: reset, and it hears version 3 within tau_l.
+    d.on_frame(DripItem(9, BROADCAST, CH, 1, 2, CHAN2), -70.0, 40.0)
+    assert t.interval == 1.0 and d.version_of(CH, 1) == 3 and len(calls) == 1
+    d.timers.due(0.0)
+    now = 40.0
+    while (nd := d.timers.next_deadline()) is not None and nd < 41.0:
+        now = nd
+        for name in d.timers.due(now):
+            d.on_timer(name, now)
+    assert [(f.version, f.item) for f in sent(ctx) if isinstance(f, DripItem)] == [(3, CHAN)]
+
+
+def test_deletion_is_a_tombstone_version() -> None:
+    d, ctx, calls = make()
+    d.on_frame(DripItem(7, BROADCAST, CH, 1, 1, CHAN), -70.0, 0.0)
+    d.on_frame(DripItem(7, BROADCAST, CH, 1, 2, None), -70.0, 1.0)
+    assert calls[-1] == (CH, 1, None, 1.0)
+    assert d.items[(CH, 1)] == (2, None)
+    # An old live copy cannot come back.
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 1, CHAN), -70.0, 2.0)
+    assert d.items[(CH, 1)].body is None and len(calls) == 2
+    # A tombstone for a key never held live is kept (and passed on) but the
+    # components are not told: nothing changed for them.
+    d.on_frame(DripItem(8, BROADCAST, GT, 3, 5, None), -70.0, 3.0)
+    assert d.version_of(GT, 3) == 5 and len(calls) == 2
+    assert ItemAdopted(GT, 3, 5, True, 8) in ctx.event_list
+
+
+def test_table_bound_evicts_oldest_tombstone_else_refuses() -> None:
+    d, ctx, _calls = make(max_channels=2)
+    d.inject(CH, 1, 1, CHAN, 0.0)
+    d.inject(CH, 2, 1, CHAN, 0.0)
+    assert not d.accepts(CH, 3) and d.accepts(CH, 2) and d.accepts(GT, 3)
+    with pytest.raises(ItemTableFull):
+        d.inject(CH, 3, 1, CHAN, 1.0)
+    d.on_frame(DripItem(9, BROADCAST, CH, 3, 1, CHAN), -70.0, 1.0)
+    assert ItemRefused(CH, 3, 1, 9, "CHANNEL table full") in ctx.event_list
+    assert (CH, 3) not in d.items and d.refused == 1
+    # Delete 2 then 1: the tombstone of 2 is older and goes first.
+    d.inject(CH, 2, 2, None, 2.0)
+    d.inject(CH, 1, 2, None, 3.0)
+    d.on_frame(DripItem(9, BROADCAST, CH, 3, 1, CHAN), -70.0, 4.0)
+    assert set(d.items) == {(CH, 1), (CH, 3)}
+    assert d.digest == digest_of(d.items)
+    assert d.trickle(CH, 2) is None and ("item", CH, 2) not in d.timers
+
+
+def test_boot_summary_with_repeats() -> None:
+    d, ctx, _ = make(drip_summary_delay=0.5, drip_summary_repeats=2, drip_summary_spacing=2.0)
+    d.start(10.0)
+    times = []
+    now = 10.0
+    while (t := d.timers.next_deadline()) is not None and t < 30.0:
+        now = t
+        for name in d.timers.due(now):
+            d.on_timer(name, now)
+        for f in sent(ctx):
+            assert isinstance(f, DripSummary) and f.digest == 0 and f.n_items == 0
+            times.append(now)
+    assert len(times) == 3
+    assert 10.0 <= times[0] <= 10.5
+    assert times[1] - times[0] == pytest.approx(2.0) and times[2] - times[1] == pytest.approx(4.0)
+
+
+def test_differing_summary_resets_items_and_answers_when_behind() -> None:
+    d, ctx, _ = make(drip_tau_h=1050.0)
+    d.start(0.0)
+    d.inject(CH, 1, 1, CHAN, 0.0)
+    d.inject(GT, 1, 1, HOT, 0.0)
+    advance(d, 3000.0)
+    sent(ctx)
+    for key in d.items:
+        t = d.trickle(*key)
+        assert t is not None and t.interval == 1050.0
+    # Same digest: nothing.
+    d.on_frame(DripSummary(5, BROADCAST, d.digest, 2), -70.0, 3000.0)
+    assert all(d.trickle(*k).interval == 1050.0 for k in d.items)  # type: ignore[union-attr]
+    # A newcomer with nothing: every item goes out within tau_l.
+    d.on_frame(DripSummary(5, BROADCAST, 0, 0), -70.0, 3000.0)
+    assert all(d.trickle(*k).interval == 1.0 for k in d.items)  # type: ignore[union-attr]
+    assert d.timers.get("summary") is None  # we are not behind it
+    # A mote holding more than us: we answer with our summary so it speaks up.
+    d.on_frame(DripSummary(6, BROADCAST, 1234, 5), -70.0, 3001.0)
+    due = d.timers.get("summary")
+    assert due is not None and 3001.0 <= due <= 3001.5
+
+
+def test_empty_mote_answers_but_does_not_reset() -> None:
+    d, _, _ = make()
+    d.on_frame(DripSummary(6, BROADCAST, 99, 3), -70.0, 5.0)
+    assert d.timers.get("summary") is not None
+    assert not d.items
+
+
+# --------------------------------------------------------------------------- in-memory networks
+
+
+class Net:
+    """Dissemination components on a perfect broadcast medium (adjacency given)."""
+
+    def __init__(self, links: Callable[[int, int], bool], **cfg: object) -> None:
+        self.links = links
+        self.cfg = cfg
+        self.nodes: dict[int, tuple[Dissemination, MoteContext, Calls]] = {}
+        self.now = 0.0
+        self.tx = 0
+
+    def add(self, node: int) -> Dissemination:
+        self.nodes[node] = make(node, seed=node, **self.cfg)
+        self.nodes[node][0].start(self.now)
+        return self.nodes[node][0]
+
+    def kill(self, node: int) -> None:
+        del self.nodes[node]
+
+    def run_until(self, end: float) -> None:
+        while True:
+            due = [
+                (t, n)
+                for n, (d, _, _) in self.nodes.items()
+                if (t := d.timers.next_deadline()) is not None
+            ]
+            if not due or min(due)[0] > end:
+                break
+            t, n = min(due)
+            self.now = t
+            d, ctx, _ = self.nodes[n]
+            for name in d.timers.due(t):
+                d.on_timer(name, t)
+            for tx in ctx.outbox:
+                self.tx += 1
+                f = decode(tx.frame)
+                for m, (dm, _, _) in list(self.nodes.items()):
+                    if m != n and self.links(n, m):
+                        dm.on_frame(f, -70.0, t)
+            ctx.outbox.clear()
+        self.now = end
+
+
+def line(a: int, b: int) -> bool:
+    return abs(a - b) == 1
+
+
+def test_item_crosses_a_line_about_a_hop_per_tau_l() -> None:
+    net = Net(line, drip_tau_l=1.0, drip_tau_h=1050.0)
+    for n in range(10):
+        net.add(n)
+    net.run_until(5.0)
+    net.nodes[0][0].inject(CH, 1, 1, CHAN, 5.0)
+    adopted: dict[int, float] = {}
+    t = 5.0
+    while len(adopted) < 10 and t < 60.0:
+        t += 0.25
+        net.run_until(t)
+        for n, (d, _, calls) in net.nodes.items():
+            if d.version_of(CH, 1) == 1 and n not in adopted:
+                adopted[n] = calls[-1][3]
+    assert len(adopted) == 10
+    assert adopted[9] - 5.0 < 9 * 1.0  # each hop within one tau_l
+
+
+def test_late_mote_catches_up_from_one_neighbour_in_seconds() -> None:
+    net = Net(lambda a, b: True, drip_tau_l=1.0, drip_tau_h=1050.0)
+    g = net.add(0)
+    net.add(1)
+    g.inject(CH, 1, 1, CHAN, 0.0)
+    g.inject(GT, 1, 1, HOT, 0.0)
+    g.inject(CH, 2, 1, None, 0.0)
+    net.run_until(5000.0)  # Trickles at tau_h by now
+    net.kill(0)  # the gateway is gone; mote 1 survives alone
+    tx_before = net.tx
+    late = [net.add(n) for n in range(2, 7)]
+    net.run_until(5004.0)
+    survivor = net.nodes[1][0]
+    for d in late:
+        assert dict(d.items) == dict(survivor.items)
+        assert d.digest == survivor.digest
+    assert net.tx - tx_before < 60  # summaries + a few rounds, not a storm
+
+
+def test_boot_summary_makes_an_ahead_neighbour_speak_up() -> None:
+    # Motes 1 and 2 grew apart (1 holds v2, 2 holds v1, both Trickles at tau_h),
+    # then end up side by side. A mote booting next to them makes both speak up
+    # at once, so 2 is updated in seconds, not in tau_h.
+    apart = {1, 2}
+    net = Net(lambda a, b: {a, b} != apart)
+    one, two = net.add(1), net.add(2)
+    one.inject(CH, 1, 2, CHAN2, 0.0)
+    two.inject(CH, 1, 1, CHAN, 0.0)
+    net.run_until(3000.0)
+    apart.clear()
+    net.run_until(3001.0)
+    assert two.items[(CH, 1)] == (1, CHAN)  # nothing would happen for minutes
+    net.add(3)
+    net.run_until(3004.0)
+    assert two.items[(CH, 1)] == (2, CHAN2)
+    assert net.nodes[3][0].items[(CH, 1)] == (2, CHAN2)
