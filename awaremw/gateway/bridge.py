@@ -1,0 +1,317 @@
+"""The gateway's logic, independent of any transport (sans-IO).
+
+:class:`GatewayBridge` is fed with what arrives from the IP side (a topic
+relative to the prefix, e.g. ``def/channel/3``, and its payload) and with
+what the collection tree delivers at a gateway mote (``DataRecord`` and
+``GroupReport``). It answers with plain values:
+
+* :class:`Inject` -- a versioned Drip item for the gateway mote(s);
+* :class:`Publish` -- something for the IP side, with a topic relative to the
+  prefix (``data/1/1/513``, ``groups/1/513``); the MQTT bridge prepends
+  ``aware/``, the Zenoh API ``aware/hbn/``;
+* :class:`ErrorReport` -- why a payload was refused, for the transport it came
+  from (``<prefix>/errors`` or ``<prefix>/hbn/errors``).
+
+It owns the version store and the table of live groups; it never blocks,
+sleeps or talks to a socket.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+from awaremw.gateway.schema import (
+    Limits,
+    SchemaError,
+    UnknownTopic,
+    agg_name,
+    parse_channel,
+    parse_command,
+    parse_group_type,
+)
+from awaremw.gateway.store import StoredItem, VersionStore, payload_hash
+from awaremw.protocol.attributes import attribute_name
+from awaremw.protocol.frames import (
+    ChannelDef,
+    DataRecord,
+    GroupReport,
+    GroupStatus,
+    ItemBody,
+    ItemKind,
+)
+
+log = logging.getLogger(__name__)
+
+MAX_ERROR_PAYLOAD = 512  # characters of the refused payload echoed on the errors topic
+
+
+@dataclass(frozen=True, slots=True)
+class Inject:
+    """A versioned item to inject into every gateway mote."""
+
+    kind: ItemKind
+    item_id: int
+    version: int
+    body: ItemBody | None
+
+
+@dataclass(frozen=True, slots=True)
+class Publish:
+    """A message for the IP side; ``topic`` is relative to the prefix."""
+
+    topic: str
+    payload: bytes  # b"" with retain=True clears a retained topic
+    retain: bool = False
+    qos: int = 1
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorReport:
+    """A refusal, for the errors topic of the transport the payload came from."""
+
+    topic: str  # the full topic / key expression the payload arrived on
+    code: str
+    error: str
+    payload: str
+
+    def to_json(self) -> bytes:
+        return json.dumps(
+            {"topic": self.topic, "error": self.error, "code": self.code, "payload": self.payload}
+        ).encode()
+
+
+@dataclass(frozen=True, slots=True)
+class Outcome:
+    """What one incoming payload led to."""
+
+    inject: Inject | None = None
+    error: ErrorReport | None = None
+    replay: bool = False  # a retained payload already handled: ignored
+
+    @property
+    def accepted(self) -> bool:
+        return self.inject is not None
+
+
+@dataclass(slots=True)
+class GroupState:
+    group_type: int
+    group_id: int
+    leader: int
+    weight: int
+    members: int
+    t: float  # emulated time of the last report
+    last_heard: float  # emulated time of the last report or record
+
+    def to_json(self) -> bytes:
+        return json.dumps(
+            {
+                "group_type": self.group_type,
+                "group_id": self.group_id,
+                "leader": self.leader,
+                "weight": self.weight,
+                "members": self.members,
+                "t": round(self.t, 3),
+            }
+        ).encode()
+
+
+@dataclass(slots=True)
+class BridgeStats:
+    accepted: int = 0
+    unchanged: int = 0  # valid payloads equal to the current state: no new version
+    replays: int = 0  # retained payloads seen before: ignored
+    refused: int = 0
+    records: int = 0
+    duplicate_records: int = 0
+    group_reports: int = 0
+    groups_gone: int = 0
+    groups_expired: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {k: getattr(self, k) for k in self.__slots__}
+
+
+def group_topic(group_type: int, group_id: int) -> str:
+    return f"groups/{group_type}/{group_id}"
+
+
+def data_topic(channel: int, group_type: int, group_id: int) -> str:
+    return f"data/{channel}/{group_type}/{group_id}"
+
+
+@dataclass
+class GatewayBridge:
+    """Validation, versions and the IP-side view of the WSN, without I/O.
+
+    ``report_period_s`` is how often leaders report their group (emulated
+    seconds); a group unheard for ``expiry_periods`` of them is taken as gone.
+    """
+
+    store: VersionStore
+    limits: Limits = field(default_factory=Limits)
+    report_period_s: float = 10.0
+    expiry_periods: float = 3.0
+    command_slots: int = 16
+    dedupe_window: int = 4096
+    groups: dict[tuple[int, int], GroupState] = field(default_factory=dict)
+    stats: BridgeStats = field(default_factory=BridgeStats)
+    _recent: OrderedDict[tuple[int, int, int, int], None] = field(default_factory=OrderedDict)
+
+    # ----------------------------------------------------------------- IP -> WSN
+
+    def startup(self) -> list[Inject]:
+        """The stored state, to inject into the gateway motes when they start."""
+        return [Inject(i.kind, i.item_id, i.version, i.body) for i in self.store.items()]
+
+    def handle(
+        self, rel_topic: str, payload: bytes, *, source: str, retained: bool = False
+    ) -> Outcome:
+        """One payload from the IP side on ``rel_topic`` (relative to the prefix).
+
+        ``source`` is the full topic as the sender saw it (echoed in errors and
+        used to recognise replays); ``retained`` marks a payload replayed by
+        the broker from its retained store rather than published just now: one
+        equal to the last payload seen on that topic is ignored, so a
+        reconnect or restart never applies a definition twice.
+        """
+        h = payload_hash(payload)
+        if retained and self.store.last_seen(source) == h:
+            self.stats.replays += 1
+            return Outcome(replay=True)
+        try:
+            outcome = self._apply(rel_topic, payload)
+        except SchemaError as e:
+            self.stats.refused += 1
+            text = payload.decode("utf-8", errors="replace")[:MAX_ERROR_PAYLOAD]
+            log.warning("refused %s: %s", source, e)
+            self.store.set_seen(source, h)
+            return Outcome(error=ErrorReport(source, e.code, str(e), text))
+        self.store.set_seen(source, h)
+        return outcome
+
+    def _apply(self, rel_topic: str, payload: bytes) -> Outcome:
+        parts = rel_topic.split("/")
+        if len(parts) == 3 and parts[:2] == ["def", "group"]:
+            d = parse_group_type(
+                parts[2], payload, self.limits, self.store.defined_ids(ItemKind.GROUP_TYPE)
+            )
+            return self._store(d.kind, d.item_id, d.body, d.json)
+        if len(parts) == 3 and parts[:2] == ["def", "channel"]:
+            d = parse_channel(
+                parts[2], payload, self.limits, self.store.defined_ids(ItemKind.CHANNEL)
+            )
+            return self._store(d.kind, d.item_id, d.body, d.json)
+        if len(parts) == 2 and parts[0] == "cmd":
+            c = parse_command(
+                parts[1], payload, self.limits, self.store.defined_ids(ItemKind.GROUP_TYPE)
+            )
+            slot = self.store.command_slot(c.name, self.command_slots)
+            item = self.store.bump(ItemKind.COMMAND, slot, c.body, {"name": c.name, **c.json})
+            self.stats.accepted += 1
+            log.info("command %s -> slot %d version %d", c.name, slot, item.version)
+            return Outcome(inject=Inject(item.kind, item.item_id, item.version, item.body))
+        raise UnknownTopic(
+            f"unknown topic {rel_topic!r}; use def/group/<type>, def/channel/<id> or cmd/<name>"
+        )
+
+    def _store(self, kind: ItemKind, item_id: int, body: ItemBody | None, js: Any) -> Outcome:
+        item = self.store.apply(kind, item_id, body, None if js is None else dict(js))
+        if item is None:
+            self.stats.unchanged += 1
+            return Outcome()
+        self.stats.accepted += 1
+        what = "deleted" if body is None else "defined"
+        log.info("%s %d %s, version %d", kind.name.lower(), item_id, what, item.version)
+        return Outcome(inject=Inject(item.kind, item.item_id, item.version, item.body))
+
+    # ----------------------------------------------------------------- WSN -> IP
+
+    def on_payload(self, payload: DataRecord | GroupReport, now: float) -> list[Publish]:
+        """A payload the collection tree delivered at a gateway mote at emulated ``now``."""
+        if isinstance(payload, DataRecord):
+            return self.on_record(payload, now)
+        return self.on_report(payload, now)
+
+    def on_record(self, r: DataRecord, now: float) -> list[Publish]:
+        key = (r.channel, r.group_type, r.group_id, r.epoch)
+        if key in self._recent:
+            # Several gateway roots, or a link-layer retry whose ACK was lost.
+            self.stats.duplicate_records += 1
+            return []
+        self._recent[key] = None
+        if len(self._recent) > self.dedupe_window:
+            self._recent.popitem(last=False)
+        self.stats.records += 1
+        g = self.groups.get((r.group_type, r.group_id))
+        if g is not None:
+            g.last_heard = max(g.last_heard, now)
+        doc: dict[str, Any] = {
+            "value": r.value,
+            "count": r.count,
+            "agg": agg_name(r.agg),
+            "epoch": r.epoch,
+            "leader": r.leader,
+            "t": round(now, 3),
+        }
+        ch = self.store.get(ItemKind.CHANNEL, r.channel)
+        if ch is not None and isinstance(ch.body, ChannelDef):
+            doc["attr"] = attribute_name(ch.body.attr)
+        return [Publish(data_topic(r.channel, r.group_type, r.group_id), json.dumps(doc).encode())]
+
+    def on_report(self, r: GroupReport, now: float) -> list[Publish]:
+        self.stats.group_reports += 1
+        key = (r.group_type, r.group_id)
+        if r.status is GroupStatus.GONE:
+            if self.groups.pop(key, None) is None:
+                return []
+            self.stats.groups_gone += 1
+            log.info(
+                "group %d/%d gone%s", *key, f" (merged into {r.successor})" if r.successor else ""
+            )
+            return [Publish(group_topic(*key), b"", retain=True)]
+        g = GroupState(r.group_type, r.group_id, r.leader, r.weight, r.members, now, now)
+        self.groups[key] = g
+        return [Publish(group_topic(*key), g.to_json(), retain=True)]
+
+    def expire(self, now: float) -> list[Publish]:
+        """Clear the groups not heard from for ``expiry_periods`` report periods."""
+        limit = self.expiry_periods * self.report_period_s
+        out = []
+        for key, g in list(self.groups.items()):
+            if now - g.last_heard > limit:
+                del self.groups[key]
+                self.stats.groups_expired += 1
+                log.info("group %d/%d expired (unheard for %.1f s)", *key, now - g.last_heard)
+                out.append(Publish(group_topic(*key), b"", retain=True))
+        return out
+
+    def next_expiry(self) -> float | None:
+        """Emulated time at which :meth:`expire` may next clear a group."""
+        if not self.groups:
+            return None
+        limit = self.expiry_periods * self.report_period_s
+        return min(g.last_heard for g in self.groups.values()) + limit
+
+    # ----------------------------------------------------------------- views
+
+    def group_states(self) -> dict[str, bytes]:
+        """Retained state of every live group, by relative topic."""
+        return {group_topic(*k): g.to_json() for k, g in sorted(self.groups.items())}
+
+    def definitions(self) -> dict[str, dict[str, Any]]:
+        """Current definitions by relative topic (``def/group/1``: JSON, with its version)."""
+        out: dict[str, dict[str, Any]] = {}
+        for item in self.store.items(include_deleted=False):
+            if item.kind is ItemKind.COMMAND:
+                continue
+            sub = "group" if item.kind is ItemKind.GROUP_TYPE else "channel"
+            out[f"def/{sub}/{item.item_id}"] = {**(item.json or {}), "version": item.version}
+        return out
+
+    def item(self, kind: ItemKind, item_id: int) -> StoredItem | None:
+        return self.store.get(kind, item_id)

@@ -1,0 +1,369 @@
+"""The MQTT side of the gateway: aiomqtt, a reconnect loop and an outage buffer.
+
+:class:`MqttBridge` keeps one connection to the broker alive with aiomqtt's
+documented pattern (``async with client`` inside ``while True``, sleeping with
+exponential backoff after an ``MqttError``). Outgoing messages never wait for
+the broker:
+
+* stream messages (data records, errors) go into a bounded FIFO; while the
+  broker is away it fills up to ``buffer_size`` messages, then the oldest are
+  dropped and counted. After a reconnect the backlog is delivered in order. A
+  message leaves the FIFO only once the broker acknowledged it (QoS 1), and
+  each connection uses a fresh client, so nothing is sent twice -- except the
+  one message whose acknowledgement the crash itself swallowed, which is sent
+  again (counted in ``resent``).
+* retained state (group states, gateway status and stats) is kept as latest
+  value per topic and re-published on every connect, because a broker that
+  restarted without persistence has lost its retained messages.
+
+Incoming messages on ``<prefix>/def/#`` and ``<prefix>/cmd/#`` are handed to a
+callback with their topic relative to the prefix and their retain flag.
+
+The gateway uses a persistent session (MQTT 5 clean start off with a session
+expiry, or 3.1.1 clean session off) so that definitions and deletions sent
+while it was disconnected are queued by the broker for it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import ssl
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Literal
+from urllib.parse import unquote, urlsplit
+
+import aiomqtt
+from aiomqtt.exceptions import MqttConnectError
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+from awaremw.gateway.bridge import Publish
+
+log = logging.getLogger(__name__)
+
+ProtocolChoice = Literal["auto", "5", "3.1.1"]
+OnMessage = Callable[[str, bytes, bool, str], None]  # (rel_topic, payload, retained, topic)
+
+STATUS_TOPIC = "gateway/status"
+STATS_TOPIC = "gateway/stats"
+ERRORS_TOPIC = "errors"
+
+
+class BadMqttUrl(ValueError):
+    """An MQTT URL the gateway cannot use (a configuration error)."""
+
+
+@dataclass(frozen=True, slots=True)
+class MqttSettings:
+    """Everything about the broker connection; all of it is configuration."""
+
+    host: str = "127.0.0.1"
+    port: int = 1883
+    username: str | None = None
+    password: str | None = None
+    tls: bool = False
+    ca_file: str | None = None
+    tls_insecure: bool = False  # skip hostname verification (self-signed test brokers)
+    client_id: str = "awaremw-gateway"
+    prefix: str = "aware"
+    protocol: ProtocolChoice = "auto"  # MQTT 5 where the broker has it, else 3.1.1
+    keepalive: int = 30
+    timeout_s: float = 5.0
+    reconnect_min_s: float = 0.1
+    reconnect_max_s: float = 5.0
+    buffer_size: int = 10_000  # stream messages kept while the broker is away
+    session_expiry_s: int = 86_400
+    persistent_session: bool = True
+    drain_timeout_s: float = 2.0  # on stop, how long to try to deliver the backlog
+
+    @classmethod
+    def from_url(cls, url: str, **overrides: object) -> MqttSettings:
+        """``mqtt://[user:pass@]host[:port]`` or ``mqtts://...`` (port 1883 / 8883)."""
+        try:
+            u = urlsplit(url)
+            port = u.port
+        except ValueError as e:
+            raise BadMqttUrl(f"bad MQTT URL {url!r}: {e}") from None
+        if u.scheme not in ("mqtt", "mqtts"):
+            raise BadMqttUrl(f"bad MQTT URL {url!r}: the scheme must be mqtt:// or mqtts://")
+        if not u.hostname:
+            raise BadMqttUrl(f"bad MQTT URL {url!r}: no host")
+        if u.path not in ("", "/") or u.query or u.fragment:
+            raise BadMqttUrl(f"bad MQTT URL {url!r}: only mqtt[s]://[user:pass@]host:port")
+        tls = u.scheme == "mqtts"
+        base = cls(
+            host=u.hostname,
+            port=port if port is not None else (8883 if tls else 1883),
+            username=None if u.username is None else unquote(u.username),
+            password=None if u.password is None else unquote(u.password),
+            tls=tls,
+        )
+        return replace(base, **overrides)  # type: ignore[arg-type]
+
+    @property
+    def url(self) -> str:
+        """The URL without the password (for logs)."""
+        user = f"{self.username}@" if self.username else ""
+        return f"{'mqtts' if self.tls else 'mqtt'}://{user}{self.host}:{self.port}"
+
+    def topic(self, rel: str) -> str:
+        return f"{self.prefix}/{rel}"
+
+
+@dataclass(slots=True)
+class MqttStats:
+    connects: int = 0
+    connect_failures: int = 0
+    disconnects: int = 0
+    published: int = 0  # stream messages acknowledged by the broker
+    dropped: int = 0  # stream messages dropped because the buffer was full
+    resent: int = 0  # in flight when the connection broke: sent again
+    received: int = 0
+    protocol: str = ""
+
+    def as_dict(self) -> dict[str, int | str]:
+        return {k: getattr(self, k) for k in self.__slots__}
+
+
+@dataclass(slots=True)
+class _Item:
+    topic: str  # full topic
+    payload: bytes
+    qos: int
+    enqueued: float = field(default_factory=time.monotonic)
+
+
+class MqttBridge:
+    """One resilient MQTT connection for the gateway."""
+
+    def __init__(self, settings: MqttSettings, on_message: OnMessage) -> None:
+        self.settings = settings
+        self.on_message = on_message
+        self.stats = MqttStats()
+        self.connected = asyncio.Event()
+        self._fifo: deque[_Item] = deque()
+        self._retained: dict[str, bytes] = {}  # full topic -> latest payload
+        self._dirty: dict[str, bytes] = {}  # retained topics still to (re)publish
+        self._wakeup = asyncio.Event()
+        self._stop = asyncio.Event()
+        self._protocol: aiomqtt.ProtocolVersion | None = {
+            "5": aiomqtt.ProtocolVersion.V5,
+            "3.1.1": aiomqtt.ProtocolVersion.V311,
+            "auto": None,
+        }[settings.protocol]
+        self._reported_dropped = 0
+        self._last_error = ""
+
+    # ----------------------------------------------------------------- producer side
+
+    def publish(self, p: Publish) -> None:
+        """Queue ``p`` (topic relative to the prefix); never blocks."""
+        topic = self.settings.topic(p.topic)
+        if p.retain:
+            if p.payload:
+                self._retained[topic] = p.payload
+            else:
+                self._retained.pop(topic, None)
+            self._dirty[topic] = p.payload
+        else:
+            if len(self._fifo) >= self.settings.buffer_size:
+                self._fifo.popleft()
+                self.stats.dropped += 1
+            self._fifo.append(_Item(topic, p.payload, p.qos))
+        self._wakeup.set()
+
+    @property
+    def backlog(self) -> int:
+        """Stream messages not yet acknowledged by the broker."""
+        return len(self._fifo)
+
+    def stats_json(self) -> bytes:
+        return json.dumps(
+            {
+                **self.stats.as_dict(),
+                "buffered": len(self._fifo),
+                "buffer_size": self.settings.buffer_size,
+            }
+        ).encode()
+
+    # ----------------------------------------------------------------- connection loop
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to deliver what it can, say ``offline`` and return."""
+        self._stop.set()
+
+    async def run(self) -> None:
+        """Connect, serve, reconnect with backoff until :meth:`stop`."""
+        s = self.settings
+        backoff = s.reconnect_min_s
+        while not self._stop.is_set():
+            protocol = self._protocol or aiomqtt.ProtocolVersion.V5
+            client = self._client(protocol)
+            try:
+                async with client:
+                    self._on_connected(protocol)
+                    backoff = s.reconnect_min_s
+                    await self._serve(client)
+                    return  # stopped cleanly
+            except aiomqtt.MqttError as e:
+                if self._fallback(protocol, e):
+                    continue
+                self._note_failure(e)
+            finally:
+                if self.connected.is_set():
+                    self.connected.clear()
+                    self.stats.disconnects += 1
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), backoff)
+            backoff = min(backoff * 2, s.reconnect_max_s)
+
+    def _client(self, protocol: aiomqtt.ProtocolVersion) -> aiomqtt.Client:
+        s = self.settings
+        will = aiomqtt.Will(s.topic(STATUS_TOPIC), b"offline", qos=1, retain=True)
+        tls_context = None
+        if s.tls:
+            tls_context = ssl.create_default_context(cafile=s.ca_file)
+            if s.tls_insecure:
+                tls_context.check_hostname = False
+        kwargs: dict[str, object] = {}
+        if protocol is aiomqtt.ProtocolVersion.V5:
+            props = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
+            props.SessionExpiryInterval = s.session_expiry_s if s.persistent_session else 0
+            kwargs["properties"] = props
+            kwargs["clean_start"] = not s.persistent_session
+        else:
+            kwargs["clean_session"] = not s.persistent_session
+        return aiomqtt.Client(
+            s.host,
+            s.port,
+            username=s.username,
+            password=s.password,
+            identifier=s.client_id,
+            protocol=protocol,
+            will=will,
+            keepalive=s.keepalive,
+            timeout=s.timeout_s,
+            tls_context=tls_context,
+            tls_insecure=s.tls_insecure if s.tls else None,
+            **kwargs,  # type: ignore[arg-type]
+        )
+
+    def _fallback(self, protocol: aiomqtt.ProtocolVersion, e: aiomqtt.MqttError) -> bool:
+        """With ``protocol="auto"``, retry at once with 3.1.1 if the broker refused MQTT 5."""
+        if self._protocol is not None or protocol is not aiomqtt.ProtocolVersion.V5:
+            return False
+        # A 3.1.1 broker answers an MQTT 5 CONNECT with "unacceptable protocol
+        # version" (3.1.1 code 1, which paho reports as MQTT 5 reason 0x84).
+        if not isinstance(e, MqttConnectError):
+            return False
+        rc = getattr(e.rc, "value", e.rc)
+        if rc not in (1, 0x84):
+            return False
+        log.info("broker %s refused MQTT 5 (%s); using MQTT 3.1.1", self.settings.url, e)
+        self._protocol = aiomqtt.ProtocolVersion.V311
+        return True
+
+    def _on_connected(self, protocol: aiomqtt.ProtocolVersion) -> None:
+        if self._protocol is None:
+            self._protocol = protocol
+        self.stats.connects += 1
+        self.stats.protocol = "5" if protocol is aiomqtt.ProtocolVersion.V5 else "3.1.1"
+        self.connected.set()
+        log.info("connected to %s (MQTT %s)", self.settings.url, self.stats.protocol)
+        self._last_error = ""
+        # The broker may have lost its retained messages: publish them all again.
+        self._dirty = {**{t: p for t, p in self._retained.items()}, **self._dirty}
+
+    def _note_failure(self, e: Exception) -> None:
+        self.stats.connect_failures += 1
+        msg = str(e)
+        if msg != self._last_error:  # do not flood the log while the broker is away
+            log.warning("MQTT %s: %s; reconnecting", self.settings.url, msg)
+            self._last_error = msg
+
+    async def _serve(self, client: aiomqtt.Client) -> None:
+        s = self.settings
+        await client.publish(s.topic(STATUS_TOPIC), b"online", qos=1, retain=True)
+        await client.subscribe([(s.topic("def/#"), 1), (s.topic("cmd/#"), 1)])
+        self._wakeup.set()
+        reader = asyncio.create_task(self._reader(client))
+        sender = asyncio.create_task(self._sender(client))
+        stopper = asyncio.create_task(self._stop.wait())
+        tasks = {reader, sender, stopper}
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        for t in done:
+            if t is not stopper and (exc := t.exception()) is not None:
+                raise exc
+        # Stopping: deliver the backlog if the broker lets us, then say goodbye.
+        with contextlib.suppress(TimeoutError, aiomqtt.MqttError):
+            async with asyncio.timeout(s.drain_timeout_s):
+                await self._flush(client)
+        with contextlib.suppress(aiomqtt.MqttError):
+            await client.publish(s.topic(STATS_TOPIC), self.stats_json(), qos=1, retain=True)
+            await client.publish(s.topic(STATUS_TOPIC), b"offline", qos=1, retain=True)
+
+    async def _reader(self, client: aiomqtt.Client) -> None:
+        plen = len(self.settings.prefix) + 1
+        async for m in client.messages:
+            self.stats.received += 1
+            topic = m.topic.value
+            payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
+            try:
+                self.on_message(topic[plen:], payload, bool(m.retain), topic)
+            except Exception:  # a bug in the handler must not take the connection down
+                log.exception("handling %s failed", topic)
+
+    async def _sender(self, client: aiomqtt.Client) -> None:
+        while True:
+            await self._wakeup.wait()
+            self._wakeup.clear()
+            await self._flush(client)
+            if self.stats.dropped != self._reported_dropped:
+                n = self.stats.dropped - self._reported_dropped
+                self._reported_dropped = self.stats.dropped
+                log.warning(
+                    "%d messages dropped while the broker was away (buffer bound %d)",
+                    n,
+                    self.settings.buffer_size,
+                )
+            await client.publish(
+                self.settings.topic(STATS_TOPIC), self.stats_json(), qos=0, retain=True
+            )
+
+    async def _flush(self, client: aiomqtt.Client) -> None:
+        """Publish dirty retained topics, then the FIFO in order, until both are empty."""
+        while self._dirty or self._fifo:
+            if self._dirty:
+                topic = next(iter(self._dirty))
+                payload = self._dirty.pop(topic)
+                try:
+                    await client.publish(topic, payload, qos=1, retain=True)
+                except BaseException:
+                    self._dirty.setdefault(topic, payload)  # unless a newer value arrived
+                    raise
+                continue
+            item = self._fifo.popleft()
+            try:
+                await client.publish(item.topic, item.payload, qos=item.qos)
+            except aiomqtt.MqttCodeError:
+                self._fifo.appendleft(item)  # refused locally (not connected): never sent
+                raise
+            except BaseException:
+                # Unacknowledged: send it again first on the next connection. The
+                # broker may have got it before the break; that is the one
+                # possible duplicate, counted.
+                self._fifo.appendleft(item)
+                self.stats.resent += 1
+                raise
+            self.stats.published += 1

@@ -1,0 +1,240 @@
+"""SQLite store of the gateway's versioned items, so versions survive restarts.
+
+Drip only spreads a version higher than the one a mote holds: if a restarted
+gateway numbered its definitions from 1 again, the network would ignore it.
+The store keeps, per ``(kind, item id)``, the current version, a hash of the
+body and the body itself (radio form and IP-side JSON); deletions are
+tombstones with a version of their own.
+
+It also remembers the hash of the last payload seen on each source topic, so a
+retained MQTT message replayed after a (re)connect is recognised and not
+applied twice, and the command-name -> Drip slot map.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sqlite3
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from awaremw.protocol.frames import (
+    ChannelDef,
+    CommandDef,
+    GroupTypeDef,
+    ItemBody,
+    ItemKind,
+)
+
+MAX_VERSION = 0xFFFFFFFF
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS items (
+    kind INTEGER NOT NULL,
+    item_id INTEGER NOT NULL,
+    version INTEGER NOT NULL,
+    hash TEXT NOT NULL,
+    wire BLOB,             -- msgpack of body.to_wire(); NULL for a deletion
+    json TEXT,             -- canonical IP-side JSON; NULL for a deletion
+    updated REAL NOT NULL, -- wall clock, informational
+    PRIMARY KEY (kind, item_id)
+);
+CREATE TABLE IF NOT EXISTS seen (
+    source TEXT PRIMARY KEY,
+    hash TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS command_slots (
+    name TEXT PRIMARY KEY,
+    slot INTEGER NOT NULL UNIQUE,
+    used INTEGER NOT NULL  -- monotonic use counter, for least-recently-used reuse
+);
+"""
+
+_FROM_WIRE: dict[ItemKind, Callable[[Any], ItemBody]] = {
+    ItemKind.GROUP_TYPE: GroupTypeDef.from_wire,
+    ItemKind.CHANNEL: ChannelDef.from_wire,
+    ItemKind.COMMAND: CommandDef.from_wire,
+}
+
+
+def body_hash(kind: ItemKind, body: ItemBody | None) -> str:
+    """Stable hash of a body's radio form (equal definitions hash equal)."""
+    wire = None if body is None else body.to_wire()
+    packed: bytes = msgpack.packb([int(kind), wire], use_single_float=True)
+    return hashlib.sha256(packed).hexdigest()[:32]
+
+
+def payload_hash(payload: bytes) -> str:
+    return hashlib.sha256(payload).hexdigest()[:32]
+
+
+@dataclass(frozen=True, slots=True)
+class StoredItem:
+    kind: ItemKind
+    item_id: int
+    version: int
+    body: ItemBody | None  # None: deleted
+    json: dict[str, Any] | None
+
+    @property
+    def deleted(self) -> bool:
+        return self.body is None
+
+
+class VersionOverflow(RuntimeError):
+    """An item reached the largest 32-bit version (a local limit, never expected)."""
+
+
+class VersionStore:
+    """Versions and bodies of the gateway's items; ``path=None`` keeps them in memory."""
+
+    def __init__(self, path: str | Path | None = None) -> None:
+        self.path = None if path is None else Path(path)
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(":memory:" if self.path is None else str(self.path))
+        if self.path is not None:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.executescript(_SCHEMA)
+        self._db.commit()
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> VersionStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------- items
+
+    def get(self, kind: ItemKind, item_id: int) -> StoredItem | None:
+        row = self._db.execute(
+            "SELECT kind, item_id, version, wire, json FROM items WHERE kind=? AND item_id=?",
+            (int(kind), item_id),
+        ).fetchone()
+        return None if row is None else self._item(row)
+
+    def items(
+        self, kind: ItemKind | None = None, *, include_deleted: bool = True
+    ) -> list[StoredItem]:
+        """Current items (tombstones included unless asked), by kind then id."""
+        sql = "SELECT kind, item_id, version, wire, json FROM items"
+        params: tuple[Any, ...] = ()
+        if kind is not None:
+            sql += " WHERE kind=?"
+            params = (int(kind),)
+        rows = self._db.execute(sql + " ORDER BY kind, item_id", params).fetchall()
+        out = [self._item(r) for r in rows]
+        return out if include_deleted else [i for i in out if not i.deleted]
+
+    def defined_ids(self, kind: ItemKind) -> set[int]:
+        return {i.item_id for i in self.items(kind, include_deleted=False)}
+
+    def apply(
+        self, kind: ItemKind, item_id: int, body: ItemBody | None, js: dict[str, Any] | None
+    ) -> StoredItem | None:
+        """Record ``body`` as the item's new state; None when it is already the state.
+
+        Deleting an item that never existed is also a no-op (there is nothing in
+        the network to delete).
+        """
+        h = body_hash(kind, body)
+        row = self._db.execute(
+            "SELECT version, hash FROM items WHERE kind=? AND item_id=?", (int(kind), item_id)
+        ).fetchone()
+        if row is None and body is None:
+            return None
+        if row is not None and row[1] == h:
+            return None
+        return self._write(kind, item_id, 1 if row is None else row[0] + 1, h, body, js)
+
+    def bump(
+        self, kind: ItemKind, item_id: int, body: ItemBody | None, js: dict[str, Any] | None
+    ) -> StoredItem:
+        """Record ``body`` with a new version even if it equals the current one (commands)."""
+        row = self._db.execute(
+            "SELECT version FROM items WHERE kind=? AND item_id=?", (int(kind), item_id)
+        ).fetchone()
+        return self._write(
+            kind, item_id, 1 if row is None else row[0] + 1, body_hash(kind, body), body, js
+        )
+
+    def _write(
+        self,
+        kind: ItemKind,
+        item_id: int,
+        version: int,
+        h: str,
+        body: ItemBody | None,
+        js: dict[str, Any] | None,
+    ) -> StoredItem:
+        if version > MAX_VERSION:
+            raise VersionOverflow(f"{kind.name} {item_id} reached version {MAX_VERSION}")
+        wire = None if body is None else msgpack.packb(body.to_wire(), use_single_float=True)
+        text = None if js is None else json.dumps(js, sort_keys=True)
+        with self._db:
+            self._db.execute(
+                "INSERT OR REPLACE INTO items VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (int(kind), item_id, version, h, wire, text, time.time()),
+            )
+        return StoredItem(kind, item_id, version, body, None if js is None else dict(js))
+
+    @staticmethod
+    def _item(row: tuple[Any, ...]) -> StoredItem:
+        kind = ItemKind(row[0])
+        body = None if row[3] is None else _FROM_WIRE[kind](msgpack.unpackb(row[3]))
+        js = None if row[4] is None else json.loads(row[4])
+        return StoredItem(kind, row[1], row[2], body, js)
+
+    # ----------------------------------------------------------------- replay dedupe
+
+    def last_seen(self, source: str) -> str | None:
+        row = self._db.execute("SELECT hash FROM seen WHERE source=?", (source,)).fetchone()
+        return None if row is None else str(row[0])
+
+    def set_seen(self, source: str, h: str) -> None:
+        with self._db:
+            self._db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (source, h))
+
+    # ----------------------------------------------------------------- command slots
+
+    def command_slot(self, name: str, n_slots: int) -> int:
+        """The Drip slot of command ``name``: its own if it has one, else a free slot,
+        else the least recently used one (taken over from its old name)."""
+        if n_slots < 1:
+            raise ValueError("n_slots must be >= 1")
+        used = self._db.execute("SELECT COALESCE(MAX(used), 0) + 1 FROM command_slots").fetchone()
+        tick = int(used[0])
+        with self._db:
+            row = self._db.execute(
+                "SELECT slot FROM command_slots WHERE name=? AND slot<?", (name, n_slots)
+            ).fetchone()
+            if row is not None:
+                self._db.execute("UPDATE command_slots SET used=? WHERE name=?", (tick, name))
+                return int(row[0])
+            self._db.execute("DELETE FROM command_slots WHERE name=?", (name,))
+            taken = {
+                int(r[0])
+                for r in self._db.execute("SELECT slot FROM command_slots WHERE slot<?", (n_slots,))
+            }
+            free = [s for s in range(n_slots) if s not in taken]
+            if free:
+                slot = free[0]
+            else:
+                lru = self._db.execute(
+                    "SELECT slot FROM command_slots WHERE slot<? ORDER BY used LIMIT 1",
+                    (n_slots,),
+                ).fetchone()
+                slot = int(lru[0])
+                self._db.execute("DELETE FROM command_slots WHERE slot=?", (slot,))
+            self._db.execute("INSERT INTO command_slots VALUES (?, ?, ?)", (name, slot, tick))
+            return slot
