@@ -1,18 +1,332 @@
-"""PLACEHOLDER (engineer D replaces this): channels and aggregation."""
+"""Channels (paper II-B, IV-D..F): sampling, TAG-style epochs, in-network aggregation.
+
+A channel ``(attr, group type|any, group id|any, period, agg)`` makes every
+member of a matching group sample ``attr`` once per epoch and send one partial
+aggregate up its group tree; the leader does the final aggregation and hands
+one :class:`~awaremw.protocol.frames.DataRecord` per epoch to the collection
+tree (and emits :class:`RecordProduced`).
+
+Epochs are ``e = floor(now / period)`` on the fleet's shared clock (the
+emulation shares time the way FTSP would). Within an epoch the period is cut
+into ``max_group_depth + 1`` slots, TAG style: a mote ``h`` hops from its
+leader samples at the epoch start and sends in slot ``D - h`` (deeper motes
+first, with a random offset in the first half of the slot), merging whatever
+its children sent before; the leader finalises in the middle of slot ``D``.
+A partial that arrives after its receiver already sent is forwarded on alone
+(and counted as late); one that reaches the leader after the record went out
+is counted and dropped. Partials are unicast to the parent; on a link failure
+(after the driver's ACK retries) another upstream neighbour known from the
+group's beacons is tried, up to ``MAX_REROUTES`` times, then the partial is
+dropped and counted.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, replace
+
+from awaremw.protocol import aggregation
 from awaremw.protocol.collection import Collection
-from awaremw.protocol.frames import ItemBody
-from awaremw.protocol.groups import Groups
+from awaremw.protocol.frames import (
+    ANY_GROUP_ID,
+    ANY_GROUP_TYPE,
+    ChannelDef,
+    DataRecord,
+    Frame,
+    ItemBody,
+    Partial,
+)
+from awaremw.protocol.groups import Groups, Membership
 from awaremw.protocol.mote import Component, MoteContext
+
+MAX_CHANNEL_ID = 0xFF
+MAX_REROUTES = 3
+KEEP_EPOCHS = 3  # pending state kept this many epochs back (late partials)
+
+_Key = tuple[int, int, int, int]  # (channel, group type, group id, epoch)
+
+
+@dataclass(frozen=True, slots=True)
+class RecordProduced:
+    """A leader finished an epoch: ``record`` went (or was offered) to the gateway."""
+
+    record: DataRecord
+    t: float
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelRefused:
+    """A channel definition this mote cannot run (bad id, unknown function, too many)."""
+
+    node: int
+    channel: int
+    reason: str
+
+
+@dataclass
+class ChannelStats:
+    samples: int = 0
+    unavailable: int = 0  # the attribute could not be read (None or not finite)
+    partials_sent: int = 0
+    partials_received: int = 0
+    merged: int = 0
+    late_forwarded: int = 0
+    late_dropped: int = 0  # reached the leader after its record went out
+    rerouted: int = 0
+    link_dropped: int = 0  # no upstream neighbour left after link failures
+    orphan_dropped: int = 0  # sender left its group before its slot
+    foreign_dropped: int = 0  # for a group this mote is not in (any more)
+    bad_partials: int = 0  # unknown channel/function, wrong state shape, absurd epoch
+    records: int = 0
+    records_refused: int = 0  # collection.submit said no
+    refused: int = 0
+
+
+@dataclass(slots=True)
+class _Pending:
+    agg: int
+    count: int = 0
+    state: tuple[float, ...] = ()
+    sent: bool = False  # sent up (member) or finalised (leader)
+
+
+def channel_matches(d: ChannelDef, m: Membership) -> bool:
+    return (d.group_type in (ANY_GROUP_TYPE, m.group_type)) and (
+        d.group_id in (ANY_GROUP_ID, m.group_id)
+    )
 
 
 class Channels(Component):
+    """The channels of one mote."""
+
     def __init__(self, ctx: MoteContext, groups: Groups, collection: Collection) -> None:
         super().__init__(ctx)
         self.groups = groups
         self.collection = collection
+        self.stats = ChannelStats()
+        self._defs: dict[int, ChannelDef] = {}
+        self._next_epoch: dict[int, int] = {}
+        self._pending: dict[_Key, _Pending] = {}
+        self._tried: dict[Partial, set[int]] = {}
+
+    # ----------------------------------------------------------------- public API
 
     def define(self, channel_id: int, item: ItemBody | None, now: float) -> None:
-        pass
+        """A channel was defined, changed (effective at once) or deleted (``None``)."""
+        if item is None:
+            self._stop(channel_id)
+            self._defs.pop(channel_id, None)
+            return
+        if not isinstance(item, ChannelDef):
+            raise TypeError(f"channel {channel_id} defined with a {type(item).__name__}")
+        reason = None
+        if not 0 <= channel_id <= MAX_CHANNEL_ID:
+            reason = f"channel id {channel_id} is not in 0..{MAX_CHANNEL_ID}"
+        elif aggregation.get(item.agg) is None:
+            reason = f"unknown aggregation function id {item.agg}"
+        elif channel_id not in self._defs and len(self._defs) >= self.ctx.config.max_channels:
+            reason = f"more than {self.ctx.config.max_channels} channels"
+        if reason is not None:
+            self.stats.refused += 1
+            self.ctx.emit(ChannelRefused(self.ctx.node_id, channel_id, reason))
+            return
+        if self._defs.get(channel_id) == item:
+            return  # the same definition again: keep the epochs running
+        self._stop(channel_id)
+        self._defs[channel_id] = item
+        p = self.period(channel_id)
+        e = math.floor(now / p) + 1
+        self._next_epoch[channel_id] = e
+        self.timers.set(("epoch", channel_id), e * p)
+
+    def period(self, channel_id: int) -> float:
+        """Sampling period in seconds (never below ``min_period_s``)."""
+        return max(self._defs[channel_id].period_ms / 1000.0, self.ctx.config.min_period_s)
+
+    def defined(self) -> dict[int, ChannelDef]:
+        return dict(self._defs)
+
+    def slot_time(self, channel_id: int, epoch: int, hops: int) -> float:
+        """When a mote ``hops`` from its leader sends (0: when the leader finalises)."""
+        p = self.period(channel_id)
+        d = max(1, self.ctx.config.max_group_depth)
+        slot = p / (d + 1)
+        start = epoch * p
+        if hops <= 0:
+            return start + (d + 0.5) * slot
+        return start + (d - min(hops, d)) * slot
+
+    # ----------------------------------------------------------------- hooks
+
+    def on_timer(self, name: object, now: float) -> None:
+        assert isinstance(name, tuple)
+        kind = name[0]
+        if kind == "epoch":
+            self._epoch(name[1], now)
+        elif kind == "send":
+            self._send(name[1], now)
+        elif kind == "final":
+            self._final(name[1], now)
+
+    def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
+        if isinstance(frame, Partial):
+            self._on_partial(frame, now)
+
+    def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
+        if not isinstance(frame, Partial):
+            return
+        tried = self._tried.pop(frame, {frame.dst})
+        if acked:
+            return
+        m = self.groups.membership(frame.group_type)
+        if m is not None and m.group_id == frame.group_id and not m.is_leader:
+            alt = [n for n in self.groups.upstream(frame.group_type, now) if n not in tried]
+            if alt and len(tried) <= MAX_REROUTES:
+                again = replace(frame, dst=alt[0])
+                tried.add(alt[0])
+                self._tried[again] = tried
+                self.stats.rerouted += 1
+                self.send(again)
+                return
+        self.stats.link_dropped += 1
+
+    # ----------------------------------------------------------------- epochs
+
+    def _stop(self, channel_id: int) -> None:
+        self.timers.cancel(("epoch", channel_id))
+        self._next_epoch.pop(channel_id, None)
+        for key in [k for k in self._pending if k[0] == channel_id]:
+            self._forget(key)
+
+    def _forget(self, key: _Key) -> None:
+        del self._pending[key]
+        self.timers.cancel(("send", key))
+        self.timers.cancel(("final", key))
+
+    def _epoch(self, cid: int, now: float) -> None:
+        d = self._defs.get(cid)
+        if d is None:
+            return
+        e = self._next_epoch[cid]
+        self._next_epoch[cid] = e + 1
+        self.timers.set(("epoch", cid), (e + 1) * self.period(cid))
+        for key in [k for k in self._pending if k[0] == cid and k[3] < e - KEEP_EPOCHS]:
+            self._forget(key)
+        agg = aggregation.by_id(d.agg)
+        for m in self.groups.memberships().values():
+            if not channel_matches(d, m):
+                continue
+            key = (cid, m.group_type, m.group_id, e)
+            p = self._pending.setdefault(key, _Pending(d.agg))
+            v = self.ctx.read(d.attr, now)
+            if v is None or not math.isfinite(v):
+                self.stats.unavailable += 1
+            else:
+                self.stats.samples += 1
+                part = agg.init(v)
+                p.count, p.state = part if p.count == 0 else agg.merge((p.count, p.state), part)
+            self._schedule(key, m)
+
+    def _schedule(self, key: _Key, m: Membership) -> None:
+        cid, _, _, e = key
+        if m.is_leader:
+            self.timers.set(("final", key), self.slot_time(cid, e, 0))
+        elif ("send", key) not in self.timers:
+            p = self.period(cid)
+            slot = p / (max(1, self.ctx.config.max_group_depth) + 1)
+            t = self.slot_time(cid, e, m.hops) + self.ctx.rng.uniform(0, slot / 2)
+            self.timers.set(("send", key), t)
+
+    def _send(self, key: _Key, now: float) -> None:
+        p = self._pending.get(key)
+        if p is None or p.sent:
+            return
+        cid, gtype, gid, e = key
+        m = self.groups.membership(gtype)
+        if m is None or m.group_id != gid:
+            p.sent = True
+            if p.count:
+                self.stats.orphan_dropped += 1
+            return
+        if m.is_leader:  # took the group over since the epoch started
+            self._final(key, now)
+            return
+        p.sent = True
+        if p.count == 0 or m.parent is None:
+            return
+        self._send_partial(
+            Partial(self.ctx.node_id, m.parent, cid, gtype, gid, e, p.agg, p.count, p.state)
+        )
+
+    def _send_partial(self, frame: Partial) -> None:
+        self._tried[frame] = {frame.dst}
+        self.stats.partials_sent += 1
+        self.send(frame)
+
+    def _final(self, key: _Key, now: float) -> None:
+        p = self._pending.get(key)
+        if p is None or p.sent:
+            return
+        cid, gtype, gid, e = key
+        m = self.groups.membership(gtype)
+        if m is None or m.group_id != gid:
+            p.sent = True
+            if p.count:
+                self.stats.orphan_dropped += 1
+            return
+        if not m.is_leader:  # handed over or yielded within the group id: pass it up
+            self._send(key, now)
+            return
+        p.sent = True
+        if p.count == 0:
+            return
+        agg = aggregation.get(p.agg)
+        value = None if agg is None else agg.result(p.count, p.state)
+        if value is None or not math.isfinite(value):
+            self.stats.bad_partials += 1
+            return
+        record = DataRecord(
+            cid, gtype, gid, e, p.agg, value, min(p.count, 0xFFFFFFFF), self.ctx.node_id
+        )
+        self.stats.records += 1
+        if not self.collection.submit(record, now):
+            self.stats.records_refused += 1
+        self.ctx.emit(RecordProduced(record, now))
+        self.groups.add_weight(gtype, p.count)
+
+    # ----------------------------------------------------------------- partials
+
+    def _on_partial(self, f: Partial, now: float) -> None:
+        self.stats.partials_received += 1
+        d = self._defs.get(f.channel)
+        agg = aggregation.get(f.agg)
+        if (
+            d is None
+            or f.agg != d.agg
+            or agg is None
+            or not agg.valid_state(f.state)
+            or f.count == 0
+            or f.epoch * self.period(f.channel) > now + self.period(f.channel)
+        ):
+            self.stats.bad_partials += 1
+            return
+        m = self.groups.membership(f.group_type)
+        if m is None or m.group_id != f.group_id:
+            self.stats.foreign_dropped += 1
+            return
+        self.groups.note_child(f.group_type, f.src, now, f.count)
+        key = (f.channel, f.group_type, f.group_id, f.epoch)
+        p = self._pending.get(key)
+        if p is None and now < self.slot_time(f.channel, f.epoch, m.hops):
+            p = self._pending[key] = _Pending(f.agg)
+            self._schedule(key, m)
+        if p is not None and not p.sent:
+            self.stats.merged += 1
+            part = (f.count, f.state)
+            p.count, p.state = part if p.count == 0 else agg.merge((p.count, p.state), part)
+            return
+        if m.is_leader or m.parent is None:
+            self.stats.late_dropped += 1
+            return
+        self.stats.late_forwarded += 1
+        self._send_partial(replace(f, src=self.ctx.node_id, dst=m.parent))

@@ -1,16 +1,728 @@
-"""PLACEHOLDER (engineer D replaces this): group management."""
+"""Group management (paper II-A, IV-B, IV-C): membership, leaders, group trees.
+
+Per defined group type a mote is in one of five roles:
+
+``IDLE``          not in a group of this type (it still listens to leader beacons
+                  and remembers the groups nearby, but does not forward them);
+``WAITING``       qualifies, heard no group nearby, waits a random backoff before
+                  creating one (joins at once if a beacon of the type arrives);
+``MEMBER``        in a group: forwards each new beacon of it once, keeps a parent
+                  in the group tree (fewest hops to the leader for the newest seq);
+``LEADER``        beacons every ``beacon_period`` and reports to the gateway;
+``HANDING_OVER``  a leader that stopped qualifying and is handing its group over.
+
+The rules (ties and choices the paper leaves open are in docs/protocol-groups.md):
+
+* membership is checked every ``check_period``, and at once when a definition
+  arrives or changes; a member/leader stays while the conditions hold with
+  thresholds relaxed by the definition's hysteresis, a non-member needs the
+  strict conditions;
+* a qualifying mote joins the heaviest group of its type heard within the
+  leader timeout, else waits ``U(0, create_backoff)`` and creates one (leader,
+  weight 0, random 16-bit id avoiding ids heard nearby);
+* members forward only the heaviest group they know: a member hearing a heavier
+  group of its type (``(weight, group id)`` compared) switches to it, a leader
+  hearing one yields (reports GONE with the survivor's id) and joins it;
+* a leader that stops qualifying unicasts a Handover (id, weight, seq) to a
+  member it knows; the new leader continues the id; a candidate that cannot
+  take the group sends the Handover back (a refusal) and the next is tried;
+* members that hear no new beacon for ``leader_timeout_periods`` beacon periods
+  drop the group and, still qualifying, run the creation backoff again: the
+  first to fire creates a group with a NEW id (so the part of a split that lost
+  the leader gets a new id, as the paper requires).
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from enum import Enum
+
 from awaremw.protocol.collection import Collection
-from awaremw.protocol.frames import ItemBody
+from awaremw.protocol.frames import (
+    ANY_GROUP_TYPE,
+    BROADCAST,
+    Condition,
+    Frame,
+    GroupReport,
+    GroupStatus,
+    GroupTypeDef,
+    Handover,
+    ItemBody,
+    LeaderBeacon,
+    Op,
+)
 from awaremw.protocol.mote import Component, MoteContext
+
+MAX_GROUP_ID = 0xFFFE
+MAX_WEIGHT = 0xFFFFFFFF
+MAX_HOPS = 0xFF
+
+
+# --------------------------------------------------------------------------- public values
+
+
+class Role(Enum):
+    IDLE = "idle"
+    WAITING = "waiting"
+    MEMBER = "member"
+    LEADER = "leader"
+    HANDING_OVER = "handing_over"
+
+
+class LeaveReason(Enum):
+    CONDITION = "condition"  # stopped meeting the conditions
+    SWITCHED = "switched"  # moved to a heavier group of the same type
+    YIELDED = "yielded"  # a leader that heard a heavier leader (now a member of it)
+    LEADER_LOST = "leader_lost"  # no beacon for the leader timeout
+    HANDOVER = "handover"  # a leader that handed its group over
+    DELETED = "deleted"  # the group type was deleted
+
+
+class ElectionCause(Enum):
+    CREATED = "created"  # a qualifying mote found no group nearby
+    HANDOVER = "handover"  # took over a leaving leader's group (same id)
+    ELECTION = "election"  # the leader was lost; a new group (new id) replaces it
+
+
+@dataclass(frozen=True, slots=True)
+class Membership:
+    """This mote's view of its group of one type."""
+
+    group_type: int
+    group_id: int
+    leader: int
+    is_leader: bool
+    parent: int | None  # next hop towards the leader (None at the leader)
+    hops: int  # distance to the leader in the group tree (0 at the leader)
+    weight: int
+
+
+@dataclass(frozen=True, slots=True)
+class GroupJoined:
+    node: int
+    group_type: int
+    group_id: int
+    leader: int
+    t: float
+
+
+@dataclass(frozen=True, slots=True)
+class GroupLeft:
+    node: int
+    group_type: int
+    group_id: int
+    reason: LeaveReason
+    t: float
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderElected:
+    """``node`` became the leader of ``group_id`` (membership implied)."""
+
+    node: int
+    group_type: int
+    group_id: int
+    weight: int
+    cause: ElectionCause
+    t: float
+
+
+@dataclass(frozen=True, slots=True)
+class LeaderYielded:
+    node: int
+    group_type: int
+    group_id: int
+    successor: int  # the heavier group's id (equal to group_id on an id clash)
+    t: float
+
+
+@dataclass(frozen=True, slots=True)
+class HandoverSent:
+    """A leaving leader's Handover was acknowledged and not refused."""
+
+    node: int
+    group_type: int
+    group_id: int
+    to: int
+    t: float
+
+
+@dataclass(frozen=True, slots=True)
+class GroupTypeRefused:
+    """A definition this mote cannot hold (too many types, reserved type id)."""
+
+    node: int
+    group_type: int
+    reason: str
+
+
+@dataclass
+class GroupStats:
+    """Counters of one mote's group management (remote oddities included)."""
+
+    beacons_sent: int = 0
+    beacons_forwarded: int = 0
+    beacons_unknown_type: int = 0
+    handovers_sent: int = 0
+    handovers_failed: int = 0  # link failures and refusals
+    handovers_accepted: int = 0
+    handovers_refused: int = 0
+    reports_refused: int = 0  # collection.submit said no
+    types_refused: int = 0
+
+
+# --------------------------------------------------------------------------- internals
+
+
+@dataclass(slots=True)
+class _Heard:
+    """The best copy of the newest beacon of one nearby group."""
+
+    leader: int
+    weight: int
+    seq: int
+    hops: int  # hops field of the frame (the sender's distance to its leader)
+    src: int
+    t: float
+
+
+@dataclass(slots=True)
+class _TypeState:
+    gtype: int
+    defn: GroupTypeDef
+    role: Role = Role.IDLE
+    gid: int = 0
+    leader: int = 0
+    weight: int = 0
+    seq: int = 0
+    hops: int = 0
+    parent: int | None = None
+    last_beacon: float = 0.0
+    cause: ElectionCause = ElectionCause.CREATED
+    beacons: int = 0  # beacons sent as leader of this group
+    readings: int = 0  # readings in the leader's latest aggregated epoch
+    nearby: dict[int, _Heard] = field(default_factory=dict)
+    upstream: dict[int, tuple[int, int, float]] = field(default_factory=dict)  # n -> seq,hops,t
+    children: dict[int, tuple[float, int]] = field(default_factory=dict)  # n -> (t, readings)
+    candidates: list[int] = field(default_factory=list)
+    handover_to: int | None = None
+
+
+def seq_newer(a: int, b: int) -> bool:
+    """16-bit serial-number comparison: is ``a`` after ``b``?"""
+    d = (a - b) & 0xFFFF
+    return 0 < d < 0x8000
+
+
+def heavier(w1: int, g1: int, w2: int, g2: int) -> bool:
+    """The paper's order: weight first, then the higher group id."""
+    return (w1, g1) > (w2, g2)
+
+
+def condition_holds(c: Condition, value: float | None, relax: float) -> bool:
+    """``value op threshold``, the threshold relaxed by ``relax`` (>= 0) for members.
+
+    Relaxing moves the threshold so the condition is easier to meet: ``>``/``>=``
+    accept ``relax`` less, ``<``/``<=`` accept ``relax`` more, ``==`` accepts
+    ``|value - threshold| <= relax``; ``!=`` is not relaxed. An unavailable
+    attribute (None) never meets a condition.
+    """
+    if value is None:
+        return False
+    thr = c.value
+    op = c.op
+    if op is Op.GT:
+        return value > thr - relax
+    if op is Op.GE:
+        return value >= thr - relax
+    if op is Op.LT:
+        return value < thr + relax
+    if op is Op.LE:
+        return value <= thr + relax
+    if op is Op.EQ:
+        return abs(value - thr) <= relax
+    return value != thr
+
+
+# --------------------------------------------------------------------------- the component
 
 
 class Groups(Component):
+    """Group management of one mote (all group types)."""
+
     def __init__(self, ctx: MoteContext, collection: Collection) -> None:
         super().__init__(ctx)
         self.collection = collection
+        self.stats = GroupStats()
+        self._types: dict[int, _TypeState] = {}
+
+    # ----------------------------------------------------------------- public API
 
     def define(self, group_type: int, item: ItemBody | None, now: float) -> None:
-        pass
+        """A group type was defined, changed (``item``) or deleted (``None``)."""
+        if item is None:
+            self._drop_type(group_type, now)
+            return
+        if not isinstance(item, GroupTypeDef):
+            raise TypeError(f"group type {group_type} defined with a {type(item).__name__}")
+        st = self._types.get(group_type)
+        if st is None:
+            reason = None
+            if not 0 <= group_type < ANY_GROUP_TYPE:
+                reason = f"group type {group_type} is not in 0..{ANY_GROUP_TYPE - 1}"
+            elif len(self._types) >= self.ctx.config.max_group_types:
+                reason = f"more than {self.ctx.config.max_group_types} group types"
+            if reason is not None:
+                self.stats.types_refused += 1
+                self.ctx.emit(GroupTypeRefused(self.ctx.node_id, group_type, reason))
+                return
+            st = self._types[group_type] = _TypeState(group_type, item)
+        else:
+            st.defn = item
+        self._check(st, now)  # a changed definition takes effect at once
+        if "check" not in self.timers:
+            self.timers.set("check", now + self.ctx.rng.uniform(0, self.ctx.config.check_period))
+
+    def membership(self, group_type: int) -> Membership | None:
+        st = self._types.get(group_type)
+        if st is None or st.role not in (Role.MEMBER, Role.LEADER):
+            return None
+        leader = st.role is Role.LEADER
+        return Membership(
+            group_type=st.gtype,
+            group_id=st.gid,
+            leader=self.ctx.node_id if leader else st.leader,
+            is_leader=leader,
+            parent=None if leader else st.parent,
+            hops=0 if leader else st.hops,
+            weight=st.weight,
+        )
+
+    def memberships(self) -> dict[int, Membership]:
+        out: dict[int, Membership] = {}
+        for g in self._types:
+            m = self.membership(g)
+            if m is not None:
+                out[g] = m
+        return out
+
+    def role(self, group_type: int) -> Role | None:
+        st = self._types.get(group_type)
+        return None if st is None else st.role
+
+    def defined_types(self) -> dict[int, GroupTypeDef]:
+        return {g: st.defn for g, st in self._types.items()}
+
+    def add_weight(self, group_type: int, n: int) -> None:
+        """The leader aggregated ``n`` readings of one epoch: its group gets heavier."""
+        st = self._types.get(group_type)
+        if st is None or st.role is not Role.LEADER or n <= 0:
+            return
+        st.weight = min(st.weight + n, MAX_WEIGHT)
+        st.readings = n
+
+    def note_child(self, group_type: int, node: int, now: float, count: int = 0) -> None:
+        """Channel data (``count`` readings) came from ``node``: a handover candidate."""
+        st = self._types.get(group_type)
+        if st is None or st.role is not Role.LEADER:
+            return
+        st.children[node] = (now, count)
+
+    def upstream(self, group_type: int, now: float) -> list[int]:
+        """Neighbours closer to the leader, best first (the parent leads)."""
+        st = self._types.get(group_type)
+        if st is None or st.role is not Role.MEMBER:
+            return []
+        ttl = self._timeout()
+        ups = [
+            (hops, -t, n)
+            for n, (_seq, hops, t) in st.upstream.items()
+            if hops < st.hops and now - t <= ttl and n != st.parent
+        ]
+        ups.sort()
+        head = [] if st.parent is None else [st.parent]
+        return head + [n for _, _, n in ups]
+
+    # ----------------------------------------------------------------- Component hooks
+
+    def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
+        if isinstance(frame, LeaderBeacon):
+            self._on_beacon(frame, now)
+        elif isinstance(frame, Handover):
+            self._on_handover(frame, now)
+
+    def on_timer(self, name: object, now: float) -> None:
+        if name == "check":
+            for st in list(self._types.values()):
+                self._check(st, now)
+                self._purge(st, now)
+            if self._types:
+                self.timers.set("check", now + self.ctx.config.check_period)
+            return
+        assert isinstance(name, tuple)
+        kind, g = name
+        ts = self._types.get(g)
+        if ts is None:
+            return
+        st = ts
+        if kind == "beacon" and st.role is Role.LEADER:
+            self._beacon(st, now)
+        elif kind == "fwd" and st.role is Role.MEMBER:
+            self._forward(st)
+        elif kind == "lost" and st.role is Role.MEMBER:
+            self._leader_lost(st, now)
+        elif kind == "create" and st.role is Role.WAITING:
+            best = self._best_nearby(st, now)
+            if best is not None:
+                self._join(st, best[0], best[1], now)
+            else:
+                self._create(st, now)
+        elif kind == "handover" and st.role is Role.HANDING_OVER:
+            # Acknowledged and not refused within the grace time: done.
+            assert st.handover_to is not None
+            self.ctx.emit(HandoverSent(self.ctx.node_id, st.gtype, st.gid, st.handover_to, now))
+            self._leave(st, now, LeaveReason.HANDOVER)
+
+    def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
+        if not isinstance(frame, Handover):
+            return
+        st = self._types.get(frame.group_type)
+        if (
+            st is None
+            or st.role is not Role.HANDING_OVER
+            or st.gid != frame.group_id
+            or frame.dst != st.handover_to
+            or frame.src != self.ctx.node_id
+        ):
+            return  # a refusal we sent, or a handover overtaken by events
+        if acked:
+            self.timers.set(("handover", st.gtype), now + self.ctx.config.handover_grace)
+        else:
+            self.stats.handovers_failed += 1
+            self._next_candidate(st, now)
+
+    # ----------------------------------------------------------------- membership check
+
+    def _timeout(self) -> float:
+        c = self.ctx.config
+        return c.leader_timeout_periods * c.beacon_period
+
+    def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
+        relax = st.defn.hysteresis if relaxed else 0.0
+        return all(
+            condition_holds(c, self.ctx.read(c.attr, now), relax) for c in st.defn.conditions
+        )
+
+    def _check(self, st: _TypeState, now: float) -> None:
+        role = st.role
+        if role is Role.HANDING_OVER:
+            return
+        q = self._qualifies(st, role in (Role.MEMBER, Role.LEADER), now)
+        if role is Role.IDLE and q:
+            self._join_or_wait(st, now, ElectionCause.CREATED)
+        elif role is Role.WAITING and not q:
+            self.timers.cancel(("create", st.gtype))
+            st.role = Role.IDLE
+        elif role is Role.MEMBER and not q:
+            self._leave(st, now, LeaveReason.CONDITION)
+        elif role is Role.LEADER and not q:
+            self._start_handover(st, now)
+
+    def _purge(self, st: _TypeState, now: float) -> None:
+        ttl = self._timeout()
+        for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
+            del st.nearby[gid]
+        for n in [n for n, u in st.upstream.items() if now - u[2] > ttl]:
+            del st.upstream[n]
+        for n in [n for n, c in st.children.items() if now - c[0] > ttl]:
+            del st.children[n]
+
+    def _best_nearby(self, st: _TypeState, now: float) -> tuple[int, _Heard] | None:
+        ttl = self._timeout()
+        fresh = [(h.weight, gid, h) for gid, h in st.nearby.items() if now - h.t <= ttl]
+        if not fresh:
+            return None
+        _w, gid, h = max(fresh, key=lambda x: (x[0], x[1]))
+        return gid, h
+
+    def _join_or_wait(self, st: _TypeState, now: float, cause: ElectionCause) -> None:
+        best = self._best_nearby(st, now)
+        if best is not None:
+            self._join(st, best[0], best[1], now)
+            return
+        st.role = Role.WAITING
+        st.cause = cause
+        backoff = self.ctx.rng.uniform(0, self.ctx.config.create_backoff)
+        self.timers.set(("create", st.gtype), now + backoff)
+
+    # ----------------------------------------------------------------- role changes
+
+    def _become_member(
+        self,
+        st: _TypeState,
+        gid: int,
+        leader: int,
+        weight: int,
+        seq: int,
+        hops: int,
+        src: int,
+        heard_at: float,
+        now: float,
+    ) -> None:
+        self.timers.cancel(("create", st.gtype))
+        st.role = Role.MEMBER
+        st.gid, st.leader, st.weight, st.seq = gid, leader, weight, seq
+        st.hops = min(hops + 1, MAX_HOPS)
+        st.parent = src
+        st.last_beacon = heard_at
+        st.upstream = {src: (seq, hops, heard_at)}
+        st.children = {}
+        self.timers.set(("lost", st.gtype), heard_at + self._timeout())
+        self.ctx.emit(GroupJoined(self.ctx.node_id, st.gtype, gid, leader, now))
+
+    def _join(self, st: _TypeState, gid: int, h: _Heard, now: float) -> None:
+        """Join a group remembered from an earlier beacon (no forward: that seq is old)."""
+        self._become_member(st, gid, h.leader, h.weight, h.seq, h.hops, h.src, h.t, now)
+
+    def _adopt(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+        """Join the group of beacon ``f`` just heard, and forward it."""
+        self._become_member(st, f.group_id, f.leader, f.weight, f.seq, f.hops, f.src, now, now)
+        self._schedule_forward(st, now)
+
+    def _create(self, st: _TypeState, now: float) -> None:
+        taken = set(st.nearby) | {st.gid}
+        gid = self.ctx.rng.randint(1, MAX_GROUP_ID)
+        while gid in taken:
+            gid = self.ctx.rng.randint(1, MAX_GROUP_ID)
+        self._become_leader(st, gid, 0, 0, now, st.cause)
+
+    def _become_leader(
+        self, st: _TypeState, gid: int, weight: int, seq: int, now: float, cause: ElectionCause
+    ) -> None:
+        for kind in ("create", "lost", "fwd", "handover"):
+            self.timers.cancel((kind, st.gtype))
+        st.role = Role.LEADER
+        st.gid, st.leader, st.weight, st.seq = gid, self.ctx.node_id, weight, seq
+        st.hops, st.parent = 0, None
+        st.beacons = 0
+        st.readings = 0
+        st.upstream = {}
+        st.children = {}
+        self.ctx.emit(LeaderElected(self.ctx.node_id, st.gtype, gid, weight, cause, now))
+        self._beacon(st, now)
+
+    def _leave(self, st: _TypeState, now: float, reason: LeaveReason) -> None:
+        gid = st.gid
+        for kind in ("create", "lost", "fwd", "beacon", "handover"):
+            self.timers.cancel((kind, st.gtype))
+        st.role = Role.IDLE
+        st.parent = None
+        st.upstream = {}
+        st.children = {}
+        st.candidates = []
+        st.handover_to = None
+        self.ctx.emit(GroupLeft(self.ctx.node_id, st.gtype, gid, reason, now))
+
+    def _drop_type(self, group_type: int, now: float) -> None:
+        st = self._types.pop(group_type, None)
+        if st is None:
+            return
+        if st.role in (Role.LEADER, Role.HANDING_OVER):
+            self._report(st, now, GroupStatus.GONE)
+        if st.role in (Role.MEMBER, Role.LEADER, Role.HANDING_OVER):
+            self._leave(st, now, LeaveReason.DELETED)
+        for kind in ("create", "lost", "fwd", "beacon", "handover"):
+            self.timers.cancel((kind, group_type))
+        if not self._types:
+            self.timers.cancel("check")
+
+    def _leader_lost(self, st: _TypeState, now: float) -> None:
+        dead = st.gid
+        self._leave(st, now, LeaveReason.LEADER_LOST)
+        st.nearby.pop(dead, None)
+        if self._qualifies(st, True, now):
+            self._join_or_wait(st, now, ElectionCause.ELECTION)
+
+    # ----------------------------------------------------------------- beacons
+
+    def _beacon(self, st: _TypeState, now: float) -> None:
+        st.seq = (st.seq + 1) & 0xFFFF
+        self.send(
+            LeaderBeacon(
+                self.ctx.node_id,
+                BROADCAST,
+                st.gtype,
+                st.gid,
+                self.ctx.node_id,
+                st.weight,
+                st.seq,
+                0,
+            )
+        )
+        self.stats.beacons_sent += 1
+        st.beacons += 1
+        if (st.beacons - 1) % max(1, self.ctx.config.report_every_beacons) == 0:
+            self._report(st, now, GroupStatus.ALIVE)
+        self.timers.set(("beacon", st.gtype), now + self.ctx.config.beacon_period)
+
+    def _schedule_forward(self, st: _TypeState, now: float) -> None:
+        name = ("fwd", st.gtype)
+        if name not in self.timers:
+            self.timers.set(name, now + self.ctx.rng.uniform(0, self.ctx.config.forward_jitter))
+
+    def _forward(self, st: _TypeState) -> None:
+        # Built at send time: carries the best hop count learnt during the jitter.
+        self.send(
+            LeaderBeacon(
+                self.ctx.node_id,
+                BROADCAST,
+                st.gtype,
+                st.gid,
+                st.leader,
+                st.weight,
+                st.seq,
+                st.hops,
+            )
+        )
+        self.stats.beacons_forwarded += 1
+
+    def _on_beacon(self, f: LeaderBeacon, now: float) -> None:
+        st = self._types.get(f.group_type)
+        if st is None:
+            self.stats.beacons_unknown_type += 1
+            return
+        me = self.ctx.node_id
+        if f.leader == me:
+            # A member re-broadcasting our own beacon: a one-hop child, a handover candidate.
+            if st.role is Role.LEADER and f.group_id == st.gid and f.hops == 1:
+                old = st.children.get(f.src)
+                st.children[f.src] = (now, 0 if old is None else old[1])
+            return
+        self._note_nearby(st, f, now)
+        role = st.role
+        if role is Role.WAITING:
+            self._adopt(st, f, now)
+        elif role is Role.MEMBER:
+            if f.group_id == st.gid:
+                self._same_group(st, f, now)
+            elif heavier(f.weight, f.group_id, st.weight, st.gid):
+                self._leave(st, now, LeaveReason.SWITCHED)
+                self._adopt(st, f, now)
+        elif role is Role.LEADER:
+            if f.group_id == st.gid:
+                # Another leader with our id: an id clash or a duplicated handover.
+                if (f.weight, f.leader) > (st.weight, me):
+                    self._yield(st, f, now)
+            elif heavier(f.weight, f.group_id, st.weight, st.gid):
+                self._yield(st, f, now)
+
+    def _note_nearby(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+        h = st.nearby.get(f.group_id)
+        if h is None or seq_newer(f.seq, h.seq) or h.leader != f.leader:
+            st.nearby[f.group_id] = _Heard(f.leader, f.weight, f.seq, f.hops, f.src, now)
+        elif f.seq == h.seq and f.hops < h.hops:
+            h.hops, h.src, h.t = f.hops, f.src, now
+        else:
+            h.t = max(h.t, now) if f.seq == h.seq else h.t
+
+    def _same_group(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+        st.upstream[f.src] = (f.seq, f.hops, now)
+        if seq_newer(f.seq, st.seq):
+            st.seq, st.leader, st.weight = f.seq, f.leader, f.weight
+            st.hops = min(f.hops + 1, MAX_HOPS)
+            st.parent = f.src
+            st.last_beacon = now
+            self.timers.set(("lost", st.gtype), now + self._timeout())
+            self._schedule_forward(st, now)
+        elif f.seq == st.seq and f.hops + 1 < st.hops:
+            st.hops = f.hops + 1
+            st.parent = f.src
+
+    def _yield(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+        old = st.gid
+        self.ctx.emit(LeaderYielded(self.ctx.node_id, st.gtype, old, f.group_id, now))
+        if f.group_id != old:
+            self._report(st, now, GroupStatus.GONE, successor=f.group_id)
+        self._leave(st, now, LeaveReason.YIELDED)
+        self._adopt(st, f, now)
+
+    # ----------------------------------------------------------------- handover
+
+    def _start_handover(self, st: _TypeState, now: float) -> None:
+        fresh_for = 1.5 * self.ctx.config.beacon_period
+        ttl = self._timeout()
+        ranked = sorted(
+            (
+                (now - t <= fresh_for, count, t, n)
+                for n, (t, count) in st.children.items()
+                if now - t <= ttl
+            ),
+            reverse=True,
+        )
+        st.candidates = [n for *_, n in ranked]
+        self.timers.cancel(("beacon", st.gtype))
+        st.role = Role.HANDING_OVER
+        self._next_candidate(st, now)
+
+    def _next_candidate(self, st: _TypeState, now: float) -> None:
+        self.timers.cancel(("handover", st.gtype))
+        if not st.candidates:
+            # Nobody to hand over to: the group is gone; members will elect a new one.
+            self._report(st, now, GroupStatus.GONE)
+            self._leave(st, now, LeaveReason.CONDITION)
+            return
+        n = st.candidates.pop(0)
+        st.handover_to = n
+        self.stats.handovers_sent += 1
+        self.send(Handover(self.ctx.node_id, n, st.gtype, st.gid, st.weight, st.seq))
+
+    def _on_handover(self, f: Handover, now: float) -> None:
+        st = self._types.get(f.group_type)
+        if (
+            st is not None
+            and st.role is Role.HANDING_OVER
+            and st.gid == f.group_id
+            and f.src == st.handover_to
+        ):
+            # Our candidate sent our Handover back: it cannot take the group.
+            self.stats.handovers_failed += 1
+            self._next_candidate(st, now)
+            return
+        if st is None or not self._can_take(st, f, now):
+            self.stats.handovers_refused += 1
+            # Tell the leaving leader at once (no retry of a refusal: if it is
+            # lost, the group times out and is re-elected with a new id).
+            self.send(Handover(self.ctx.node_id, f.src, f.group_type, f.group_id, f.weight, f.seq))
+            return
+        if st.role is Role.LEADER:
+            return  # a duplicate of a handover we already took
+        seq = st.seq if st.role is Role.MEMBER and seq_newer(st.seq, f.seq) else f.seq
+        weight = max(f.weight, st.weight) if st.role is Role.MEMBER else f.weight
+        if st.role is Role.WAITING:
+            self.timers.cancel(("create", st.gtype))
+        self.stats.handovers_accepted += 1
+        self._become_leader(st, f.group_id, weight, seq, now, ElectionCause.HANDOVER)
+
+    def _can_take(self, st: _TypeState, f: Handover, now: float) -> bool:
+        if st.role is Role.LEADER:
+            return st.gid == f.group_id
+        if st.role is Role.MEMBER:
+            return st.gid == f.group_id and self._qualifies(st, True, now)
+        if st.role in (Role.IDLE, Role.WAITING):
+            return self._qualifies(st, False, now)
+        return False
+
+    # ----------------------------------------------------------------- reports
+
+    def _report(self, st: _TypeState, now: float, status: GroupStatus, successor: int = 0) -> None:
+        report = GroupReport(
+            st.gtype,
+            st.gid,
+            self.ctx.node_id,
+            min(st.weight, MAX_WEIGHT),
+            min(st.readings, 0xFFFF),
+            status,
+            successor,
+        )
+        if not self.collection.submit(report, now):
+            self.stats.reports_refused += 1
