@@ -206,6 +206,7 @@ class _TypeState:
     children: dict[int, tuple[float, int]] = field(default_factory=dict)  # n -> (t, readings)
     candidates: list[int] = field(default_factory=list)
     handover_to: int | None = None
+    handed: tuple[int, int] | None = None  # (group id, seq) of our last Handover
 
 
 def seq_newer(a: int, b: int) -> bool:
@@ -255,6 +256,7 @@ class Groups(Component):
         self.collection = collection
         self.stats = GroupStats()
         self._types: dict[int, _TypeState] = {}
+        self._echoed: tuple[int, int, int, int] | None = None  # last refusal sent back
 
     # ----------------------------------------------------------------- public API
 
@@ -673,26 +675,28 @@ class Groups(Component):
             return
         n = st.candidates.pop(0)
         st.handover_to = n
+        st.handed = (st.gid, st.seq)
         self.stats.handovers_sent += 1
         self.send(Handover(self.ctx.node_id, n, st.gtype, st.gid, st.weight, st.seq))
 
     def _on_handover(self, f: Handover, now: float) -> None:
         st = self._types.get(f.group_type)
-        if (
-            st is not None
-            and st.role is Role.HANDING_OVER
-            and st.gid == f.group_id
-            and f.src == st.handover_to
-        ):
-            # Our candidate sent our Handover back: it cannot take the group.
-            self.stats.handovers_failed += 1
-            self._next_candidate(st, now)
-            return
+        if st is not None and st.handed == (f.group_id, f.seq):
+            # Our own Handover sent back: the candidate cannot take the group.
+            if st.role is Role.HANDING_OVER and f.src == st.handover_to:
+                self.stats.handovers_failed += 1
+                self._next_candidate(st, now)
+            return  # else a late refusal of a candidate we gave up on: ignore
         if st is None or not self._can_take(st, f, now):
             self.stats.handovers_refused += 1
-            # Tell the leaving leader at once (no retry of a refusal: if it is
-            # lost, the group times out and is re-elected with a new id).
-            self.send(Handover(self.ctx.node_id, f.src, f.group_type, f.group_id, f.weight, f.seq))
+            echo = (f.src, f.group_type, f.group_id, f.seq)
+            if echo != self._echoed:
+                # Tell the leaving leader at once, once (a lost refusal only costs
+                # the group its id: members time out and elect a new one).
+                self._echoed = echo
+                self.send(
+                    Handover(self.ctx.node_id, f.src, f.group_type, f.group_id, f.weight, f.seq)
+                )
             return
         if st.role is Role.LEADER:
             return  # a duplicate of a handover we already took

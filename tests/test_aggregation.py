@@ -1,0 +1,101 @@
+"""Aggregation functions: ground truth, tree-shape independence, registry, wire."""
+
+from __future__ import annotations
+
+import random
+import statistics
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from awaremw.protocol import aggregation
+from awaremw.protocol.aggregation import Aggregator, PartialAgg, Variance
+from awaremw.protocol.frames import BROADCAST, AggId, Partial, decode, encode
+
+TRUTH = {
+    AggId.AVG: statistics.fmean,
+    AggId.MIN: min,
+    AggId.MAX: max,
+    AggId.SUM: sum,
+    AggId.COUNT: len,
+}
+readings = st.lists(
+    st.floats(min_value=-1e4, max_value=1e4, allow_nan=False), min_size=1, max_size=60
+)
+
+
+def tree_merge(agg: Aggregator, parts: list[PartialAgg], rng: random.Random) -> PartialAgg:
+    """Merge partials in a random tree shape (what a group tree does)."""
+    parts = list(parts)
+    while len(parts) > 1:
+        i, j = sorted(rng.sample(range(len(parts)), 2))
+        b = parts.pop(j)
+        a = parts.pop(i)
+        parts.append(agg.merge(a, b))
+    return parts[0]
+
+
+@pytest.mark.parametrize("agg_id", list(TRUTH))
+@settings(max_examples=40, deadline=None)
+@given(values=readings, seed=st.integers(0, 2**16))
+def test_functions_equal_ground_truth_whatever_the_tree(
+    agg_id: AggId, values: list[float], seed: int
+) -> None:
+    agg = aggregation.by_id(agg_id)
+    count, state = tree_merge(agg, [agg.init(v) for v in values], random.Random(seed))
+    assert count == len(values)
+    assert agg.result(count, state) == pytest.approx(TRUTH[agg_id](values), rel=1e-9, abs=1e-6)
+
+
+def test_registry_by_id_and_name() -> None:
+    for agg_id, name in [(0, "avg"), (1, "min"), (2, "max"), (3, "sum"), (4, "count")]:
+        assert aggregation.by_id(agg_id).name == name
+        assert aggregation.by_name(name).id == agg_id
+        assert aggregation.by_name(name.upper()).id == agg_id
+    with pytest.raises(aggregation.UnknownAggregation, match="known: avg, count"):
+        aggregation.by_name("median")
+    with pytest.raises(aggregation.UnknownAggregation):
+        aggregation.by_id(99)
+    assert aggregation.get(99) is None
+
+
+def test_extension_registers_and_clashes_are_refused() -> None:
+    var = Variance()
+    assert aggregation.get(var.id) is None  # not registered by default
+    aggregation.register(var)
+    try:
+        assert aggregation.by_name("variance") is var
+        vals = [1.0, 2.0, 4.0, 7.0]
+        c, s = aggregation.by_id(var.id).merge_all(var.init(v) for v in vals)  # type: ignore[misc]
+        assert var.result(c, s) == pytest.approx(statistics.pvariance(vals))
+        with pytest.raises(ValueError, match="clashes"):
+            aggregation.register(Variance())  # another object under the same id
+    finally:
+        aggregation.unregister(var.id)
+    assert aggregation.get(var.id) is None
+
+    class Big(Aggregator):
+        id = 200
+        name = "big"
+
+        def init(self, value: float) -> PartialAgg:
+            return 1, (value,) * 5
+
+    with pytest.raises(ValueError, match="at most 4"):
+        aggregation.register(Big())
+
+
+def test_valid_state_shape() -> None:
+    assert aggregation.by_id(AggId.AVG).valid_state((1.0,))
+    assert not aggregation.by_id(AggId.AVG).valid_state(())
+    assert aggregation.by_id(AggId.COUNT).valid_state(())
+
+
+def test_partial_state_survives_the_wire_as_float32() -> None:
+    agg = aggregation.by_id(AggId.SUM)
+    c, s = agg.merge_all(agg.init(v) for v in [21.3, 22.7, 19.9])  # type: ignore[misc]
+    f = Partial(3, BROADCAST, 1, 1, 77, 12, AggId.SUM, c, s)
+    g = decode(encode(f))
+    assert isinstance(g, Partial) and g.count == 3
+    assert g.state[0] == pytest.approx(s[0], rel=1e-6)

@@ -1,0 +1,390 @@
+"""Unit tests of channels (one component, fake groups, fake clock) and frame sizes."""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import pytest
+
+from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE
+from awaremw.protocol.channels import ChannelRefused, Channels, RecordProduced
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.frames import (
+    ANY_GROUP_ID,
+    ANY_GROUP_TYPE,
+    BROADCAST,
+    MAX_NODE_ID,
+    AggId,
+    ChannelDef,
+    CommandDef,
+    CtpData,
+    DataRecord,
+    DripItem,
+    Frame,
+    GroupReport,
+    GroupStatus,
+    Handover,
+    ItemKind,
+    LeaderBeacon,
+    Partial,
+    Payload,
+    decode,
+    encode,
+)
+from awaremw.protocol.groups import Membership
+from awaremw.protocol.mote import MoteContext
+from awaremw.radio.model import PRESETS
+
+T = TEMPERATURE
+
+
+class App:
+    def __init__(self) -> None:
+        self.values: dict[int, float | None] = {T: 21.5, HUMIDITY: 40.0}
+
+    def offers(self, attr: int) -> bool:
+        return attr in self.values
+
+    def read(self, attr: int, now: float) -> float | None:
+        return self.values.get(attr)
+
+    def on_command(self, command: CommandDef, now: float) -> None:
+        pass
+
+
+class FakeGroups:
+    def __init__(self) -> None:
+        self.ms: dict[int, Membership] = {}
+        self.ups: list[int] = []
+        self.children: list[tuple[int, int, int]] = []
+        self.weight: dict[int, int] = {}
+
+    def set(self, gtype: int, gid: int, hops: int, parent: int | None = 5) -> None:
+        leader = hops == 0
+        self.ms[gtype] = Membership(
+            gtype, gid, 10 if leader else 1, leader, None if leader else parent, hops, 0
+        )
+
+    def membership(self, gtype: int) -> Membership | None:
+        return self.ms.get(gtype)
+
+    def memberships(self) -> dict[int, Membership]:
+        return dict(self.ms)
+
+    def upstream(self, gtype: int, now: float) -> list[int]:
+        return list(self.ups)
+
+    def note_child(self, gtype: int, node: int, now: float, count: int = 0) -> None:
+        self.children.append((gtype, node, count))
+
+    def add_weight(self, gtype: int, n: int) -> None:
+        self.weight[gtype] = self.weight.get(gtype, 0) + n
+
+
+class FakeCollection:
+    def __init__(self) -> None:
+        self.submitted: list[Payload] = []
+
+    def submit(self, payload: Payload, now: float) -> bool:
+        self.submitted.append(payload)
+        return True
+
+
+class H:
+    def __init__(self, nid: int = 10, **cfg: Any) -> None:
+        self.app = App()
+        self.ctx = MoteContext(nid, MiddlewareConfig(**cfg), random.Random(nid), self.app)
+        self.groups = FakeGroups()
+        self.coll = FakeCollection()
+        self.c = Channels(self.ctx, self.groups, self.coll)  # type: ignore[arg-type]
+        self.now = 0.0
+
+    def advance(self, t: float) -> None:
+        while (d := self.c.timers.next_deadline()) is not None and d <= t:
+            self.now = d
+            for name in self.c.timers.due(d):
+                self.c.on_timer(name, d)
+        self.now = t
+
+    def hear(self, f: Frame) -> None:
+        self.c.on_frame(f, -70.0, self.now)
+
+    def sent(self) -> list[Frame]:
+        out = [decode(tx.frame) for tx in self.ctx.outbox]
+        self.ctx.outbox.clear()
+        return out
+
+    def records(self) -> list[DataRecord]:
+        evs = [e for e in self.ctx.event_list if isinstance(e, RecordProduced)]
+        return [e.record for e in evs]
+
+
+def chan(
+    agg: int = AggId.AVG,
+    period_ms: int = 2000,
+    gtype: int = 1,
+    gid: int = ANY_GROUP_ID,
+    attr: int = T,
+) -> ChannelDef:
+    return ChannelDef(attr, gtype, gid, period_ms, agg)
+
+
+def partial(
+    src: int,
+    dst: int = 10,
+    epoch: int = 1,
+    count: int = 1,
+    state: tuple[float, ...] = (20.0,),
+    agg: int = AggId.AVG,
+    gid: int = 500,
+    channel: int = 1,
+) -> Partial:
+    return Partial(src, dst, channel, 1, gid, epoch, agg, count, state)
+
+
+# --------------------------------------------------------------------------- slots
+
+
+def test_slots_deeper_first_all_within_the_period() -> None:
+    h = H()
+    h.c.define(1, chan(), 0.0)
+    d = h.ctx.config.max_group_depth
+    times = [h.c.slot_time(1, 7, hops) for hops in range(d, 0, -1)] + [h.c.slot_time(1, 7, 0)]
+    assert times == sorted(times) and len(set(times)) == len(times)
+    assert times[0] >= 14.0 and times[-1] < 16.0
+    assert h.c.slot_time(1, 7, d + 5) == h.c.slot_time(1, 7, d)  # deeper motes share slot 0
+
+
+# --------------------------------------------------------------------------- members
+
+
+def test_member_samples_at_epoch_and_sends_partial_in_its_slot() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=3, parent=5)
+    h.c.define(1, chan(), 0.3)
+    h.advance(h.c.slot_time(1, 1, 3) - 0.001)
+    assert h.sent() == []
+    h.advance(2.0 + 2.0 * 0.99)
+    (p,) = h.sent()
+    assert isinstance(p, Partial)
+    assert (p.dst, p.channel, p.group_type, p.group_id, p.epoch, p.count, p.state) == (
+        5,
+        1,
+        1,
+        500,
+        1,
+        1,
+        (21.5,),
+    )
+    assert p.agg == AggId.AVG
+
+
+def test_member_merges_children_before_its_slot_and_forwards_late_ones() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=2, parent=5)
+    h.c.define(1, chan(AggId.MAX), 0.0)
+    h.advance(2.0)  # epoch 1 starts: own reading
+    h.hear(partial(31, epoch=1, count=4, state=(30.0,), agg=AggId.MAX))
+    h.hear(partial(32, epoch=1, count=2, state=(25.0,), agg=AggId.MAX))
+    assert h.groups.children == [(1, 31, 4), (1, 32, 2)]
+    h.advance(4.0 - 0.001)
+    (p,) = h.sent()
+    assert isinstance(p, Partial) and (p.count, p.state) == (7, (30.0,))
+    h.hear(partial(33, epoch=1, count=1, state=(99.0,), agg=AggId.MAX))  # late
+    (late,) = h.sent()
+    assert isinstance(late, Partial)
+    assert (late.src, late.dst, late.count, late.state) == (10, 5, 1, (99.0,))
+    assert h.c.stats.late_forwarded == 1 and h.c.stats.merged == 2
+
+
+def test_partial_before_own_epoch_start_is_kept_for_the_slot() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=1, parent=5)
+    h.c.define(1, chan(AggId.SUM), 0.0)
+    h.advance(1.99)
+    h.hear(partial(31, epoch=1, count=3, state=(9.0,), agg=AggId.SUM))
+    h.advance(3.99)
+    (p,) = h.sent()
+    assert isinstance(p, Partial) and (p.count, p.state) == (4, (30.5,))
+
+
+def test_unavailable_attribute_still_relays_children() -> None:
+    h = H()
+    h.app.values[T] = None
+    h.groups.set(1, 500, hops=1, parent=5)
+    h.c.define(1, chan(AggId.SUM), 0.0)
+    h.advance(2.0)
+    h.hear(partial(31, epoch=1, count=3, state=(9.0,), agg=AggId.SUM))
+    h.advance(3.99)
+    (p,) = h.sent()
+    assert isinstance(p, Partial) and (p.count, p.state) == (3, (9.0,))
+    assert h.c.stats.unavailable == 1
+    h.advance(5.99)
+    assert h.sent() == []  # nothing to say: no empty partial
+
+
+def test_link_failure_reroutes_then_drops() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=2, parent=5)
+    h.groups.ups = [5, 6, 7]
+    h.c.define(1, chan(), 0.0)
+    h.advance(3.99)
+    (p,) = h.sent()
+    assert isinstance(p, Partial) and p.dst == 5
+    h.c.on_link_result(p, False, h.now)
+    (p2,) = h.sent()
+    assert isinstance(p2, Partial) and p2.dst == 6 and p2.count == p.count
+    h.c.on_link_result(p2, False, h.now)
+    (p3,) = h.sent()
+    assert isinstance(p3, Partial) and p3.dst == 7
+    h.c.on_link_result(p3, False, h.now)
+    assert h.sent() == []
+    assert (h.c.stats.rerouted, h.c.stats.link_dropped) == (2, 1)
+
+
+def test_member_that_left_its_group_drops_its_partial() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=2)
+    h.c.define(1, chan(), 0.0)
+    h.advance(2.0)
+    del h.groups.ms[1]
+    h.advance(3.99)
+    assert h.sent() == [] and h.c.stats.orphan_dropped == 1
+
+
+def test_foreign_and_malformed_partials_are_counted() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=1)
+    h.c.define(1, chan(), 0.0)
+    h.advance(2.0)
+    h.hear(partial(31, gid=501))  # another group of the type
+    h.hear(partial(31, channel=9))  # unknown channel
+    h.hear(partial(31, agg=AggId.MAX))  # not this channel's function
+    h.hear(partial(31, state=(1.0, 2.0)))  # wrong state shape
+    h.hear(partial(31, epoch=1000))  # far future epoch
+    h.hear(partial(31, count=0))
+    assert h.c.stats.foreign_dropped == 1 and h.c.stats.bad_partials == 5
+    assert h.groups.children == []
+
+
+# --------------------------------------------------------------------------- leader
+
+
+def test_leader_finalises_once_per_epoch() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=0)
+    h.c.define(1, chan(AggId.AVG), 0.0)
+    h.advance(2.0)
+    h.hear(partial(31, epoch=1, count=3, state=(60.0,)))
+    h.advance(3.999)
+    (r,) = h.records()
+    assert r == DataRecord(1, 1, 500, 1, AggId.AVG, (60.0 + 21.5) / 4, 4, 10)
+    assert h.coll.submitted == [r]
+    assert h.groups.weight == {1: 4}
+    assert h.sent() == []
+    h.hear(partial(32, epoch=1, count=1, state=(1.0,)))  # after the record went out
+    assert h.c.stats.late_dropped == 1
+    h.advance(5.999)
+    assert [r.epoch for r in h.records()] == [1, 2]
+
+
+def test_leader_with_no_reading_produces_no_record() -> None:
+    h = H()
+    h.app.values[T] = None
+    h.groups.set(1, 500, hops=0)
+    h.c.define(1, chan(), 0.0)
+    h.advance(10.0)
+    assert h.records() == [] and h.coll.submitted == []
+
+
+def test_every_function_and_any_group_matching() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=0)
+    h.groups.set(2, 700, hops=0)
+    for cid, agg in enumerate(AggId):
+        h.c.define(cid, chan(agg, gtype=ANY_GROUP_TYPE), 0.0)
+    h.c.define(9, chan(AggId.SUM, gtype=2, gid=701), 0.0)  # matches no group
+    h.advance(3.999)
+    got = {(r.channel, r.group_type): r.value for r in h.records()}
+    expect = {AggId.AVG: 21.5, AggId.MIN: 21.5, AggId.MAX: 21.5, AggId.SUM: 21.5, AggId.COUNT: 1}
+    assert got == {(int(a), g): v for a, v in expect.items() for g in (1, 2)}
+
+
+# --------------------------------------------------------------------------- definitions
+
+
+def test_period_change_takes_effect_at_once_and_delete_stops() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=0)
+    h.c.define(1, chan(period_ms=10_000), 0.0)
+    h.advance(10.0 + 9.99)
+    assert [r.epoch for r in h.records()] == [1]
+    h.c.define(1, chan(period_ms=1000), 21.5)
+    h.advance(25.0)
+    assert [r.epoch for r in h.records()] == [1, 22, 23, 24]
+    h.c.define(1, chan(period_ms=1000), 25.0)  # the same definition again: no change
+    h.advance(26.99)
+    assert [r.epoch for r in h.records()][-2:] == [25, 26]
+    h.c.define(1, None, 27.0)
+    h.advance(60.0)
+    assert [r.epoch for r in h.records()][-1] == 26
+    assert h.c.timers.next_deadline() is None
+
+
+def test_period_is_never_below_the_minimum() -> None:
+    h = H(min_period_s=0.5)
+    h.c.define(1, chan(period_ms=1), 0.0)
+    assert h.c.period(1) == 0.5
+
+
+def test_channels_that_cannot_run_are_refused() -> None:
+    h = H(max_channels=2)
+    h.c.define(1, chan(agg=77), 0.0)  # unknown function
+    h.c.define(300, chan(), 0.0)  # channel id beyond a u8
+    h.c.define(1, chan(), 0.0)
+    h.c.define(2, chan(), 0.0)
+    h.c.define(3, chan(), 0.0)  # one too many
+    refused = [e for e in h.ctx.event_list if isinstance(e, ChannelRefused)]
+    assert [e.channel for e in refused] == [1, 300, 3]
+    assert set(h.c.defined()) == {1, 2}
+
+
+# --------------------------------------------------------------------------- frame sizes
+
+
+def _largest_frames() -> list[Frame]:
+    """The largest instance of every frame groups and channels send or define.
+
+    (Group-type definitions are Drip items sized by dissemination: with
+    worst-case float32 thresholds 7 conditions fit 100 bytes, 4 fit 64.)
+    """
+    n = MAX_NODE_ID
+    big = 3.4e38
+    rec = DataRecord(0xFF, 0xFE, 0xFFFE, 0xFFFFFFFF, 0xFF, -big, 0xFFFFFFFF, n)
+    rep = GroupReport(0xFE, 0xFFFE, n, 0xFFFFFFFF, 0xFFFF, GroupStatus.GONE, 0xFFFE)
+    return [
+        LeaderBeacon(n, BROADCAST, 0xFE, 0xFFFE, n, 0xFFFFFFFF, 0xFFFF, 0xFF),
+        Handover(n, n, 0xFE, 0xFFFE, 0xFFFFFFFF, 0xFFFF),
+        Partial(n, n, 0xFF, 0xFE, 0xFFFE, 0xFFFFFFFF, 0xFF, 0xFFFFFFFF, (-big,) * 4),
+        CtpData(n, n, n, 0xFFFF, 0xFF, 0xFFFF, rec),
+        CtpData(n, n, n, 0xFFFF, 0xFF, 0xFFFF, rep),
+        DripItem(
+            n,
+            BROADCAST,
+            ItemKind.CHANNEL,
+            0xFFFF,
+            0xFFFFFFFF,
+            ChannelDef(0xFFFF, 0xFF, 0xFFFF, 0xFFFFFFFF, 0xFF),
+        ),
+    ]
+
+
+@pytest.mark.parametrize("preset", ["cc2420", "cc1000"])
+def test_largest_frames_of_groups_and_channels_fit_the_mtu(preset: str) -> None:
+    mtu = PRESETS[preset].mtu
+    assert MiddlewareConfig().mtu <= PRESETS["cc2420"].mtu
+    sizes = {
+        type(f).__name__ + str(i): len(encode(f, mtu)) for i, f in enumerate(_largest_frames())
+    }
+    assert max(sizes.values()) <= mtu, sizes

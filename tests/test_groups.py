@@ -1,0 +1,603 @@
+"""Unit tests of group management: one Groups component on a fake clock."""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import pytest
+
+from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.frames import (
+    BROADCAST,
+    CommandDef,
+    Condition,
+    Frame,
+    GroupReport,
+    GroupStatus,
+    GroupTypeDef,
+    Handover,
+    LeaderBeacon,
+    Op,
+    Payload,
+    decode,
+)
+from awaremw.protocol.groups import (
+    ElectionCause,
+    GroupJoined,
+    GroupLeft,
+    Groups,
+    GroupTypeRefused,
+    HandoverSent,
+    LeaderElected,
+    LeaderYielded,
+    LeaveReason,
+    Role,
+    condition_holds,
+    heavier,
+    seq_newer,
+)
+from awaremw.protocol.mote import MoteContext
+
+T = TEMPERATURE
+HOT = GroupTypeDef((Condition(T, Op.GT, 50.0),))
+
+
+class App:
+    def __init__(self, **values: float | None) -> None:
+        self.values: dict[int, float | None] = {T: values.get("t", 80.0)}
+        if "h" in values:
+            self.values[HUMIDITY] = values["h"]
+
+    def offers(self, attr: int) -> bool:
+        return attr in self.values
+
+    def read(self, attr: int, now: float) -> float | None:
+        return self.values.get(attr)
+
+    def on_command(self, command: CommandDef, now: float) -> None:
+        pass
+
+
+class FakeCollection:
+    def __init__(self) -> None:
+        self.submitted: list[Payload] = []
+        self.accept = True
+
+    def submit(self, payload: Payload, now: float) -> bool:
+        self.submitted.append(payload)
+        return self.accept
+
+
+class H:
+    """One Groups component, its context and a hand-driven clock."""
+
+    def __init__(self, nid: int = 10, temp: float | None = 80.0, **cfg: Any) -> None:
+        self.app = App(t=temp)
+        self.ctx = MoteContext(nid, MiddlewareConfig(**cfg), random.Random(nid), self.app)
+        self.coll = FakeCollection()
+        self.g = Groups(self.ctx, self.coll)  # type: ignore[arg-type]
+        self.now = 0.0
+        self.cfg = self.ctx.config
+
+    @property
+    def temp(self) -> float | None:
+        return self.app.values[T]
+
+    @temp.setter
+    def temp(self, v: float | None) -> None:
+        self.app.values[T] = v
+
+    def advance(self, t: float) -> None:
+        while (d := self.g.timers.next_deadline()) is not None and d <= t:
+            self.now = d
+            for name in self.g.timers.due(d):
+                self.g.on_timer(name, d)
+        self.now = t
+
+    def hear(self, frame: Frame) -> None:
+        self.g.on_frame(frame, -70.0, self.now)
+
+    def sent(self) -> list[Frame]:
+        out = [decode(tx.frame) for tx in self.ctx.outbox]
+        self.ctx.outbox.clear()
+        return out
+
+    def link(self, frame: Frame, acked: bool) -> None:
+        for k, (_, f) in list(self.ctx.pending.items()):
+            if f == frame:
+                del self.ctx.pending[k]
+        self.g.on_link_result(frame, acked, self.now)
+
+    def events(self, cls: type | None = None) -> list[Any]:
+        evs = list(self.ctx.event_list)
+        self.ctx.event_list.clear()
+        return [e for e in evs if cls is None or isinstance(e, cls)]
+
+    def reports(self) -> list[GroupReport]:
+        return [p for p in self.coll.submitted if isinstance(p, GroupReport)]
+
+    def lead(self) -> LeaderBeacon:
+        """Define HOT and let this mote create a group; returns its first beacon."""
+        self.g.define(1, HOT, self.now)
+        self.advance(self.now + self.cfg.create_backoff + 0.001)
+        (b,) = self.sent()
+        assert isinstance(b, LeaderBeacon)
+        return b
+
+
+def beacon(
+    src: int,
+    gid: int = 500,
+    leader: int = 2,
+    weight: int = 0,
+    seq: int = 1,
+    hops: int = 0,
+    gtype: int = 1,
+) -> LeaderBeacon:
+    return LeaderBeacon(src, BROADCAST, gtype, gid, leader, weight, seq, hops)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+@pytest.mark.parametrize(
+    ("op", "thr", "value", "relax", "expected"),
+    [
+        (Op.GT, 50, 50.5, 0, True),
+        (Op.GT, 50, 50.0, 0, False),
+        (Op.GT, 50, 48.0, 3, True),
+        (Op.GT, 50, 47.0, 3, False),
+        (Op.GE, 50, 50.0, 0, True),
+        (Op.GE, 50, 47.0, 3, True),
+        (Op.LT, -80, -81, 0, True),
+        (Op.LT, -80, -78, 0, False),
+        (Op.LT, -80, -78, 3, True),
+        (Op.LE, 10, 12, 2, True),
+        (Op.LE, 10, 12.5, 2, False),
+        (Op.EQ, 3, 3.0, 0, True),
+        (Op.EQ, 3, 3.2, 0, False),
+        (Op.EQ, 3, 3.2, 0.5, True),
+        (Op.NE, 3, 3.0, 5, False),
+        (Op.NE, 3, 4.0, 0, True),
+    ],
+)
+def test_condition_with_hysteresis(
+    op: Op, thr: float, value: float, relax: float, expected: bool
+) -> None:
+    assert condition_holds(Condition(T, op, thr), value, relax) is expected
+
+
+def test_unavailable_attribute_never_qualifies() -> None:
+    assert not condition_holds(Condition(T, Op.NE, 3), None, 0)
+
+
+def test_seq_and_weight_order() -> None:
+    assert seq_newer(2, 1) and not seq_newer(1, 2) and not seq_newer(5, 5)
+    assert seq_newer(0, 0xFFFF) and seq_newer(3, 0xFFF0)  # wrap-around
+    assert heavier(1, 5, 0, 9) and heavier(3, 9, 3, 5) and not heavier(3, 5, 3, 5)
+
+
+# --------------------------------------------------------------------------- creation and joining
+
+
+def test_qualifying_mote_alone_creates_a_group_after_backoff() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    assert h.g.role(1) is Role.WAITING and h.sent() == []
+    h.advance(h.cfg.create_backoff + 0.001)
+    (b,) = h.sent()
+    assert isinstance(b, LeaderBeacon)
+    assert (b.leader, b.weight, b.seq, b.hops) == (10, 0, 1, 0)
+    assert 1 <= b.group_id <= 0xFFFE
+    (e,) = h.events(LeaderElected)
+    assert e.cause is ElectionCause.CREATED and e.group_id == b.group_id
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader and m.group_id == b.group_id and m.parent is None
+    assert h.reports()[0].status is GroupStatus.ALIVE  # the gateway learns at once
+    # It beacons every beacon period with a growing seq.
+    h.advance(h.now + h.cfg.beacon_period * 3)
+    seqs = [f.seq for f in h.sent() if isinstance(f, LeaderBeacon)]
+    assert seqs == [2, 3, 4]
+
+
+def test_non_qualifying_mote_does_nothing() -> None:
+    h = H(temp=20.0)
+    h.g.define(1, HOT, 0.0)
+    h.advance(30.0)
+    assert h.g.role(1) is Role.IDLE and h.g.membership(1) is None and h.sent() == []
+
+
+def test_joins_a_group_heard_recently_instead_of_creating() -> None:
+    h = H(temp=20.0)
+    h.g.define(1, HOT, 0.0)
+    h.advance(1.0)
+    h.hear(beacon(src=7, gid=500, leader=2, weight=4, seq=9, hops=2))
+    assert h.sent() == []  # a non-member listens but does not forward
+    h.temp = 80.0
+    h.advance(3.0)  # next membership checks
+    m = h.g.membership(1)
+    assert m is not None and (m.group_id, m.leader, m.parent, m.hops, m.weight) == (500, 2, 7, 3, 4)
+    assert not m.is_leader
+    evs = h.events()
+    assert [type(e) for e in evs] == [GroupJoined]
+    assert h.sent() == []  # that beacon was old news: not forwarded
+
+
+def test_group_heard_too_long_ago_is_not_joined() -> None:
+    h = H(temp=20.0)
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=7))
+    timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
+    h.advance(timeout + 0.5)
+    h.temp = 80.0
+    h.advance(h.now + 1.0 + h.cfg.create_backoff + 0.01)
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader and m.group_id != 500
+
+
+def test_waiting_mote_joins_on_beacon_and_forwards_it_once() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    assert h.g.role(1) is Role.WAITING
+    h.hear(beacon(src=7, seq=3, hops=1))
+    assert h.g.role(1) is Role.MEMBER
+    h.advance(h.cfg.forward_jitter)
+    (f,) = h.sent()
+    assert isinstance(f, LeaderBeacon)
+    assert (f.src, f.group_id, f.leader, f.seq, f.hops) == (10, 500, 2, 3, 2)
+    h.hear(beacon(src=8, seq=3, hops=1))  # the same beacon from another neighbour
+    h.advance(h.now + 1.0)
+    assert h.sent() == []
+    h.hear(beacon(src=8, seq=4, hops=1))
+    h.advance(h.now + h.cfg.forward_jitter)
+    assert [f.seq for f in h.sent() if isinstance(f, LeaderBeacon)] == [4]
+    # The create backoff was cancelled: no group of its own.
+    h.advance(h.now + 2 * h.cfg.create_backoff)
+    assert h.events(LeaderElected) == []
+
+
+def test_parent_is_first_sender_of_newest_seq_then_fewest_hops() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=7, seq=3, hops=3))
+    h.hear(beacon(src=8, seq=3, hops=1))  # same seq, fewer hops: better parent
+    h.advance(h.cfg.forward_jitter)
+    (f,) = h.sent()
+    assert isinstance(f, LeaderBeacon) and f.hops == 2  # forwarded with the best count
+    m = h.g.membership(1)
+    assert m is not None and (m.parent, m.hops) == (8, 2)
+    h.hear(beacon(src=9, seq=4, hops=4))  # newer seq wins even with more hops
+    m = h.g.membership(1)
+    assert m is not None and (m.parent, m.hops) == (9, 5)
+    h.hear(beacon(src=7, seq=4, hops=5))  # not better: ignored
+    assert h.g.membership(1).parent == 9  # type: ignore[union-attr]
+    assert h.g.upstream(1, h.now) == [9, 8]  # 8 only sent seq 3 but is a closer fallback
+    h.hear(beacon(src=8, seq=4, hops=1))
+    assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
+
+
+def test_member_switches_to_heavier_group_and_ignores_lighter() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=7, gid=500, leader=2, weight=10, seq=3, hops=1))
+    h.advance(0.1)
+    h.sent()
+    h.events()
+    h.hear(beacon(src=8, gid=900, leader=3, weight=5, seq=1, hops=0))  # lighter
+    h.advance(0.2)
+    assert h.sent() == [] and h.g.membership(1).group_id == 500  # type: ignore[union-attr]
+    h.hear(beacon(src=8, gid=100, leader=3, weight=11, seq=1, hops=0))  # heavier
+    evs = h.events()
+    assert [type(e) for e in evs] == [GroupLeft, GroupJoined]
+    assert evs[0].reason is LeaveReason.SWITCHED and evs[1].group_id == 100
+    h.advance(0.3)
+    (f,) = h.sent()
+    assert isinstance(f, LeaderBeacon) and (f.group_id, f.hops) == (100, 1)
+
+
+def test_equal_weights_the_higher_group_id_wins() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=7, gid=500, weight=3))
+    h.hear(beacon(src=8, gid=499, leader=3, weight=3))
+    assert h.g.membership(1).group_id == 500  # type: ignore[union-attr]
+    h.hear(beacon(src=8, gid=501, leader=3, weight=3))
+    assert h.g.membership(1).group_id == 501  # type: ignore[union-attr]
+
+
+def test_leader_yields_to_heavier_leader_and_reports_gone() -> None:
+    h = H()
+    mine = h.lead()
+    h.events()
+    other = mine.group_id % 0xFFFE + 1
+    h.hear(beacon(src=7, gid=other, leader=3, weight=1, seq=6, hops=2))
+    evs = h.events()
+    assert isinstance(evs[0], LeaderYielded) and evs[0].successor == other
+    m = h.g.membership(1)
+    assert m is not None and not m.is_leader and (m.group_id, m.parent, m.hops) == (other, 7, 3)
+    gone = h.reports()[-1]
+    assert (gone.status, gone.group_id, gone.successor) == (GroupStatus.GONE, mine.group_id, other)
+    h.advance(h.now + 0.1)
+    assert [f.group_id for f in h.sent() if isinstance(f, LeaderBeacon)] == [other]
+    h.advance(h.now + 3 * h.cfg.beacon_period)  # no beacons of its own any more
+    assert all(f.leader != 10 for f in h.sent() if isinstance(f, LeaderBeacon))
+
+
+def test_leader_ignores_lighter_leader() -> None:
+    h = H()
+    mine = h.lead()
+    h.g.add_weight(1, 5)
+    h.hear(beacon(src=7, gid=0xFFFE, leader=3, weight=4, seq=6))
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader and m.group_id == mine.group_id
+    assert h.events(LeaderYielded) == []
+
+
+def test_weight_grows_with_data_and_reports_are_periodic() -> None:
+    h = H(report_every_beacons=3)
+    h.lead()
+    h.g.add_weight(1, 7)
+    h.g.add_weight(1, 5)
+    h.advance(h.now + h.cfg.beacon_period * 6 + 0.001)
+    bs = [f for f in h.sent() if isinstance(f, LeaderBeacon)]
+    assert [b.weight for b in bs][-1] == 12
+    alive = [r for r in h.reports() if r.status is GroupStatus.ALIVE]
+    assert len(alive) == 3  # beacons 1, 4, 7
+    assert (alive[-1].weight, alive[-1].members) == (12, 5)
+
+
+def test_refused_report_is_counted() -> None:
+    h = H()
+    h.coll.accept = False
+    h.lead()
+    assert h.g.stats.reports_refused == 1
+
+
+# ------------------------------------------------------------------------- hysteresis, definitions
+
+
+def test_hysteresis_keeps_members_and_needs_strict_condition_to_join() -> None:
+    h = H(temp=49.0)
+    defn = GroupTypeDef((Condition(T, Op.GT, 50.0),), hysteresis=2.0)
+    h.g.define(1, defn, 0.0)
+    h.hear(beacon(src=7))
+    h.advance(1.5)
+    assert h.g.membership(1) is None  # 49 > 50 - 2 but a newcomer needs 50
+    h.temp = 51.0
+    h.hear(beacon(src=7, seq=2))
+    h.advance(2.5)
+    assert h.g.membership(1) is not None
+    h.temp = 48.5  # still > 48: stays
+    h.hear(beacon(src=7, seq=3))
+    h.advance(3.5)
+    assert h.g.membership(1) is not None
+    h.temp = 47.9
+    h.advance(4.5)
+    assert h.g.membership(1) is None
+    (e,) = h.events(GroupLeft)
+    assert e.reason is LeaveReason.CONDITION
+
+
+def test_changed_definition_takes_effect_at_once_and_deletion_leaves() -> None:
+    h = H(temp=60.0)
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=7))
+    assert h.g.membership(1) is not None
+    h.g.define(1, GroupTypeDef((Condition(T, Op.GT, 70.0),)), 0.01)
+    assert h.g.membership(1) is None  # no wait for the next check
+    h.g.define(1, HOT, 0.02)
+    assert h.g.membership(1) is not None  # the beacon heard earlier is still fresh
+    h.events()
+    h.g.define(1, None, 0.03)
+    assert h.g.membership(1) is None and h.g.defined_types() == {}
+    (e,) = h.events(GroupLeft)
+    assert e.reason is LeaveReason.DELETED
+    h.advance(60.0)
+    assert h.sent() == [] and h.g.timers.next_deadline() is None
+
+
+def test_deleting_a_type_makes_its_leader_report_gone() -> None:
+    h = H()
+    b = h.lead()
+    h.g.define(1, None, h.now)
+    assert (h.reports()[-1].status, h.reports()[-1].group_id) == (GroupStatus.GONE, b.group_id)
+
+
+def test_several_types_at_once() -> None:
+    h = H()
+    h.app.values[HUMIDITY] = 30.0
+    h.g.define(1, HOT, 0.0)
+    h.g.define(2, GroupTypeDef((Condition(HUMIDITY, Op.LT, 40.0),)), 0.0)
+    h.g.define(3, GroupTypeDef((Condition(HUMIDITY, Op.GT, 40.0),)), 0.0)
+    h.hear(beacon(src=7, gtype=2, gid=77))
+    h.advance(h.cfg.create_backoff + 0.01)
+    ms = h.g.memberships()
+    assert set(ms) == {1, 2}
+    assert ms[1].is_leader and not ms[2].is_leader and ms[2].group_id == 77
+
+
+def test_too_many_types_are_refused() -> None:
+    h = H(max_group_types=2)
+    for g in (1, 2, 3):
+        h.g.define(g, HOT, 0.0)
+    h.g.define(ANY := 0xFF, HOT, 0.0)
+    refused = h.events(GroupTypeRefused)
+    assert [e.group_type for e in refused] == [3, ANY]
+    assert h.g.stats.types_refused == 2
+    h.g.define(1, HOT, 0.1)  # redefining a held type is fine
+    assert h.g.stats.types_refused == 2
+
+
+def test_beacon_of_unknown_type_is_counted() -> None:
+    h = H()
+    h.hear(beacon(src=7, gtype=9))
+    assert h.g.stats.beacons_unknown_type == 1 and h.sent() == []
+
+
+def test_new_group_after_leader_loss_never_reuses_the_dead_id() -> None:
+    class Rigged(random.Random):
+        def __init__(self, ids: list[int]) -> None:
+            super().__init__(1)
+            self.ids = ids
+
+        def randint(self, a: int, b: int) -> int:
+            return self.ids.pop(0)
+
+    h = H()
+    h.ctx.rng = Rigged([500, 500, 321])
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500))
+    h.advance(30.0)
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader and m.group_id == 321
+
+
+# --------------------------------------------------------------------------- handover
+
+
+def _leader_with_children(h: H, children: list[int]) -> LeaderBeacon:
+    b = h.lead()
+    for c in children:
+        h.hear(beacon(src=c, gid=b.group_id, leader=10, seq=b.seq, hops=1))
+    h.events()
+    return b
+
+
+def test_leaving_leader_hands_over_to_a_child() -> None:
+    h = H()
+    b = _leader_with_children(h, [21])
+    h.g.note_child(1, 22, h.now, count=9)  # biggest subtree: first candidate
+    h.g.add_weight(1, 9)
+    h.temp = 20.0
+    h.advance(h.now + h.cfg.check_period)
+    (ho,) = h.sent()
+    assert isinstance(ho, Handover)
+    assert (ho.dst, ho.group_id, ho.weight, ho.seq) == (22, b.group_id, 9, b.seq)
+    assert h.g.membership(1) is None and h.g.role(1) is Role.HANDING_OVER
+    h.link(ho, acked=True)
+    assert h.events(HandoverSent) == []  # waits for a refusal first
+    h.advance(h.now + h.cfg.handover_grace)
+    (e,) = h.events(HandoverSent)
+    assert e.to == 22
+    assert h.g.role(1) is Role.IDLE
+    assert all(r.status is GroupStatus.ALIVE for r in h.reports())  # the group lives on
+
+
+def test_handover_tries_next_candidate_on_link_failure_and_refusal() -> None:
+    h = H()
+    b = _leader_with_children(h, [21, 22, 23])
+    h.temp = 20.0
+    h.advance(h.now + h.cfg.check_period)
+    (first,) = h.sent()
+    assert isinstance(first, Handover)
+    h.link(first, acked=False)
+    (second,) = h.sent()
+    assert isinstance(second, Handover) and second.dst != first.dst
+    h.link(second, acked=True)
+    # The candidate cannot take it: it sends the Handover back.
+    h.hear(Handover(second.dst, 10, 1, b.group_id, second.weight, second.seq))
+    (third,) = h.sent()
+    assert isinstance(third, Handover) and third.dst not in (first.dst, second.dst)
+    h.link(third, acked=False)
+    # Nobody left: the group is gone.
+    assert h.g.role(1) is Role.IDLE
+    assert h.reports()[-1].status is GroupStatus.GONE
+    assert h.g.stats.handovers_failed == 3
+
+
+def test_leader_without_known_member_reports_gone() -> None:
+    h = H()
+    h.lead()
+    h.temp = 20.0
+    h.advance(h.now + h.cfg.check_period)
+    assert h.sent() == [] and h.reports()[-1].status is GroupStatus.GONE
+    (e,) = h.events(GroupLeft)
+    assert e.reason is LeaveReason.CONDITION
+
+
+def test_member_takes_over_on_handover() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17, hops=0))
+    h.events()
+    h.hear(Handover(2, 10, 1, 500, 41, 17))
+    (e,) = h.events(LeaderElected)
+    assert (e.cause, e.group_id, e.weight) == (ElectionCause.HANDOVER, 500, 41)
+    (b,) = h.sent()
+    assert isinstance(b, LeaderBeacon) and (b.group_id, b.leader, b.weight, b.seq) == (
+        500,
+        10,
+        41,
+        18,
+    )
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader
+    # The leader reports itself at once.
+    assert (h.reports()[-1].leader, h.reports()[-1].status) == (10, GroupStatus.ALIVE)
+    # A duplicate of the same handover is harmless.
+    h.hear(Handover(2, 10, 1, 500, 41, 17))
+    assert h.sent() == [] and h.events(LeaderElected) == []
+
+
+def test_non_qualifying_candidate_refuses_handover() -> None:
+    h = H(temp=20.0)
+    h.g.define(1, HOT, 0.0)
+    h.hear(Handover(2, 10, 1, 500, 41, 17))
+    (back,) = h.sent()
+    assert isinstance(back, Handover) and (back.dst, back.group_id) == (2, 500)
+    assert h.g.membership(1) is None and h.g.stats.handovers_refused == 1
+
+
+def test_late_refusal_after_leaving_is_not_bounced_back() -> None:
+    h = H()
+    b = _leader_with_children(h, [21])
+    h.temp = 20.0
+    h.advance(h.now + h.cfg.check_period)
+    (ho,) = h.sent()
+    h.link(ho, acked=True)
+    h.advance(h.now + h.cfg.handover_grace)
+    h.hear(Handover(21, 10, 1, b.group_id, 0, b.seq))  # a refusal that came too late
+    assert h.sent() == []  # not bounced back (no ping-pong), no new leader
+    assert h.g.role(1) is Role.IDLE and h.events(LeaderElected) == []
+
+
+def test_refusal_is_sent_back_once() -> None:
+    h = H(temp=20.0)
+    h.g.define(1, HOT, 0.0)
+    h.hear(Handover(2, 10, 1, 500, 41, 17))
+    h.hear(Handover(2, 10, 1, 500, 41, 17))
+    assert len(h.sent()) == 1 and h.g.stats.handovers_refused == 2
+
+
+# --------------------------------------------------------------------------- leader loss
+
+
+def test_members_elect_a_new_group_when_the_leader_is_lost() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h.events()
+    timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
+    h.advance(timeout - 0.01)
+    assert h.g.membership(1) is not None
+    h.advance(timeout + 0.01)
+    (left,) = h.events(GroupLeft)
+    assert left.reason is LeaveReason.LEADER_LOST
+    h.advance(timeout + h.cfg.create_backoff + 0.02)
+    (e,) = h.events(LeaderElected)
+    assert e.cause is ElectionCause.ELECTION and e.group_id != 500 and e.weight == 0
+
+
+def test_orphan_joins_a_new_group_heard_meanwhile() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
+    h.advance(timeout - 1)
+    h.hear(beacon(src=3, gid=600, leader=3, weight=0, seq=1))  # a lighter new group
+    assert h.g.membership(1).group_id == 500  # type: ignore[union-attr]
+    h.advance(timeout + 0.01)
+    m = h.g.membership(1)
+    assert m is not None and m.group_id == 600 and not m.is_leader
