@@ -25,6 +25,7 @@ from typing import Final
 
 _M64: Final = 0xFFFFFFFFFFFFFFFF
 _GOLDEN: Final = 0x9E3779B97F4A7C15
+_MUL: Final = 0xBF58476D1CE4E5B9
 
 # Hash domains: independent streams for independent random quantities.
 DOMAIN_SHADOW: Final = 1
@@ -48,8 +49,14 @@ def link_hash(seed: int, domain: int, a: int, b: int) -> int:
 
 
 def packet_hash(link_h: int, packet_key: int) -> int:
-    """64-bit hash of a packet on a link (``link_h`` from :func:`link_hash`)."""
-    return splitmix64(link_h ^ ((packet_key * _GOLDEN) & _M64))
+    """64-bit hash of a packet on a link (``link_h`` from :func:`link_hash`).
+
+    One multiply-xorshift round: ``link_h`` is already a well-mixed random
+    word per link and ``packet_key * golden`` spreads the key, so one round is
+    enough here, and this is the per-packet, per-receiver hot path.
+    """
+    z = ((link_h ^ ((packet_key * _GOLDEN) & _M64)) * _MUL) & _M64
+    return z ^ (z >> 31)
 
 
 def packet_key(seq: int, attempt: int = 0, ack: bool = False) -> int:
@@ -195,7 +202,7 @@ CC2420 = RadioPreset(
     pl_d0_db=55.4,
     path_loss_exponent=3.0,
     shadowing_sigma_db=4.0,
-    fading_sigma_db=1.5,
+    fading_sigma_db=1.0,
     mtu=100,
     # 4 preamble + 1 SFD + 1 length + 9 MAC header (FCF, DSN, PAN, dst, src) + 2 FCS
     phy_overhead_bytes=17,
@@ -236,7 +243,7 @@ CC1000 = RadioPreset(
     pl_d0_db=55.0,
     path_loss_exponent=3.0,
     shadowing_sigma_db=3.8,
-    fading_sigma_db=1.5,
+    fading_sigma_db=1.0,
     mtu=64,
     # 8 preamble + 2 sync + 5 TOS_Msg header (addr, type, group, length) + 2 CRC
     phy_overhead_bytes=17,
@@ -275,6 +282,7 @@ def cell_of(x: float, y: float, cell_size_m: float) -> tuple[int, int]:
 # Below this BER * bits, the PRR differs from 1 by less than 1e-12: we return 1.0
 # exactly (part of the model's definition, so prr() and reception() agree).
 _PRR_ONE_EPS: Final = 1e-12
+_PRR_CACHE_MAX: Final = 1 << 17
 _OQPSK_COEF: Final[tuple[tuple[float, float], ...]] = tuple(
     ((-1) ** k * math.comb(16, k), 20.0 * (1.0 / k - 1.0)) for k in range(2, 17)
 )
@@ -305,6 +313,7 @@ class RadioModel:
         "_fading_link",
         "_max_fade",
         "_one_snr_db",
+        "_prr_cache",
         "_range_cache",
         "_shadow",
         "preset",
@@ -320,6 +329,7 @@ class RadioModel:
         self._shadow: dict[int, float] = {}
         self._fading_link: dict[int, int] = {}
         self._range_cache: dict[float, float] = {}
+        self._prr_cache: dict[int, float] = {}
         self._max_fade = preset.fading_sigma_db * Z_MAX
         self._one_snr_db = self._snr_db_for_prr_one()
 
@@ -407,14 +417,25 @@ class RadioModel:
         return hi
 
     def prr_bits(self, rssi_dbm: float, bits: int) -> float:
-        """PRR = (1 - BER(SNR))^bits; 0 below sensitivity."""
+        """PRR = (1 - BER(SNR))^bits; 0 below sensitivity.
+
+        The SNR is rounded to 0.001 dB so that the values can be cached (the
+        O-QPSK BER is a 15-term sum): a step far below any physical meaning.
+        """
         p = self.preset
         if rssi_dbm < p.sensitivity_dbm:
             return 0.0
         snr_db = rssi_dbm - p.noise_floor_dbm
         if snr_db >= self._one_snr_db:
             return 1.0
-        return (1.0 - self._ber(snr_db)) ** bits
+        k = (round(snr_db * 1000.0) << 16) | bits
+        v = self._prr_cache.get(k)
+        if v is None:
+            if len(self._prr_cache) >= _PRR_CACHE_MAX:
+                self._prr_cache.clear()
+            v = (1.0 - self._ber(round(snr_db * 1000.0) / 1000.0)) ** bits
+            self._prr_cache[k] = v
+        return v
 
     def prr(self, rssi_dbm: float, frame_len: int) -> float:
         """PRR of a frame of ``frame_len`` bytes (ours; PHY overhead is added)."""
@@ -468,9 +489,13 @@ class RadioModel:
             return False, rssi
         return ok, rssi
 
+    def backoff_link_hash(self, src: int) -> int:
+        """Hash of ``src``'s backoff stream (cache it per mote)."""
+        return link_hash(self.seed, DOMAIN_BACKOFF, src, 0)
+
     def backoff_s(self, src: int, seq: int, attempt: int) -> float:
         """Seeded random MAC backoff before an attempt, in [0, mac_backoff_s)."""
-        h = packet_hash(link_hash(self.seed, DOMAIN_BACKOFF, src, 0), packet_key(seq, attempt))
+        h = packet_hash(self.backoff_link_hash(src), packet_key(seq, attempt))
         return uniform(h) * self.preset.mac_backoff_s
 
     # ---------------------------------------------------------------- energy
