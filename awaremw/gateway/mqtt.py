@@ -39,7 +39,6 @@ from typing import Literal
 from urllib.parse import unquote, urlsplit
 
 import aiomqtt
-from aiomqtt.exceptions import MqttConnectError
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
@@ -147,6 +146,8 @@ class MqttBridge:
         self.on_message = on_message
         self.stats = MqttStats()
         self.connected = asyncio.Event()
+        self.disconnected = asyncio.Event()  # set whenever not connected
+        self.disconnected.set()
         self._fifo: deque[_Item] = deque()
         self._retained: dict[str, bytes] = {}  # full topic -> latest payload
         self._dirty: dict[str, bytes] = {}  # retained topics still to (re)publish
@@ -203,21 +204,20 @@ class MqttBridge:
         s = self.settings
         backoff = s.reconnect_min_s
         while not self._stop.is_set():
-            protocol = self._protocol or aiomqtt.ProtocolVersion.V5
-            client = self._client(protocol)
             try:
+                protocol = self._protocol or await self._probe()
+                client = self._client(protocol)
                 async with client:
                     self._on_connected(protocol)
                     backoff = s.reconnect_min_s
                     await self._serve(client)
                     return  # stopped cleanly
             except aiomqtt.MqttError as e:
-                if self._fallback(protocol, e):
-                    continue
                 self._note_failure(e)
             finally:
                 if self.connected.is_set():
                     self.connected.clear()
+                    self.disconnected.set()
                     self.stats.disconnects += 1
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), backoff)
@@ -226,11 +226,6 @@ class MqttBridge:
     def _client(self, protocol: aiomqtt.ProtocolVersion) -> aiomqtt.Client:
         s = self.settings
         will = aiomqtt.Will(s.topic(STATUS_TOPIC), b"offline", qos=1, retain=True)
-        tls_context = None
-        if s.tls:
-            tls_context = ssl.create_default_context(cafile=s.ca_file)
-            if s.tls_insecure:
-                tls_context.check_hostname = False
         kwargs: dict[str, object] = {}
         if protocol is aiomqtt.ProtocolVersion.V5:
             props = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
@@ -249,25 +244,60 @@ class MqttBridge:
             will=will,
             keepalive=s.keepalive,
             timeout=s.timeout_s,
-            tls_context=tls_context,
+            tls_context=self._tls_context(),
             tls_insecure=s.tls_insecure if s.tls else None,
             **kwargs,  # type: ignore[arg-type]
         )
 
-    def _fallback(self, protocol: aiomqtt.ProtocolVersion, e: aiomqtt.MqttError) -> bool:
-        """With ``protocol="auto"``, retry at once with 3.1.1 if the broker refused MQTT 5."""
-        if self._protocol is not None or protocol is not aiomqtt.ProtocolVersion.V5:
-            return False
-        # A 3.1.1 broker answers an MQTT 5 CONNECT with "unacceptable protocol
-        # version" (3.1.1 code 1, which paho reports as MQTT 5 reason 0x84).
-        if not isinstance(e, MqttConnectError):
-            return False
-        rc = getattr(e.rc, "value", e.rc)
-        if rc not in (1, 0x84):
-            return False
-        log.info("broker %s refused MQTT 5 (%s); using MQTT 3.1.1", self.settings.url, e)
-        self._protocol = aiomqtt.ProtocolVersion.V311
-        return True
+    async def _probe(self) -> aiomqtt.ProtocolVersion:
+        """With ``protocol="auto"``: does the broker speak MQTT 5?
+
+        Sends a bare MQTT 5 CONNECT (no credentials, no properties: some 3.1.1
+        brokers, amqtt among them, hang on CONNECT properties) under a probe
+        client id, so the gateway's own session is not touched, and reads the
+        CONNACK: a 3.1.1 broker answers "unacceptable protocol version" (code
+        1) or just closes; any MQTT 5 reason code, even "not authorized", means
+        the broker speaks 5.
+        """
+        s = self.settings
+        cid = f"{s.client_id}-probe".encode()
+        var = b"\x00\x04MQTT\x05\x02\x00\x0a\x00"  # name, level 5, clean start, keepalive, props
+        body = var + len(cid).to_bytes(2, "big") + cid
+        packet = bytes([0x10, len(body)]) + body  # len(body) < 128: one-byte length
+        try:
+            async with asyncio.timeout(s.timeout_s):
+                reader, writer = await asyncio.open_connection(
+                    s.host,
+                    s.port,
+                    ssl=self._tls_context(),
+                    server_hostname=s.host if s.tls else None,
+                )
+                try:
+                    writer.write(packet)
+                    await writer.drain()
+                    head = await reader.read(4)
+                    if len(head) >= 4 and head[0] == 0x20 and head[3] not in (0x01, 0x84):
+                        writer.write(b"\xe0\x00")  # DISCONNECT
+                        await writer.drain()
+                        return aiomqtt.ProtocolVersion.V5
+                finally:
+                    writer.close()
+                    with contextlib.suppress(OSError):
+                        await writer.wait_closed()
+        except (OSError, TimeoutError) as e:
+            raise aiomqtt.MqttError(f"cannot reach the broker: {e}") from None
+        log.info("broker %s does not speak MQTT 5; using MQTT 3.1.1", s.url)
+        return aiomqtt.ProtocolVersion.V311
+
+    def _tls_context(self) -> ssl.SSLContext | None:
+        s = self.settings
+        if not s.tls:
+            return None
+        ctx = ssl.create_default_context(cafile=s.ca_file)
+        if s.tls_insecure:
+            ctx.check_hostname = False
+            ctx.verify_mode = ssl.CERT_NONE
+        return ctx
 
     def _on_connected(self, protocol: aiomqtt.ProtocolVersion) -> None:
         if self._protocol is None:
@@ -275,6 +305,7 @@ class MqttBridge:
         self.stats.connects += 1
         self.stats.protocol = "5" if protocol is aiomqtt.ProtocolVersion.V5 else "3.1.1"
         self.connected.set()
+        self.disconnected.clear()
         log.info("connected to %s (MQTT %s)", self.settings.url, self.stats.protocol)
         self._last_error = ""
         # The broker may have lost its retained messages: publish them all again.

@@ -1,0 +1,135 @@
+"""The Zenoh side of the gateway: the HBN API under ``<prefix>/hbn/**``.
+
+Same contract as MQTT, on key expressions instead of topics:
+
+* ``put`` JSON on ``aware/hbn/def/group/<type>``, ``aware/hbn/def/channel/<id>``
+  (an empty payload or a Zenoh ``delete`` deletes) and ``aware/hbn/cmd/<name>``;
+* subscribe to ``aware/hbn/data/<channel>/<type>/<group_id>`` (records) and
+  ``aware/hbn/groups/<type>/<group_id>`` (group state; a ``delete`` when the
+  group is gone), ``aware/hbn/gateway/status``;
+* refusals are put on ``aware/hbn/errors`` (same JSON as MQTT);
+* ``get aware/hbn/**`` (or any narrower selector such as ``aware/hbn/def/**``
+  or ``aware/hbn/groups/**``) answers with the current definitions, group
+  states and gateway status/stats -- Zenoh's stand-in for retained messages.
+
+zenoh-python calls back on its own threads: the subscriber copies key, kind
+and payload out of the sample and hands them to the event loop with
+``call_soon_threadsafe``; the queryable answers from an immutable snapshot
+the loop replaces wholesale, so no asyncio or SQLite object is touched from a
+Zenoh thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable, Mapping
+from types import MappingProxyType
+
+import zenoh
+
+from awaremw.gateway.bridge import ErrorReport, Publish
+
+log = logging.getLogger(__name__)
+
+OnMessage = Callable[[str, bytes, bool, str], None]  # (rel_topic, payload, retained, key)
+
+
+class HbnApi:
+    """Subscriber, queryable and publications of the gateway on one Zenoh session.
+
+    The session belongs to the caller (one session per process); :meth:`close`
+    only undeclares what this object declared.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        on_message: OnMessage,
+        *,
+        prefix: str = "aware",
+        loop: asyncio.AbstractEventLoop | None = None,
+    ) -> None:
+        self.session = session
+        self.on_message = on_message
+        self.base = f"{prefix}/hbn"
+        self.loop = loop or asyncio.get_running_loop()
+        self._snapshot: Mapping[str, bytes] = MappingProxyType({})
+        self._decls: list[zenoh.Subscriber[None] | zenoh.Queryable[None]] = []
+        self._inputs = (f"{self.base}/def/", f"{self.base}/cmd/")
+        self.received = 0
+        self.queries = 0
+
+    def key(self, rel: str) -> str:
+        return f"{self.base}/{rel}"
+
+    # ----------------------------------------------------------------- lifecycle
+
+    def start(self) -> None:
+        # One subscriber, so definitions and commands keep the order they were put
+        # in (each callback subscriber has its own thread); our own publications
+        # are not looped back.
+        self._decls.append(
+            self.session.declare_subscriber(
+                self.key("**"), self._on_sample, allowed_origin=zenoh.Locality.REMOTE
+            )
+        )
+        self._decls.append(self.session.declare_queryable(self.key("**"), self._on_query))
+        log.info("Zenoh HBN API on %s/**", self.base)
+
+    def close(self) -> None:
+        decls, self._decls = self._decls, []
+        for d in decls:
+            try:
+                d.undeclare()  # type: ignore[no-untyped-call]
+            except zenoh.ZError as e:  # the session may already be closed
+                log.debug("undeclare: %s", e)
+
+    # ----------------------------------------------------------------- out
+
+    def publish(self, p: Publish) -> None:
+        key = self.key(p.topic)
+        if p.retain and not p.payload:
+            self.session.delete(key)
+        else:
+            self.session.put(key, p.payload)
+
+    def publish_error(self, e: ErrorReport) -> None:
+        self.session.put(self.key("errors"), e.to_json())
+
+    def set_state(self, state: Mapping[str, bytes]) -> None:
+        """Replace what the queryable answers (relative keys -> JSON payloads)."""
+        self._snapshot = MappingProxyType(dict(state))
+
+    # ----------------------------------------------------------------- in (Zenoh threads)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if not key.startswith(self._inputs):
+            return  # data, groups, errors: output of this or another gateway
+        deleted = sample.kind == zenoh.SampleKind.DELETE
+        payload = b"" if deleted else sample.payload.to_bytes()
+        rel = key[len(self.base) + 1 :]
+        # RuntimeError: the loop closed while Zenoh was still delivering.
+        with contextlib.suppress(RuntimeError):
+            self.loop.call_soon_threadsafe(self._deliver, rel, payload, key)
+
+    def _deliver(self, rel: str, payload: bytes, key: str) -> None:
+        self.received += 1
+        try:
+            self.on_message(rel, payload, False, key)
+        except Exception:  # a bug in the handler must not kill the subscription
+            log.exception("handling %s failed", key)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self.queries += 1
+        asked = query.key_expr
+        snapshot = self._snapshot  # one atomic read of the current state
+        for rel, payload in snapshot.items():
+            key = self.key(rel)
+            try:
+                if asked.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, payload)
+            except zenoh.ZError as e:
+                log.debug("query reply on %s: %s", key, e)
