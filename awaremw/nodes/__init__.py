@@ -1,0 +1,143 @@
+"""The application layer: node kinds, and building a mote's core from a deployment.
+
+:func:`build_core` is what every driver (virtual clock, fleet processes,
+gateway) calls to turn a :class:`~awaremw.runtime.deployment.NodeSpec` into the
+mote it runs: the kind's application (sensors over the world, commands) inside
+an :class:`~awaremw.protocol.mote.AwareMote` configured by, from weakest to
+strongest, the radio preset (MTU), the kind (a robot beacons, a gateway is a
+collection root), the deployment's ``[middleware]`` table and the node entry's
+own ``middleware`` table.
+
+Node entries may carry, besides the deployment keys, ``middleware = {...}``
+(config overrides) and ``noise = {temperature = 0.2, ...}`` (sensor noise
+sigma overrides); any other key is an error (a typo would otherwise be ignored).
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Mapping
+from typing import Any
+
+from awaremw.nodes.kinds import (
+    ALIASES,
+    KINDS,
+    CommandAction,
+    KindInfo,
+    NodeApp,
+    SensorNoise,
+    kind_info,
+)
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.core import MoteCore
+from awaremw.protocol.mote import AwareMote
+from awaremw.runtime.deployment import Deployment, DeploymentError, NodeSpec
+from awaremw.world.fields import World, WorldError
+
+__all__ = [
+    "ALIASES",
+    "KINDS",
+    "CommandAction",
+    "KindInfo",
+    "NodeApp",
+    "app_of",
+    "build_app",
+    "build_core",
+    "config_for",
+    "kind_names",
+    "mote_rng",
+    "validate",
+    "world_of",
+]
+
+_NODE_EXTRA = {"middleware", "noise"}
+
+
+def kind_names() -> list[str]:
+    """Every name a deployment may use as ``kind`` (for ``load(known_kinds=...)``)."""
+    return [*KINDS, *ALIASES]
+
+
+def world_of(deployment: Deployment) -> World:
+    """The deployment's world (``[world]`` table, seeded by the deployment's seed)."""
+    try:
+        return World.from_table(deployment.world, deployment.seed)
+    except WorldError as e:
+        raise DeploymentError(f"{_file(deployment)}: {e}") from None
+
+
+def _file(deployment: Deployment) -> str:
+    return str(deployment.path) if deployment.path is not None else deployment.name
+
+
+def _table(spec: NodeSpec, key: str, deployment: Deployment) -> Mapping[str, Any]:
+    v = spec.extra.get(key, {})
+    if not isinstance(v, Mapping):
+        raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {key!r} must be a table")
+    return v
+
+
+def config_for(spec: NodeSpec, deployment: Deployment) -> MiddlewareConfig:
+    """The middleware configuration of one mote (see the module docstring)."""
+    info = kind_info(spec.kind)
+    layers: dict[str, Any] = {"mtu": deployment.preset.mtu}
+    layers.update(info.config)
+    layers.update(deployment.middleware)
+    layers.update(_table(spec, "middleware", deployment))
+    try:
+        return MiddlewareConfig().with_overrides(layers)
+    except (ValueError, TypeError) as e:
+        raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {e}") from None
+
+
+def mote_rng(spec: NodeSpec, deployment: Deployment) -> random.Random:
+    """The mote's own seeded generator: the same in every process."""
+    return random.Random(f"awaremw:{deployment.seed}:{spec.id}")
+
+
+def build_app(spec: NodeSpec, deployment: Deployment, world: World | None = None) -> NodeApp:
+    """The node kind's application for ``spec``."""
+    try:
+        info = kind_info(spec.kind)
+    except KeyError as e:
+        raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {e.args[0]}") from None
+    unknown = sorted(set(spec.extra) - _NODE_EXTRA)
+    if unknown:
+        raise DeploymentError(
+            f"{_file(deployment)}: node {spec.id}: unknown key(s) {', '.join(unknown)} "
+            f"(node entries may add: {', '.join(sorted(_NODE_EXTRA))})"
+        )
+    noise: dict[str, SensorNoise] = {}
+    for sensor, sigma in _table(spec, "noise", deployment).items():
+        if isinstance(sigma, bool) or not isinstance(sigma, int | float) or sigma < 0:
+            raise DeploymentError(
+                f"{_file(deployment)}: node {spec.id}: noise.{sensor} must be a number >= 0"
+            )
+        noise[str(sensor)] = SensorNoise(float(sigma))
+    w = world if world is not None else world_of(deployment)
+    return info.app(spec.id, spec.mobility().position, w, noise=noise)
+
+
+def build_core(spec: NodeSpec, deployment: Deployment, world: World | None) -> MoteCore:
+    """The :class:`AwareMote` for ``spec`` with its kind's application.
+
+    ``world`` None builds it from the deployment (pass one shared world when
+    building many motes). Raises :class:`DeploymentError` for a bad entry.
+    """
+    app = build_app(spec, deployment, world)
+    return AwareMote(spec.id, app, config_for(spec, deployment), mote_rng(spec, deployment))
+
+
+def app_of(core: MoteCore) -> NodeApp | None:
+    """The node kind's application inside a core built by :func:`build_core`."""
+    if isinstance(core, AwareMote) and isinstance(core.ctx.app, NodeApp):
+        return core.ctx.app
+    return None
+
+
+def validate(deployment: Deployment) -> None:
+    """Check every node entry and the world table (raises :class:`DeploymentError`)."""
+    world = world_of(deployment)
+    for spec in deployment.nodes:
+        build_app(spec, deployment, world)
+        config_for(spec, deployment)

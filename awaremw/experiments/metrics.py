@@ -1,0 +1,318 @@
+"""Run recording and metrics against ground truth.
+
+:class:`Recorder` takes the motes' events (any driver: the virtual clock's
+``on_event`` hook, the fleet's event stream) and the records that reached the
+IP side, and keeps what the metrics need: every membership change of every
+mote as a step function of time, leader elections, handovers, merges, records
+produced by leaders and records delivered.
+
+The metrics (docs/experiments.md defines each):
+
+* membership precision / recall / F1, micro-averaged over sampling instants:
+  the motes in a group of the type at ``t + settle`` against the motes whose
+  noise-free values meet the condition at ``t`` (``settle``: one leader-beacon
+  period, the time the protocol needs to notice);
+* distinct group ids seen over a window; handovers; time to the first record;
+  record delivery ratio; frames and radio energy per mote.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from awaremw.protocol.channels import RecordProduced
+from awaremw.protocol.collection import Delivered
+from awaremw.protocol.frames import DataRecord, GroupTypeDef
+from awaremw.protocol.groups import (
+    ElectionCause,
+    GroupJoined,
+    GroupLeft,
+    HandoverSent,
+    LeaderElected,
+    LeaderYielded,
+)
+from awaremw.world.truth import GroundTruth
+
+RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
+
+
+@dataclass(frozen=True, slots=True)
+class State:
+    """A mote's membership in one group type from time ``t`` on (gid None: none)."""
+
+    t: float
+    gid: int | None
+    leader: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Election:
+    t: float
+    node: int
+    group_type: int
+    group_id: int
+    cause: str
+
+
+@dataclass(frozen=True, slots=True)
+class Arrival:
+    """A data record that reached the IP side (first copy of its key)."""
+
+    t: float
+    record: DataRecord
+    via: str  # "root" (Delivered at a gateway mote) or "mqtt"
+
+
+class Recorder:
+    """Collects a run's events into queryable timelines."""
+
+    def __init__(self) -> None:
+        self.timeline: dict[tuple[int, int], list[State]] = {}  # (node, type) -> states
+        self._times: dict[tuple[int, int], list[float]] = {}
+        self.elections: list[Election] = []
+        self.handovers: list[tuple[float, int, int, int, int]] = []  # t, type, gid, from, to
+        self.yields: list[tuple[float, int, int, int, int]] = []  # t, node, type, gid, successor
+        self.produced: dict[RecordKey, tuple[float, DataRecord]] = {}
+        self.arrivals: dict[RecordKey, Arrival] = {}
+        self.mqtt_messages = 0
+        self.down: dict[int, float] = {}
+        self.rssi: dict[int, list[tuple[float, float | None]]] = {}
+        self.event_counts: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ inputs
+
+    def on_event(self, node: int, event: object, t: float) -> None:
+        """Feed one event of ``node`` at time ``t`` (VirtualNetwork.on_event signature)."""
+        name = type(event).__name__
+        self.event_counts[name] = self.event_counts.get(name, 0) + 1
+        if isinstance(event, GroupJoined):
+            self._set(event.node, event.group_type, t, event.group_id, False)
+        elif isinstance(event, LeaderElected):
+            self._set(event.node, event.group_type, t, event.group_id, True)
+            self.elections.append(
+                Election(t, event.node, event.group_type, event.group_id, event.cause.value)
+            )
+        elif isinstance(event, GroupLeft):
+            self._set(event.node, event.group_type, t, None, False)
+        elif isinstance(event, HandoverSent):
+            self.handovers.append((t, event.group_type, event.group_id, event.node, event.to))
+        elif isinstance(event, LeaderYielded):
+            self.yields.append((t, event.node, event.group_type, event.group_id, event.successor))
+        elif isinstance(event, RecordProduced):
+            r = event.record
+            self.produced.setdefault(_key(r), (t, r))
+        elif isinstance(event, Delivered):
+            if isinstance(event.payload, DataRecord):
+                self.on_record(t, event.payload, "root")
+        elif name == "MoteDown":
+            self.down.setdefault(node, t)
+            for (n, g), states in list(self.timeline.items()):
+                if n == node and states[-1].gid is not None:
+                    self._set(n, g, t, None, False)
+
+    def on_record(self, t: float, record: DataRecord, via: str = "mqtt") -> None:
+        """A record reached the IP side (MQTT subscriber or a root's Delivered event)."""
+        if via == "mqtt":
+            self.mqtt_messages += 1
+        self.arrivals.setdefault(_key(record), Arrival(t, record, via))
+
+    def on_rssi(self, node: int, t: float, dbm: float | None) -> None:
+        """A sample of what ``node`` believes the robot's RSSI is (for Fig. 9)."""
+        self.rssi.setdefault(node, []).append((t, dbm))
+
+    def _set(self, node: int, gtype: int, t: float, gid: int | None, leader: bool) -> None:
+        k = (node, gtype)
+        states = self.timeline.setdefault(k, [])
+        times = self._times.setdefault(k, [])
+        states.append(State(t, gid, leader))
+        times.append(t)
+
+    # ------------------------------------------------------------------ queries
+
+    def state_at(self, node: int, gtype: int, t: float) -> State | None:
+        """The last state of ``node`` at or before ``t`` (None: never in a group)."""
+        k = (node, gtype)
+        times = self._times.get(k)
+        if not times:
+            return None
+        i = bisect.bisect_right(times, t)
+        return self.timeline[k][i - 1] if i else None
+
+    def members_at(self, gtype: int, t: float) -> dict[int, State]:
+        """Motes in a group of type ``gtype`` at ``t``: node -> state (gid, leader)."""
+        out: dict[int, State] = {}
+        for node, g in self.timeline:
+            if g != gtype:
+                continue
+            s = self.state_at(node, gtype, t)
+            if s is not None and s.gid is not None:
+                out[node] = s
+        return out
+
+    def groups_at(self, gtype: int, t: float) -> dict[int, set[int]]:
+        """gid -> members at ``t``."""
+        out: dict[int, set[int]] = {}
+        for node, s in self.members_at(gtype, t).items():
+            assert s.gid is not None
+            out.setdefault(s.gid, set()).add(node)
+        return out
+
+    def leaders_at(self, gtype: int, t: float) -> dict[int, int]:
+        """gid -> leader node at ``t`` (a group may briefly have none or two)."""
+        return {
+            s.gid: node
+            for node, s in self.members_at(gtype, t).items()
+            if s.leader and s.gid is not None
+        }
+
+    def group_ids(self, gtype: int, t0: float, t1: float) -> set[int]:
+        """Every group id a mote of type ``gtype`` was in during [t0, t1]."""
+        ids: set[int] = set()
+        for (node, g), states in self.timeline.items():
+            if g != gtype:
+                continue
+            s0 = self.state_at(node, g, t0)
+            if s0 is not None and s0.gid is not None:
+                ids.add(s0.gid)
+            ids.update(s.gid for s in states if t0 <= s.t <= t1 and s.gid is not None)
+        return ids
+
+
+def _key(r: DataRecord) -> RecordKey:
+    return (r.channel, r.group_type, r.group_id, r.epoch)
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+@dataclass(frozen=True, slots=True)
+class MembershipScore:
+    tp: int
+    fp: int
+    fn: int
+    instants: int
+
+    @property
+    def precision(self) -> float:
+        return self.tp / (self.tp + self.fp) if self.tp + self.fp else 1.0
+
+    @property
+    def recall(self) -> float:
+        return self.tp / (self.tp + self.fn) if self.tp + self.fn else 1.0
+
+    @property
+    def f1(self) -> float:
+        p, r = self.precision, self.recall
+        return 2 * p * r / (p + r) if p + r else 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Instant:
+    """One scored instant: protocol members (at t + settle) and true members (at t)."""
+
+    t: float
+    members: frozenset[int]
+    truth: frozenset[int]
+
+
+def instants(start: float, end: float, dt: float) -> list[float]:
+    n = max(0, math.floor((end - start) / dt + 1e-9))
+    return [start + i * dt for i in range(n + 1)]
+
+
+def membership_series(
+    rec: Recorder,
+    truth: GroundTruth,
+    defn: GroupTypeDef,
+    gtype: int,
+    times: Iterable[float],
+    settle: float,
+    among: Iterable[int] | None = None,
+) -> list[Instant]:
+    pool = None if among is None else frozenset(among)
+    out: list[Instant] = []
+    for t in times:
+        got = frozenset(rec.members_at(gtype, t + settle))
+        if pool is not None:
+            got &= pool
+        out.append(Instant(t, got, truth.members(defn, t, pool)))
+    return out
+
+
+def score(series: Sequence[Instant]) -> MembershipScore:
+    tp = sum(len(i.members & i.truth) for i in series)
+    fp = sum(len(i.members - i.truth) for i in series)
+    fn = sum(len(i.truth - i.members) for i in series)
+    return MembershipScore(tp, fp, fn, len(series))
+
+
+def handover_count(rec: Recorder, gtype: int, t0: float, t1: float) -> int:
+    """Leader changes that kept the group id (handovers) in [t0, t1]."""
+    return sum(
+        1
+        for e in rec.elections
+        if e.group_type == gtype and t0 <= e.t <= t1 and e.cause == ElectionCause.HANDOVER.value
+    )
+
+
+def first_arrival(
+    rec: Recorder, after: float, channel: int | None = None, gtype: int | None = None
+) -> Arrival | None:
+    """The first record (of ``channel`` / group type) that arrived at or after ``after``."""
+    best: Arrival | None = None
+    for a in rec.arrivals.values():
+        r = a.record
+        if a.t < after or (channel is not None and r.channel != channel):
+            continue
+        if gtype is not None and r.group_type != gtype:
+            continue
+        if best is None or a.t < best.t:
+            best = a
+    return best
+
+
+def delivery_ratio(rec: Recorder, until: float | None = None) -> float | None:
+    """Records that arrived / records leaders produced (produced before ``until``)."""
+    keys = [k for k, (t, _) in rec.produced.items() if until is None or t <= until]
+    if not keys:
+        return None
+    return sum(1 for k in keys if k in rec.arrivals) / len(keys)
+
+
+@dataclass(frozen=True, slots=True)
+class Traffic:
+    frames_tx: float
+    frames_rx: float
+    energy_mj: float
+    per_mote: Mapping[int, tuple[int, int, float]] = field(default_factory=dict)
+
+
+def traffic(per_mote: Mapping[int, tuple[int, int, float]], among: Iterable[int]) -> Traffic:
+    """Means over ``among`` of (frames sent, frames received, radio energy mJ)."""
+    ids = [i for i in among if i in per_mote]
+    if not ids:
+        return Traffic(0.0, 0.0, 0.0, {})
+    n = len(ids)
+    return Traffic(
+        sum(per_mote[i][0] for i in ids) / n,
+        sum(per_mote[i][1] for i in ids) / n,
+        sum(per_mote[i][2] for i in ids) / n,
+        {i: per_mote[i] for i in ids},
+    )
+
+
+def rounded(d: Mapping[str, Any], digits: int = 4) -> dict[str, Any]:
+    """Round floats in a (nested) metrics dict for stable, readable JSON."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, float):
+            out[k] = round(v, digits)
+        elif isinstance(v, Mapping):
+            out[k] = rounded(v, digits)
+        else:
+            out[k] = v
+    return out

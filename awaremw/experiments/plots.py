@@ -1,0 +1,255 @@
+"""Figures of the experiments (matplotlib, Agg: no display needed).
+
+* :func:`tracking_snapshots`: the group tracking the robot, a sequence of
+  panels like the paper's Fig. 8;
+* :func:`rssi_traces`: RSSI of the robot's beacons at some motes against the
+  membership threshold, like Fig. 9;
+* :func:`field_snapshots`: groups over a field (fire merge and split);
+* :func:`membership_sizes`: group size against the true member count over time.
+
+Figures are built with :class:`matplotlib.figure.Figure` (no pyplot state), so
+they can be drawn from any thread.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from awaremw.experiments.metrics import Instant, Recorder
+from awaremw.protocol.frames import GroupTypeDef
+from awaremw.world.fields import World
+from awaremw.world.truth import GroundTruth
+
+Area = tuple[float, float, float, float]  # xmin, xmax, ymin, ymax
+_PALETTE = (
+    "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd",
+    "#8c564b", "#e377c2", "#bcbd22", "#17becf", "#7f7f7f",
+)  # fmt: skip
+
+
+class GroupColours:
+    """A stable colour per group id (first come, first served)."""
+
+    def __init__(self) -> None:
+        self._map: dict[int, str] = {}
+
+    def __call__(self, gid: int) -> str:
+        if gid not in self._map:
+            self._map[gid] = _PALETTE[len(self._map) % len(_PALETTE)]
+        return self._map[gid]
+
+
+def _save(fig: Figure, path: Path, dpi: int = 90) -> Path:
+    FigureCanvasAgg(fig)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    return path
+
+
+def _grid(n: int) -> tuple[int, int]:
+    cols = 3 if n > 4 else min(n, 2) if n > 1 else 1
+    rows = -(-n // cols)
+    return rows, cols
+
+
+def _draw_motes(
+    ax: object,
+    rec: Recorder,
+    truth: GroundTruth,
+    gtype: int,
+    t: float,
+    ids: Sequence[int],
+    colours: GroupColours,
+    true_members: frozenset[int],
+    labels: bool = True,
+) -> None:
+    from matplotlib.axes import Axes
+
+    assert isinstance(ax, Axes)
+    members = rec.members_at(gtype, t)
+    for n in ids:
+        x, y = truth.position(n, t)
+        s = members.get(n)
+        ring = "black" if n in true_members else "none"
+        if s is None or s.gid is None:
+            ax.scatter([x], [y], s=70, c="#dddddd", edgecolors=ring, linewidths=1.6, zorder=2)
+        else:
+            ax.scatter(
+                [x], [y], s=240 if s.leader else 90, c=colours(s.gid),
+                marker="*" if s.leader else "o", edgecolors=ring, linewidths=1.6, zorder=3,
+            )  # fmt: skip
+        if labels:
+            ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7)
+
+
+def _legend(ax: object, rec: Recorder, gtype: int, t: float, colours: GroupColours) -> None:
+    from matplotlib.axes import Axes
+    from matplotlib.lines import Line2D
+
+    assert isinstance(ax, Axes)
+    handles = [
+        Line2D([], [], marker="o", ls="", color=colours(gid), label=f"group {gid}")
+        for gid in sorted(rec.groups_at(gtype, t))
+    ]
+    handles.append(Line2D([], [], marker="*", ls="", color="k", ms=10, label="leader"))
+    handles.append(Line2D([], [], marker="o", ls="", mfc="none", mec="k", label="true member"))
+    ax.legend(handles=handles, loc="upper right", fontsize=6, framealpha=0.8)
+
+
+def tracking_snapshots(
+    path: Path,
+    rec: Recorder,
+    truth: GroundTruth,
+    gtype: int,
+    defn: GroupTypeDef,
+    times: Sequence[float],
+    ids: Sequence[int],
+    robot: int,
+    area: Area,
+    settle: float = 0.0,
+    title: str = "Group tracking the robot",
+) -> Path:
+    """Panels at ``times``: motes coloured by group id, leaders as stars, true
+    members (noise-free RSSI over the threshold) ringed, the robot and its trail."""
+    rows, cols = _grid(len(times))
+    fig = Figure(figsize=(3.6 * cols, 3.3 * rows))
+    colours = GroupColours()
+    for k, t in enumerate(times):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        _draw_motes(ax, rec, truth, gtype, t + settle, ids, colours, truth.members(defn, t, ids))
+        trail = [truth.position(robot, t * i / 40) for i in range(41)]
+        ax.plot([p[0] for p in trail], [p[1] for p in trail], "--", color="#cc0000", lw=0.8)
+        rx, ry = truth.position(robot, t)
+        ax.scatter([rx], [ry], marker="^", s=120, c="#cc0000", zorder=4)
+        ax.set_xlim(area[0] - 1.5, area[1] + 1.5)
+        ax.set_ylim(area[2] - 1.5, area[3] + 1.5)
+        ax.set_aspect("equal")
+        ax.set_title(f"t = {t:.0f} s", fontsize=9)
+        ax.tick_params(labelsize=7)
+        if k == 0:
+            _legend(ax, rec, gtype, t + settle, colours)
+    fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def rssi_traces(
+    path: Path,
+    rec: Recorder,
+    truth: GroundTruth,
+    robot: int,
+    motes: Sequence[int],
+    threshold: float,
+    hysteresis: float,
+    gtype: int,
+    t0: float,
+    t1: float,
+) -> Path:
+    """RSSI of the robot's beacons at ``motes``: what each mote measured (EWMA of
+    received Hello frames), the noise-free mean, the threshold and hysteresis band,
+    and shading while the mote was a group member."""
+    fig = Figure(figsize=(7.5, 2.1 * len(motes) + 0.4))
+    ts = [t0 + (t1 - t0) * i / 400 for i in range(401)]
+    axes: list[Any] = []
+    for k, n in enumerate(motes):
+        ax = fig.add_subplot(len(motes), 1, k + 1, sharex=axes[0] if axes else None)
+        axes.append(ax)
+        mean = [truth.mean_rssi(robot, n, t) for t in ts]
+        ax.plot(ts, mean, color="#888888", lw=1.0, label="mean RSSI (truth)")
+        samples = [(t, v) for t, v in rec.rssi.get(n, []) if t0 <= t <= t1 and v is not None]
+        if samples:
+            ax.plot(
+                [s[0] for s in samples], [s[1] for s in samples], ".", ms=3, color="#1f77b4",
+                label="measured (mote's EWMA)",
+            )  # fmt: skip
+        ax.axhline(threshold, color="#d62728", lw=1.0, label=f"threshold {threshold:g} dBm")
+        if hysteresis:
+            ax.axhline(threshold - hysteresis, color="#d62728", lw=0.8, ls="--",
+                       label=f"leave below {threshold - hysteresis:g} dBm")  # fmt: skip
+        # membership intervals
+        start: float | None = None
+        for t in ts:
+            s = rec.state_at(n, gtype, t)
+            inside = s is not None and s.gid is not None
+            if inside and start is None:
+                start = t
+            elif not inside and start is not None:
+                ax.axvspan(start, t, color="#2ca02c", alpha=0.15, lw=0)
+                start = None
+        if start is not None:
+            ax.axvspan(start, ts[-1], color="#2ca02c", alpha=0.15, lw=0)
+        ax.set_ylabel(f"mote {n}\nRSSI (dBm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        if k == 0:
+            ax.legend(fontsize=6, loc="lower right", ncol=2)
+    axes[-1].set_xlabel("time (s); shaded: member of the robot's group", fontsize=8)
+    fig.suptitle(f"RSSI of the robot's mote ({robot}) at motes {', '.join(map(str, motes))}",
+                 fontsize=10)  # fmt: skip
+    return _save(fig, path)
+
+
+def field_snapshots(
+    path: Path,
+    rec: Recorder,
+    truth: GroundTruth,
+    world: World,
+    gtype: int,
+    defn: GroupTypeDef,
+    times: Sequence[float],
+    ids: Sequence[int],
+    area: Area,
+    field: str = "temperature",
+    threshold: float | None = None,
+    titles: Mapping[float, str] | None = None,
+    settle: float = 0.0,
+) -> Path:
+    """Panels at ``times`` over a heat map of ``field``: motes coloured by group id,
+    leaders as stars, true members ringed, the threshold contour."""
+    rows, cols = _grid(len(times))
+    fig = Figure(figsize=(4.2 * cols, 3.2 * rows))
+    colours = GroupColours()
+    nx, ny = 90, 60
+    xs = [area[0] - 1 + (area[1] - area[0] + 2) * i / (nx - 1) for i in range(nx)]
+    ys = [area[2] - 1 + (area[3] - area[2] + 2) * j / (ny - 1) for j in range(ny)]
+    for k, t in enumerate(times):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        grid = [[world.value(field, x, y, t) for x in xs] for y in ys]
+        ax.imshow(
+            grid, origin="lower", extent=(xs[0], xs[-1], ys[0], ys[-1]), cmap="inferno",
+            alpha=0.55, vmin=world.ambient_temperature if field == "temperature" else None,
+            aspect="equal",
+        )  # fmt: skip
+        if threshold is not None:
+            ax.contour(xs, ys, grid, levels=[threshold], colors="#ff4444", linewidths=0.8)
+        _draw_motes(
+            ax, rec, truth, gtype, t + settle, ids, colours, truth.members(defn, t, ids), False
+        )
+        label = (titles or {}).get(t, "")
+        ax.set_title(f"t = {t:.0f} s {label}".strip(), fontsize=9)
+        ax.tick_params(labelsize=7)
+        _legend(ax, rec, gtype, t + settle, colours)
+    return _save(fig, path)
+
+
+def membership_sizes(
+    path: Path, series: Sequence[Instant], title: str = "Group membership vs truth"
+) -> Path:
+    """Members in a group of the type vs true members, and per-instant errors."""
+    fig = Figure(figsize=(7.5, 2.8))
+    ax = fig.add_subplot(1, 1, 1)
+    ts = [i.t for i in series]
+    ax.step(ts, [len(i.truth) for i in series], where="post", color="k", lw=1.2, label="truth")
+    ax.step(ts, [len(i.members) for i in series], where="post", color="#1f77b4", lw=1.0,
+            label="members (t + settle)")  # fmt: skip
+    ax.bar(ts, [len(i.members ^ i.truth) for i in series], width=(ts[1] - ts[0]) if len(ts) > 1
+           else 0.5, color="#d62728", alpha=0.35, label="disagreements")  # fmt: skip
+    ax.set_xlabel("time (s)", fontsize=8)
+    ax.set_ylabel("motes", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=10)
+    return _save(fig, path)
