@@ -92,6 +92,9 @@ def test_command_targets() -> None:
     )
     assert (c.body.target_kind, c.body.target_a, c.body.target_b) == (TargetKind.GROUP, 1, 513)
     assert schema.parse_command("ping", b"", LIM).body.target_kind is TargetKind.ALL
+    c = schema.parse_command("alarm", j({"target": {"group_type": 1, "group_id": "*"}}), LIM)
+    assert (c.body.target_a, c.body.target_b) == (1, ANY_GROUP_ID)
+    assert c.json["target"] == {"group_type": 1, "group_id": "*"}
 
 
 # (parser, topic id, payload, expected error class). Every entry is one malformed

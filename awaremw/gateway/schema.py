@@ -491,17 +491,18 @@ def _parse_target(
         return TargetKind.NODE, node, 0, {"node": node}
     if isinstance(target, dict) and set(target) == {"group_type", "group_id"}:
         gt = _integer(target["group_type"], "target.group_type")
-        gid = _integer(target["group_id"], "target.group_id")
+        any_id = target["group_id"] == ANY
+        gid = ANY_GROUP_ID if any_id else _integer(target["group_id"], 'target.group_id (or "*")')
         if not 0 <= gt <= limits.max_group_type:
             raise UnknownTarget(f"target group_type {gt} out of range 0..{limits.max_group_type}")
-        if not 1 <= gid < ANY_GROUP_ID:
+        if not any_id and not 1 <= gid < ANY_GROUP_ID:
             raise UnknownTarget(f"target group_id {gid} out of range 1..{ANY_GROUP_ID - 1}")
         if group_types is not None and gt not in group_types:
             raise UnknownTarget(f"target group_type {gt} is not defined")
-        return TargetKind.GROUP, gt, gid, {"group_type": gt, "group_id": gid}
+        return TargetKind.GROUP, gt, gid, {"group_type": gt, "group_id": ANY if any_id else gid}
     raise UnknownTarget(
         f'unknown command target {json.dumps(target)[:80]}; use "all", '
-        '{"node": ID} or {"group_type": T, "group_id": G}'
+        '{"node": ID} or {"group_type": T, "group_id": G or "*"}'
     )
 
 
@@ -510,7 +511,8 @@ def command_json(body: CommandDef) -> dict[str, Any]:
     if body.target_kind is TargetKind.NODE:
         target = {"node": body.target_a}
     elif body.target_kind is TargetKind.GROUP:
-        target = {"group_type": body.target_a, "group_id": body.target_b}
+        gid = ANY if body.target_b == ANY_GROUP_ID else body.target_b
+        target = {"group_type": body.target_a, "group_id": gid}
     else:
         target = "all"
     return {"target": target, "args": dict(body.args)}

@@ -1,0 +1,356 @@
+"""Client verbs: ``define``, ``delete``, ``command``, ``watch`` (an IP device over MQTT).
+
+::
+
+    awaremw define group 1 "temperature > 45" --hysteresis 1
+    awaremw define group 2 "rssi:100 > -89" "x < 20"
+    awaremw define channel 1 --attr temperature --group-type 1 --group-id '*' --period 2 --agg avg
+    awaremw delete channel 1
+    awaremw command led --target node:7 --arg on=true
+    awaremw watch 'aware/data/#' --count 10
+
+Payloads are validated locally with the gateway's own schema before they are
+sent (so most mistakes are reported at once); the gateway validates again and
+reports refusals on ``<prefix>/errors`` -- ``--wait S`` listens there for S
+seconds after publishing and exits 1 if the gateway refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import re
+import sys
+import time
+from typing import Any
+
+import aiomqtt
+
+from awaremw.gateway import schema
+from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
+
+DEFAULT_URL = "mqtt://127.0.0.1:1883"
+_COND_RE = re.compile(r"^\s*(\S+?)\s*(<=|>=|==|!=|<|>)\s*(\S+)\s*$")
+_SPLIT_RE = re.compile(r"\s*(?:,|&&|\band\b)\s*")
+
+
+class UsageError(ValueError):
+    """A command line the client cannot turn into a payload."""
+
+
+# --------------------------------------------------------------------------- registration
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--mqtt",
+        default=DEFAULT_URL,
+        metavar="URL",
+        help=f"broker, mqtt[s]://[user:pass@]host:port (default {DEFAULT_URL})",
+    )
+    p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
+    p.add_argument("--client-id", default=None, help="MQTT client id (default: random)")
+    p.add_argument("--ca-file", default=None, help="CA bundle for mqtts://")
+
+
+def _wait_opt(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="listen S seconds on <prefix>/errors for a refusal (exit 1 if refused)",
+    )
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    d = sub.add_parser("define", help="define a group type or a channel (retained MQTT message)")
+    dsub = d.add_subparsers(dest="what", metavar="group|channel", required=True)
+    g = dsub.add_parser("group", help='define a group type: TYPE "attr op value"...')
+    g.add_argument("type", metavar="TYPE", help="group type id (0..254)")
+    g.add_argument(
+        "conditions",
+        nargs="+",
+        metavar="CONDITION",
+        help='e.g. "temperature > 45"; several are ANDed',
+    )
+    g.add_argument("--hysteresis", type=float, default=0.0, help="membership hysteresis")
+    _common(g)
+    _wait_opt(g)
+    g.set_defaults(func=cmd_define_group)
+
+    c = dsub.add_parser("channel", help="define a channel")
+    c.add_argument("id", metavar="ID", help="channel id (0..255)")
+    c.add_argument("--attr", required=True, help="attribute, e.g. temperature, rssi:100")
+    c.add_argument("--group-type", default="*", help='group type or "*" (default *)')
+    c.add_argument("--group-id", default="*", help='group id or "*" (default *)')
+    c.add_argument("--period", type=float, required=True, metavar="S", help="sampling period, s")
+    c.add_argument("--agg", default="avg", choices=sorted(schema.AGG_NAMES), help="aggregation")
+    _common(c)
+    _wait_opt(c)
+    c.set_defaults(func=cmd_define_channel)
+
+    x = sub.add_parser("delete", help="delete a group type or a channel")
+    x.add_argument("what", choices=("group", "channel"))
+    x.add_argument("id", metavar="ID")
+    _common(x)
+    _wait_opt(x)
+    x.set_defaults(func=cmd_delete)
+
+    m = sub.add_parser("command", help="send a command to motes")
+    m.add_argument("name", metavar="NAME")
+    m.add_argument(
+        "--target", default="all", help="all | node:ID | group:TYPE/ID (ID may be *) (default all)"
+    )
+    m.add_argument(
+        "--arg",
+        action="append",
+        default=[],
+        metavar="K=V",
+        help="argument (number, true/false or text); repeatable",
+    )
+    _common(m)
+    _wait_opt(m)
+    m.set_defaults(func=cmd_command)
+
+    w = sub.add_parser("watch", help="print what arrives on a topic (default <prefix>/#)")
+    w.add_argument("topic", nargs="?", default=None, metavar="TOPIC")
+    w.add_argument("--count", type=int, default=0, help="exit after N messages")
+    w.add_argument("--duration", type=float, default=0.0, metavar="S", help="exit after S s")
+    w.add_argument("--json", action="store_true", help="one JSON object per line")
+    _common(w)
+    w.set_defaults(func=cmd_watch)
+
+
+# --------------------------------------------------------------------------- payload builders
+
+
+def parse_conditions(args: list[str]) -> list[dict[str, Any]]:
+    """``["temperature > 45", "x<3"]`` or ``["temperature", ">", "45"]`` -> condition objects."""
+    parts = [a for a in args if a.strip()]
+    if not parts or not all(_COND_RE.match(p) for p in parts):
+        parts = [p for p in _SPLIT_RE.split(" ".join(args)) if p]
+    out = []
+    for p in parts:
+        m = _COND_RE.match(p)
+        if m is None:
+            raise UsageError(f'cannot read condition {p!r}; write it like "temperature > 45"')
+        attr, op, value = m.groups()
+        try:
+            v = float(value)
+        except ValueError:
+            raise UsageError(f"condition {p!r}: {value!r} is not a number") from None
+        out.append({"attr": attr, "op": op, "value": int(v) if v.is_integer() else v})
+    return out
+
+
+def _id_or_any(text: str, what: str) -> int | str:
+    if text == "*":
+        return "*"
+    try:
+        return int(text)
+    except ValueError:
+        raise UsageError(f'{what} must be an integer or "*", got {text!r}') from None
+
+
+def parse_target(text: str) -> Any:
+    if text == "all":
+        return "all"
+    kind, _, rest = text.partition(":")
+    if kind == "node" and rest.isdigit():
+        return {"node": int(rest)}
+    if kind == "group":
+        gt, _, gid = rest.partition("/")
+        if gt.isdigit() and gid:
+            return {"group_type": int(gt), "group_id": _id_or_any(gid, "group id")}
+    raise UsageError(f"bad target {text!r}: use all, node:ID or group:TYPE/ID")
+
+
+def parse_arg(text: str) -> tuple[str, Any]:
+    k, sep, v = text.partition("=")
+    if not sep or not k:
+        raise UsageError(f"bad argument {text!r}: use KEY=VALUE")
+    if v.lower() in ("true", "false"):
+        return k, v.lower() == "true"
+    for conv in (int, float):
+        try:
+            return k, conv(v)
+        except ValueError:
+            pass
+    return k, v
+
+
+# --------------------------------------------------------------------------- MQTT
+
+
+def _settings(args: argparse.Namespace) -> MqttSettings:
+    return MqttSettings.from_url(args.mqtt, prefix=args.prefix, ca_file=args.ca_file)
+
+
+def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
+    ctx = None
+    if s.tls:
+        import ssl
+
+        ctx = ssl.create_default_context(cafile=s.ca_file)
+    # 3.1.1: every broker speaks it, and the client needs nothing from MQTT 5.
+    return aiomqtt.Client(
+        s.host,
+        s.port,
+        username=s.username,
+        password=s.password,
+        identifier=client_id,
+        protocol=aiomqtt.ProtocolVersion.V311,
+        tls_context=ctx,
+        timeout=10,
+    )
+
+
+async def publish(
+    s: MqttSettings,
+    rel_topic: str,
+    payload: bytes,
+    *,
+    retain: bool,
+    wait: float = 0.0,
+    client_id: str | None = None,
+) -> dict[str, Any] | None:
+    """Publish (QoS 1); with ``wait`` return the gateway's refusal of it, if any."""
+    topic = s.topic(rel_topic)
+    async with _client(s, client_id) as client:
+        if wait > 0:
+            await client.subscribe(s.topic("errors"), qos=1)
+        await client.publish(topic, payload, qos=1, retain=retain)
+        if wait <= 0:
+            return None
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait):
+                async for m in client.messages:
+                    with contextlib.suppress(ValueError, TypeError):
+                        err = json.loads(bytes(m.payload))
+                        if isinstance(err, dict) and err.get("topic") == topic:
+                            return err
+    return None
+
+
+def _send(args: argparse.Namespace, rel: str, payload: bytes, retain: bool) -> int:
+    s = _settings(args)
+    err = asyncio.run(
+        publish(s, rel, payload, retain=retain, wait=args.wait, client_id=args.client_id)
+    )
+    if err is not None:
+        print(f"refused by the gateway: {err.get('error')} ({err.get('code')})", file=sys.stderr)
+        return 1
+    print(f"{s.topic(rel)} {payload.decode() if payload else '(deleted)'}")
+    return 0
+
+
+def _run(fn: Any, args: argparse.Namespace) -> int:
+    try:
+        return int(fn(args))
+    except (UsageError, schema.SchemaError, BadMqttUrl) as e:
+        print(f"awaremw: {e}", file=sys.stderr)
+        return 2
+    except aiomqtt.MqttError as e:
+        print(f"awaremw: MQTT {args.mqtt}: {e}", file=sys.stderr)
+        return 1
+
+
+# --------------------------------------------------------------------------- verbs
+
+
+def cmd_define_group(args: argparse.Namespace) -> int:
+    def go(args: argparse.Namespace) -> int:
+        doc = {"conditions": parse_conditions(args.conditions), "hysteresis": args.hysteresis}
+        payload = json.dumps(doc).encode()
+        schema.parse_group_type(args.type, payload, schema.Limits())  # refuse early
+        return _send(args, f"def/group/{args.type}", payload, retain=True)
+
+    return _run(go, args)
+
+
+def cmd_define_channel(args: argparse.Namespace) -> int:
+    def go(args: argparse.Namespace) -> int:
+        doc = {
+            "attr": args.attr,
+            "group_type": _id_or_any(args.group_type, "--group-type"),
+            "group_id": _id_or_any(args.group_id, "--group-id"),
+            "period_s": args.period,
+            "agg": args.agg,
+        }
+        payload = json.dumps(doc).encode()
+        schema.parse_channel(args.id, payload, schema.Limits())
+        return _send(args, f"def/channel/{args.id}", payload, retain=True)
+
+    return _run(go, args)
+
+
+def cmd_delete(args: argparse.Namespace) -> int:
+    def go(args: argparse.Namespace) -> int:
+        lim = schema.Limits()
+        if args.what == "group":
+            schema.group_type_id(args.id, lim)
+        else:
+            schema.channel_id(args.id, lim)
+        return _send(args, f"def/{args.what}/{args.id}", b"", retain=True)
+
+    return _run(go, args)
+
+
+def cmd_command(args: argparse.Namespace) -> int:
+    def go(args: argparse.Namespace) -> int:
+        doc = {"target": parse_target(args.target), "args": dict(parse_arg(a) for a in args.arg)}
+        payload = json.dumps(doc).encode()
+        schema.parse_command(args.name, payload, schema.Limits())
+        return _send(args, f"cmd/{args.name}", payload, retain=False)
+
+    return _run(go, args)
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    def go(args: argparse.Namespace) -> int:
+        s = _settings(args)
+        topic = args.topic or s.topic("#")
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(watch(s, topic, args.count, args.duration, args.json, args.client_id))
+        return 0
+
+    return _run(go, args)
+
+
+async def watch(
+    s: MqttSettings,
+    topic: str,
+    count: int = 0,
+    duration: float = 0.0,
+    as_json: bool = False,
+    client_id: str | None = None,
+) -> None:
+    """Print ``topic payload`` lines (or JSON lines) until ``count``/``duration``."""
+    n = 0
+    deadline = time.monotonic() + duration if duration > 0 else None
+    async with _client(s, client_id) as client:
+        await client.subscribe(topic, qos=1)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout_at(
+                None if deadline is None else asyncio.get_running_loop().time() + duration
+            ):
+                async for m in client.messages:
+                    raw = m.payload if isinstance(m.payload, bytes) else b""
+                    text = raw.decode("utf-8", errors="replace")
+                    if as_json:
+                        try:
+                            value: Any = json.loads(text) if text else None
+                        except ValueError:
+                            value = text
+                        line = json.dumps(
+                            {"topic": m.topic.value, "payload": value, "retain": bool(m.retain)}
+                        )
+                    else:
+                        line = f"{m.topic.value} {text}"
+                    print(line, flush=True)
+                    n += 1
+                    if count and n >= count:
+                        return
