@@ -238,6 +238,21 @@ class Scenario:
             comps.append(comp)
         return comps
 
+    def loops(self, gtype: int) -> list[int]:
+        """Members whose parent chain comes back to a mote already on it."""
+        ms = self.memberships(gtype)
+        bad = []
+        for n, m in ms.items():
+            seen = {n}
+            cur: Membership | None = m
+            while cur is not None and not cur.is_leader and cur.parent in ms:
+                if cur.parent in seen:
+                    bad.append(n)
+                    break
+                seen.add(cur.parent)
+                cur = ms[cur.parent]
+        return bad
+
     def tree_ok(self, gtype: int) -> list[str]:
         """Problems of the group trees: loops, dangling parents, foreign parents."""
         ms = self.memberships(gtype)

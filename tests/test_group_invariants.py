@@ -1,0 +1,221 @@
+"""Group invariants and the paper's group scenarios, on the virtual-clock driver.
+
+Every scenario runs full AwareMotes (dissemination, collection, groups,
+channels) on engineer A's VirtualNetwork with the LOSSLESS radio preset (see
+tests/scenarios.py), so the ground truth of connectivity is exact: two motes
+are neighbours iff they are at most 20 m apart.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections.abc import Callable
+
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+from scenarios import Point, Scenario, in_disc, indicator, moving_disc
+
+from awaremw.protocol.attributes import TEMPERATURE
+from awaremw.protocol.frames import ANY_GROUP_ID, AggId, ChannelDef, Condition, GroupTypeDef, Op
+from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected
+
+HOT = GroupTypeDef((Condition(TEMPERATURE, Op.GT, 50.0),))
+Region = Callable[[Point, float], bool]
+
+
+def build(
+    region: Region,
+    nx: int,
+    ny: int,
+    *,
+    seed: int = 3,
+    channel: bool = True,
+) -> Scenario:
+    sc = Scenario(seed=seed)
+    sc.grid(nx, ny, {TEMPERATURE: indicator(region)})
+    sc.run_until(1.0)
+    sc.define_group(1, HOT)
+    if channel:
+        sc.define_channel(1, ChannelDef(TEMPERATURE, 1, ANY_GROUP_ID, 2000, AggId.COUNT))
+    return sc
+
+
+def qualifying(sc: Scenario, region: Region, t: float | None = None) -> set[int]:
+    when = sc.now if t is None else t
+    return sc.qualifying(lambda n: region(sc.position(n), when))
+
+
+# --------------------------------------------------------------------------- random topologies
+
+LATTICE = 7.0  # pairwise distances are <= 19.8 m (lossless) or >= 21 m (out of range)
+
+
+@st.composite
+def topologies(
+    draw: st.DrawFn,
+) -> tuple[int, list[tuple[int, int]], list[tuple[float, float, float]]]:
+    seed = draw(st.integers(0, 10_000))
+    sites = draw(
+        st.lists(
+            st.tuples(st.integers(0, 13), st.integers(0, 13)), min_size=12, max_size=45, unique=True
+        )
+    )
+    discs = draw(
+        st.lists(
+            st.tuples(st.floats(0, 91), st.floats(0, 91), st.floats(8, 35)), min_size=1, max_size=3
+        )
+    )
+    return seed, sites, discs
+
+
+@settings(
+    max_examples=12,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+    phases=[Phase.explicit, Phase.reuse, Phase.generate],  # shrinking a run costs minutes
+)
+@given(topologies())
+def test_invariants_after_convergence_on_random_topologies(
+    topo: tuple[int, list[tuple[int, int]], list[tuple[float, float, float]]],
+) -> None:
+    seed, sites, discs = topo
+
+    def region(p: Point, t: float) -> bool:
+        return any(math.hypot(p[0] - x, p[1] - y) <= r for x, y, r in discs)
+
+    sc = Scenario(seed=seed)
+    for i, (a, b) in enumerate(sites):
+        sc.add(i + 1, (a * LATTICE, b * LATTICE), {TEMPERATURE: indicator(region)})
+    sc.run_until(1.0)
+    sc.define_group(1, HOT)
+    for t in range(2, 41, 2):
+        sc.run_until(float(t))
+        assert sc.loops(1) == [], f"loop at t={t}"
+    # A mote out of everybody's range never learns the definition (as on a real
+    # network); with at least one neighbour it must have it.
+    for n, mote in sc.motes.items():
+        if any(
+            math.dist(sc.position(n), sc.position(o)) <= sc.link_range for o in sc.motes if o != n
+        ):
+            assert 1 in mote.groups.defined_types(), n
+    q = {n for n in qualifying(sc, region) if 1 in sc.motes[n].groups.defined_types()}
+    assert sc.group_problems(1, q) == []
+    # Ids are 16-bit and unique per component; every member agrees with its leader.
+    for m in sc.memberships(1).values():
+        assert 1 <= m.group_id <= 0xFFFE
+        assert sc.motes[m.leader].groups.membership(1).group_id == m.group_id  # type: ignore[union-attr]
+
+
+# ---------------------------------------------------------------------- tracking a moving region
+
+
+def test_region_moving_across_the_grid_keeps_its_id_and_members_follow() -> None:
+    region = moving_disc((30.0, 48.0), (1.0, 0.0), 28.0, t0=20.0)
+    sc = build(region, 16, 9)
+    ids: set[int] = set()
+    lag = sc.config.check_period + 0.5  # membership follows within one check (plus a flood)
+    for k in range(10, 141):
+        t = float(k)
+        sc.run_until(t)
+        ids |= set(sc.leaders(1))
+        members = set(sc.memberships(1))
+        window = [qualifying(sc, region, t - lag * i / 4) for i in range(5)]
+        always = set.intersection(*window)
+        ever = set.union(*window)
+        assert always <= members <= ever, (t, sorted(always - members), sorted(members - ever))
+        assert len(sc.leaders(1)) == 1, (t, sc.leaders(1))
+    assert len(ids) == 1  # one id from start to end: handover, never re-creation
+    causes = [e.cause for _, _, e in sc.of_type(LeaderElected)]
+    assert causes.count(ElectionCause.HANDOVER) >= 5
+    assert ElectionCause.ELECTION not in causes
+    assert len(sc.of_type(HandoverSent)) == causes.count(ElectionCause.HANDOVER)
+    # The region moved 120 m: none of the first members is still in the group.
+    first = qualifying(sc, region, 10.0)
+    assert not first & set(sc.memberships(1))
+
+
+# --------------------------------------------------------------------------- merge and split
+
+
+def test_two_regions_that_touch_merge_into_one_id() -> None:
+    def region(p: Point, t: float) -> bool:
+        bridge = t > 40 and 30 <= p[0] <= 120 and abs(p[1] - 40) <= 8
+        return in_disc(30, 40, 22)(p) or in_disc(120, 40, 22)(p) or bridge
+
+    sc = build(region, 14, 7)
+    sc.run_until(39.0)
+    assert sc.group_problems(1, qualifying(sc, region)) == []
+    before = set(sc.leaders(1))
+    assert len(before) == 2
+    sc.run_until(60.0)
+    assert sc.group_problems(1, qualifying(sc, region)) == []
+    (after,) = sc.leaders(1)
+    assert after in before  # one of the two ids survives
+
+
+def test_region_cut_in_two_yields_two_groups_with_distinct_ids() -> None:
+    def region(p: Point, t: float) -> bool:
+        cut = t > 40 and 80 <= p[0] <= 100
+        return 0 <= p[0] <= 170 and 20 <= p[1] <= 60 and not cut
+
+    sc = build(region, 16, 7)
+    sc.run_until(39.0)
+    (old,) = sc.leaders(1)
+    sc.run_until(70.0)
+    assert sc.group_problems(1, qualifying(sc, region)) == []  # includes distinct ids
+    ids = set(sc.leaders(1))
+    assert len(ids) == 2 and old in ids  # the part that kept its leader keeps the id
+
+
+# --------------------------------------------------------------------------- failures
+
+
+def test_killing_the_leader_yields_a_new_leader_within_the_bound() -> None:
+    """Bound: the last beacon is at most one period old at the kill, members give up
+    after leader_timeout_periods periods, then wait at most create_backoff:
+    (3.5 + 1) periods = 9 s with the defaults; we assert 5 beacon periods."""
+    region = in_disc(60, 60, 40)
+    for seed in (3, 4, 5):
+        sc = build(lambda p, t: region(p), 11, 11, seed=seed)
+        sc.run_until(30.0)
+        ((gid, leader),) = sc.leaders(1).items()
+        sc.kill(leader)
+        cfg = sc.config
+        bound = 5 * cfg.beacon_period
+        assert (cfg.leader_timeout_periods + 1) * cfg.beacon_period + cfg.create_backoff <= 11
+        sc.run_until(30.0 + bound)
+        elected = [
+            (t, e)
+            for t, _, e in sc.of_type(LeaderElected, 30.0)
+            if e.cause is ElectionCause.ELECTION
+        ]
+        assert elected, f"seed {seed}: no new leader within {bound} s"
+        assert all(e.group_id != gid for _, e in elected)  # a dead leader's group gets a new id
+        sc.run_until(30.0 + 8 * cfg.beacon_period)  # one group again, everybody agrees
+        assert sc.group_problems(1, qualifying(sc, lambda p, t: region(p))) == []
+
+
+def test_killing_30_percent_leaves_every_connected_group_working() -> None:
+    def region(p: Point, t: float) -> bool:
+        return in_disc(40, 40, 35)(p) or in_disc(150, 60, 35)(p)
+
+    sc = build(region, 16, 9, seed=11)
+    sc.run_until(30.0)
+    assert len(sc.leaders(1)) == 2
+    rng = random.Random(5)
+    victims = rng.sample(sorted(sc.motes), k=int(0.3 * len(sc.motes)))
+    for n in victims:
+        sc.kill(n)
+    sc.run_until(60.0)
+    q = qualifying(sc, region)
+    assert sc.group_problems(1, q) == []
+    comps = sc.components(q)
+    leaders = sc.leaders(1)
+    assert len(leaders) == len(comps) >= 2
+    # Every group delivers records that count all of its members.
+    recs = [r for _, r in sc.records(since=56.0)]
+    for comp in comps:
+        (gid,) = {sc.motes[n].groups.membership(1).group_id for n in comp}  # type: ignore[union-attr]
+        counts = [r.count for r in recs if r.group_id == gid]
+        assert counts and counts[-1] == len(comp), (gid, counts, len(comp))
