@@ -33,7 +33,7 @@ from awaremw.gateway.bridge import ErrorReport, Publish
 
 log = logging.getLogger(__name__)
 
-OnMessage = Callable[[str, bytes, bool, str], None]  # (rel_topic, payload, retained, key)
+OnMessage = Callable[[str, bytes, bool, str], object]  # (rel_topic, payload, retained, key)
 
 
 class HbnApi:

@@ -47,7 +47,7 @@ from awaremw.gateway.bridge import Publish
 log = logging.getLogger(__name__)
 
 ProtocolChoice = Literal["auto", "5", "3.1.1"]
-OnMessage = Callable[[str, bytes, bool, str], None]  # (rel_topic, payload, retained, topic)
+OnMessage = Callable[[str, bytes, bool, str], object]  # (rel_topic, payload, retained, topic)
 
 STATUS_TOPIC = "gateway/status"
 STATS_TOPIC = "gateway/stats"

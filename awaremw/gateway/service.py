@@ -1,0 +1,284 @@
+"""The gateway service: gateway motes + bridge + MQTT + Zenoh HBN, wired together.
+
+:class:`GatewayService` owns the :class:`GatewayBridge` (validation, versions,
+group table) and the transports, and talks to the sensor network through two
+callables the runtime provides:
+
+* ``inject(node_id, Inject)`` -- put a versioned item into a gateway mote's
+  core (inside the event loop that drives it);
+* ``now()`` -- the fleet's emulated time.
+
+The runtime calls :meth:`GatewayService.on_event` with every core event of
+the gateway motes; ``Delivered`` events (from the collection tree's roots)
+become data records and group states on MQTT and Zenoh.
+
+Refusals go back to the transport the payload came from: ``<prefix>/errors``
+on MQTT, ``<prefix>/hbn/errors`` on Zenoh.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from awaremw.gateway.bridge import GatewayBridge, Inject, Outcome, Publish
+from awaremw.gateway.hbn import HbnApi
+from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSettings
+from awaremw.gateway.schema import Limits
+from awaremw.gateway.store import VersionStore
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.frames import DataRecord, GroupReport
+
+log = logging.getLogger(__name__)
+
+InjectFn = Callable[[int, Inject], None]
+ClockFn = Callable[[], float]
+STORE_FILE = "gateway.sqlite"
+
+
+@dataclass(frozen=True, slots=True)
+class GatewaySettings:
+    prefix: str = "aware"
+    state_dir: Path | None = None  # None: versions kept in memory only
+    expiry_periods: float = 3.0  # group reports missed before a group is taken as gone
+    max_payload_bytes: int = 4096
+    hbn: bool = True  # offer the Zenoh HBN API (needs a session)
+
+
+def deployment_definitions(groups: Any, channels: Any) -> list[tuple[str, bytes]]:
+    """A deployment's ``[[groups]]`` / ``[[channels]]`` tables as (relative topic, JSON).
+
+    Each entry is the MQTT payload plus its id (``type`` for a group, ``id`` for
+    a channel); the result goes through the same validation as MQTT payloads.
+    """
+    out: list[tuple[str, bytes]] = []
+    for what, key, entries in (("group", "type", groups), ("channel", "id", channels)):
+        if entries is None:
+            continue
+        seq = [entries] if isinstance(entries, Mapping) else list(entries)
+        for e in seq:
+            if not isinstance(e, Mapping) or key not in e:
+                raise ValueError(f"deployment {what}s entry {e!r:.60} has no {key!r}")
+            body = {k: v for k, v in e.items() if k != key}
+            out.append((f"def/{what}/{e[key]}", json.dumps(body).encode()))
+    return out
+
+
+class GatewayService:
+    """See the module docstring. Use ``async with`` or :meth:`start` / :meth:`stop`."""
+
+    def __init__(
+        self,
+        roots: Sequence[int],
+        *,
+        config: MiddlewareConfig | None = None,
+        settings: GatewaySettings | None = None,
+        mqtt: MqttSettings | None = None,
+        zenoh_session: zenoh.Session | None = None,
+        known_nodes: Iterable[int] | None = None,
+        speed: float = 1.0,
+    ) -> None:
+        if not roots:
+            raise ValueError("a gateway needs at least one gateway mote (collection root)")
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed!r}")
+        self.roots = tuple(roots)
+        self.speed = speed  # emulated seconds per real second (the fleet's)
+        self.config = config or MiddlewareConfig()
+        self.settings = s = settings or GatewaySettings()
+        path = None if s.state_dir is None else Path(s.state_dir) / STORE_FILE
+        self.store = VersionStore(path)
+        limits = Limits.from_config(
+            self.config,
+            known_nodes=None if known_nodes is None else frozenset(known_nodes),
+            gateway_node=self.roots[0],
+            max_payload_bytes=s.max_payload_bytes,
+        )
+        self.bridge = GatewayBridge(
+            self.store,
+            limits,
+            report_period_s=self.config.report_every_beacons * self.config.beacon_period,
+            expiry_periods=s.expiry_periods,
+            command_slots=self.config.max_command_slots,
+        )
+        self.mqtt: MqttBridge | None = None
+        if mqtt is not None:
+            self.mqtt = MqttBridge(
+                MqttSettings(**{**_fields(mqtt), "prefix": s.prefix}),
+                lambda rel, payload, retained, topic: self.handle(
+                    rel, payload, retained=retained, topic=topic, via="mqtt"
+                ),
+            )
+        self._session = zenoh_session
+        self.hbn: HbnApi | None = None
+        self._inject: InjectFn | None = None
+        self._now: ClockFn | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self.injected = 0
+        self.inject_failures = 0
+        self.handled = asyncio.Event()  # set after every payload handled (for waiters)
+
+    # ----------------------------------------------------------------- lifecycle
+
+    def bind(self, inject: InjectFn, now: ClockFn) -> None:
+        """Connect to the sensor network (the runtime's injection and clock)."""
+        self._inject, self._now = inject, now
+
+    async def start(self) -> None:
+        """Re-inject the stored state, then open the transports."""
+        if self._inject is None or self._now is None:
+            raise RuntimeError("GatewayService.bind() must be called before start()")
+        for inj in self.bridge.startup():
+            self._inject_all(inj)
+        if self.settings.hbn and self._session is not None:
+            self.hbn = HbnApi(
+                self._session,
+                lambda rel, payload, retained, key: self.handle(
+                    rel, payload, retained=retained, topic=key, via="hbn"
+                ),
+                prefix=self.settings.prefix,
+            )
+            self.hbn.start()
+            self._refresh_hbn()
+            self.hbn.publish(Publish(STATUS_TOPIC, b"online", retain=True))
+        if self.mqtt is not None:
+            self._tasks.append(asyncio.create_task(self.mqtt.run(), name="gateway-mqtt"))
+        self._tasks.append(asyncio.create_task(self._expiry_loop(), name="gateway-expiry"))
+        log.info(
+            "gateway up: motes %s, prefix %r, MQTT %s, Zenoh HBN %s",
+            ",".join(map(str, self.roots)),
+            self.settings.prefix,
+            self.mqtt.settings.url if self.mqtt else "off",
+            "on" if self.hbn else "off",
+        )
+
+    async def stop(self) -> None:
+        if self.mqtt is not None:
+            self.mqtt.stop()
+        for t in self._tasks:
+            if t.get_name() != "gateway-mqtt":
+                t.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        if self.hbn is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self.hbn.publish(Publish(STATUS_TOPIC, b"offline", retain=True))
+            self.hbn.close()
+            self.hbn = None
+        self.store.close()
+
+    async def __aenter__(self) -> GatewayService:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    # ----------------------------------------------------------------- IP -> WSN
+
+    def handle(
+        self, rel: str, payload: bytes, *, retained: bool = False, topic: str = "", via: str = ""
+    ) -> Outcome:
+        """One payload from an IP transport (``via``: ``mqtt``, ``hbn`` or ``local``)."""
+        out = self.bridge.handle(rel, payload, source=topic or rel, retained=retained)
+        if out.inject is not None:
+            self._inject_all(out.inject)
+            self._refresh_hbn()
+        if out.error is not None:
+            err = Publish("errors", out.error.to_json())
+            if via == "mqtt" and self.mqtt is not None:
+                self.mqtt.publish(err)
+            elif via == "hbn" and self.hbn is not None:
+                self.hbn.publish_error(out.error)
+        self.handled.set()
+        return out
+
+    def define_initial(self, definitions: Iterable[tuple[str, bytes]]) -> list[Outcome]:
+        """Apply definitions that come with the deployment (as if published live)."""
+        return [
+            self.handle(rel, p, topic=f"deployment:{rel}", via="local") for rel, p in definitions
+        ]
+
+    def _inject_all(self, inj: Inject) -> None:
+        assert self._inject is not None
+        for node in self.roots:
+            try:
+                self._inject(node, inj)
+                self.injected += 1
+            except Exception:  # a mote refusing what the bridge accepted is our bug
+                self.inject_failures += 1
+                log.exception("injecting %s into mote %d failed", inj, node)
+
+    # ----------------------------------------------------------------- WSN -> IP
+
+    def on_event(self, node_id: int, event: object, now: float) -> None:
+        """Hook for the runtime: every event of a gateway mote's core."""
+        payload = getattr(event, "payload", None)
+        if node_id not in self.roots or not isinstance(payload, DataRecord | GroupReport):
+            return
+        t = getattr(event, "t", now)
+        for p in self.bridge.on_payload(payload, float(t)):
+            self.publish(p)
+        if isinstance(payload, GroupReport):
+            self._refresh_hbn()
+
+    def publish(self, p: Publish) -> None:
+        if self.mqtt is not None:
+            self.mqtt.publish(p)
+        if self.hbn is not None:
+            try:
+                self.hbn.publish(p)
+            except zenoh.ZError as e:
+                log.warning("Zenoh publish on %s failed: %s", p.topic, e)
+
+    async def _expiry_loop(self) -> None:
+        """Clear groups whose leader has not reported for a while (emulated time)."""
+        assert self._now is not None
+        period = max(0.05, self.bridge.report_period_s / 4)
+        while True:
+            now = self._now()
+            expired = self.bridge.expire(now)
+            for p in expired:
+                self.publish(p)
+            if expired:
+                self._refresh_hbn()
+            await asyncio.sleep(self._wall(period))
+
+    def _wall(self, emulated: float) -> float:
+        """Real seconds of an emulated span."""
+        return emulated / self.speed
+
+    # ----------------------------------------------------------------- views
+
+    def state(self) -> dict[str, bytes]:
+        """What the Zenoh queryable answers: definitions, groups, status and stats."""
+        st: dict[str, bytes] = {
+            rel: json.dumps(doc).encode() for rel, doc in self.bridge.definitions().items()
+        }
+        st.update(self.bridge.group_states())
+        st[STATUS_TOPIC] = b"online"
+        st[STATS_TOPIC] = json.dumps(self.stats()).encode()
+        return st
+
+    def stats(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"bridge": self.bridge.stats.as_dict(), "injected": self.injected}
+        if self.mqtt is not None:
+            out["mqtt"] = self.mqtt.stats.as_dict()
+        return out
+
+    def _refresh_hbn(self) -> None:
+        if self.hbn is not None:
+            self.hbn.set_state(self.state())
+
+
+def _fields(s: MqttSettings) -> dict[str, Any]:
+    return {f: getattr(s, f) for f in s.__slots__}
