@@ -96,8 +96,8 @@ class H:
                 self.g.on_timer(name, d)
         self.now = t
 
-    def hear(self, frame: Frame) -> None:
-        self.g.on_frame(frame, -70.0, self.now)
+    def hear(self, frame: Frame, rssi: float = -70.0) -> None:
+        self.g.on_frame(frame, rssi, self.now)
 
     def sent(self) -> list[Frame]:
         out = [decode(tx.frame) for tx in self.ctx.outbox]
@@ -273,8 +273,30 @@ def test_parent_is_first_sender_of_newest_seq_then_fewest_hops() -> None:
     assert m is not None and (m.parent, m.hops) == (9, 5)
     h.hear(beacon(src=7, seq=4, hops=5))  # not better: ignored
     assert h.g.membership(1).parent == 9  # type: ignore[union-attr]
-    assert h.g.upstream(1, h.now) == [9, 8]  # 8 only sent seq 3 but is a closer fallback
+    assert h.g.upstream(1, h.now) == [9]  # 8 and 7 only sent the older seq
     h.hear(beacon(src=8, seq=4, hops=1))
+    assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
+
+
+def test_equal_hops_prefer_the_stronger_link_and_avoid_failed_parents() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=7, seq=3, hops=1), rssi=-90.0)
+    h.hear(beacon(src=8, seq=3, hops=1), rssi=-80.0)
+    h.hear(beacon(src=9, seq=3, hops=1), rssi=-85.0)
+    h.hear(beacon(src=6, seq=3, hops=2), rssi=-50.0)  # more hops: never, however strong
+    m = h.g.membership(1)
+    assert m is not None and (m.parent, m.hops) == (8, 2)
+    assert h.g.upstream(1, h.now) == [8, 9, 7]
+    h.g.parent_failed(1, 8, h.now)  # unicasts to 8 failed: next best of this seq
+    assert h.g.membership(1).parent == 9  # type: ignore[union-attr]
+    h.hear(beacon(src=8, seq=3, hops=1), rssi=-79.0)  # stronger, but it failed us
+    assert h.g.membership(1).parent == 9  # type: ignore[union-attr]
+    h.hear(beacon(src=8, seq=4, hops=1), rssi=-80.0)  # first copy of a new seq: the rule
+    assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
+    h.hear(beacon(src=9, seq=4, hops=1), rssi=-85.0)  # weaker, but 8 failed recently
+    assert h.g.membership(1).parent == 9  # type: ignore[union-attr]
+    h.g.parent_failed(1, 9, h.now)  # nobody else for seq 4: stays
     assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
 
 

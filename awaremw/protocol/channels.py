@@ -14,10 +14,15 @@ first, with a random offset in the first half of the slot), merging whatever
 its children sent before; the leader finalises in the middle of slot ``D``.
 A partial that arrives after its receiver already sent is forwarded on alone
 (and counted as late); one that reaches the leader after the record went out
-is counted and dropped. Partials are unicast to the parent; on a link failure
-(after the driver's ACK retries) another upstream neighbour known from the
-group's beacons is tried, up to ``MAX_REROUTES`` times, then the partial is
-dropped and counted.
+is counted and dropped.
+
+Partials are unicast to the parent. A unicast that fails after the driver's
+ACK retries is dropped and counted, NOT resent through another neighbour: an
+unacknowledged frame has often been delivered (its ACKs were lost), and a
+second copy would count its readings twice, so a record's ``count`` would no
+longer say how many readings it includes. Instead the group component moves
+the parent to another neighbour that forwarded the current beacon, so the
+next partials take another way (see docs/protocol-groups.md).
 """
 
 from __future__ import annotations
@@ -40,7 +45,6 @@ from awaremw.protocol.groups import Groups, Membership
 from awaremw.protocol.mote import Component, MoteContext
 
 MAX_CHANNEL_ID = 0xFF
-MAX_REROUTES = 3
 KEEP_EPOCHS = 3  # pending state kept this many epochs back (late partials)
 
 _Key = tuple[int, int, int, int]  # (channel, group type, group id, epoch)
@@ -72,8 +76,7 @@ class ChannelStats:
     merged: int = 0
     late_forwarded: int = 0
     late_dropped: int = 0  # reached the leader after its record went out
-    rerouted: int = 0
-    link_dropped: int = 0  # no upstream neighbour left after link failures
+    link_dropped: int = 0  # unacknowledged after the link layer's retries
     orphan_dropped: int = 0  # sender left its group before its slot
     foreign_dropped: int = 0  # for a group this mote is not in (any more)
     bad_partials: int = 0  # unknown channel/function, wrong state shape, absurd epoch
@@ -107,7 +110,6 @@ class Channels(Component):
         self._defs: dict[int, ChannelDef] = {}
         self._next_epoch: dict[int, int] = {}
         self._pending: dict[_Key, _Pending] = {}
-        self._tried: dict[Partial, set[int]] = {}
 
     # ----------------------------------------------------------------- public API
 
@@ -173,22 +175,10 @@ class Channels(Component):
             self._on_partial(frame, now)
 
     def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
-        if not isinstance(frame, Partial):
+        if not isinstance(frame, Partial) or acked:
             return
-        tried = self._tried.pop(frame, {frame.dst})
-        if acked:
-            return
-        m = self.groups.membership(frame.group_type)
-        if m is not None and m.group_id == frame.group_id and not m.is_leader:
-            alt = [n for n in self.groups.upstream(frame.group_type, now) if n not in tried]
-            if alt and len(tried) <= MAX_REROUTES:
-                again = replace(frame, dst=alt[0])
-                tried.add(alt[0])
-                self._tried[again] = tried
-                self.stats.rerouted += 1
-                self.send(again)
-                return
         self.stats.link_dropped += 1
+        self.groups.parent_failed(frame.group_type, frame.dst, now)
 
     # ----------------------------------------------------------------- epochs
 
@@ -259,7 +249,6 @@ class Channels(Component):
         )
 
     def _send_partial(self, frame: Partial) -> None:
-        self._tried[frame] = {frame.dst}
         self.stats.partials_sent += 1
         self.send(frame)
 
@@ -325,7 +314,7 @@ class Channels(Component):
             part = (f.count, f.state)
             p.count, p.state = part if p.count == 0 else agg.merge((p.count, p.state), part)
             return
-        if m.is_leader or m.parent is None:
+        if m.is_leader or m.parent is None or m.parent == f.src:
             self.stats.late_dropped += 1
             return
         self.stats.late_forwarded += 1

@@ -34,8 +34,10 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import NamedTuple
 
 from awaremw.protocol.collection import Collection
 from awaremw.protocol.frames import (
@@ -184,6 +186,16 @@ class _Heard:
     hops: int  # hops field of the frame (the sender's distance to its leader)
     src: int
     t: float
+    rssi: float = -math.inf
+
+
+class _Up(NamedTuple):
+    """A group neighbour heard forwarding our group's beacon."""
+
+    seq: int
+    hops: int  # its distance to the leader (the frame's hops field)
+    t: float
+    rssi: float
 
 
 @dataclass(slots=True)
@@ -202,7 +214,9 @@ class _TypeState:
     beacons: int = 0  # beacons sent as leader of this group
     readings: int = 0  # readings in the leader's latest aggregated epoch
     nearby: dict[int, _Heard] = field(default_factory=dict)
-    upstream: dict[int, tuple[int, int, float]] = field(default_factory=dict)  # n -> seq,hops,t
+    parent_rssi: float = -math.inf  # RSSI of the copy of the beacon that made the parent
+    upstream: dict[int, _Up] = field(default_factory=dict)
+    failed: dict[int, float] = field(default_factory=dict)  # neighbour -> last failed unicast
     children: dict[int, tuple[float, int]] = field(default_factory=dict)  # n -> (t, readings)
     candidates: list[int] = field(default_factory=list)
     handover_to: int | None = None
@@ -331,25 +345,41 @@ class Groups(Component):
         st.children[node] = (now, count)
 
     def upstream(self, group_type: int, now: float) -> list[int]:
-        """Neighbours closer to the leader, best first (the parent leads)."""
+        """The parent, then the other neighbours that forwarded the current beacon
+        with fewer hops than ours (fewest hops, then strongest first)."""
         st = self._types.get(group_type)
         if st is None or st.role is not Role.MEMBER:
             return []
-        ttl = self._timeout()
-        ups = [
-            (hops, -t, n)
-            for n, (_seq, hops, t) in st.upstream.items()
-            if hops < st.hops and now - t <= ttl and n != st.parent
-        ]
-        ups.sort()
         head = [] if st.parent is None else [st.parent]
-        return head + [n for _, _, n in ups]
+        return head + [n for n, _ in self._alternatives(st) if n != st.parent]
+
+    def parent_failed(self, group_type: int, node: int, now: float) -> None:
+        """A unicast to ``node`` failed after the link layer's retries: route the next
+        partials through another neighbour of the current beacon, if there is one
+        (the next beacon may choose ``node`` again only if nobody else is as close)."""
+        st = self._types.get(group_type)
+        if st is None or st.role is not Role.MEMBER:
+            return
+        st.failed[node] = now
+        if st.parent != node:
+            return
+        alts = [(n, u) for n, u in self._alternatives(st) if n != node]
+        if alts:
+            n, u = alts[0]
+            st.parent, st.hops, st.parent_rssi = n, u.hops + 1, u.rssi
+
+    def _alternatives(self, st: _TypeState) -> list[tuple[int, _Up]]:
+        # Only copies of the current seq: their hop counts are consistent with ours,
+        # which keeps the tree loop-free (see docs/protocol-groups.md).
+        ups = [(n, u) for n, u in st.upstream.items() if u.seq == st.seq and u.hops < st.hops]
+        ups.sort(key=lambda x: (x[0] in st.failed, x[1].hops, -x[1].rssi))
+        return ups
 
     # ----------------------------------------------------------------- Component hooks
 
     def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
         if isinstance(frame, LeaderBeacon):
-            self._on_beacon(frame, now)
+            self._on_beacon(frame, rssi_dbm, now)
         elif isinstance(frame, Handover):
             self._on_handover(frame, now)
 
@@ -434,8 +464,10 @@ class Groups(Component):
         ttl = self._timeout()
         for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
             del st.nearby[gid]
-        for n in [n for n, u in st.upstream.items() if now - u[2] > ttl]:
+        for n in [n for n, u in st.upstream.items() if now - u.t > ttl]:
             del st.upstream[n]
+        for n in [n for n, t in st.failed.items() if now - t > ttl]:
+            del st.failed[n]
         for n in [n for n, c in st.children.items() if now - c[0] > ttl]:
             del st.children[n]
 
@@ -469,26 +501,30 @@ class Groups(Component):
         hops: int,
         src: int,
         heard_at: float,
+        rssi: float,
         now: float,
     ) -> None:
         self.timers.cancel(("create", st.gtype))
         st.role = Role.MEMBER
         st.gid, st.leader, st.weight, st.seq = gid, leader, weight, seq
         st.hops = min(hops + 1, MAX_HOPS)
-        st.parent = src
+        st.parent, st.parent_rssi = src, rssi
         st.last_beacon = heard_at
-        st.upstream = {src: (seq, hops, heard_at)}
+        st.upstream = {src: _Up(seq, hops, heard_at, rssi)}
+        st.failed = {}
         st.children = {}
         self.timers.set(("lost", st.gtype), heard_at + self._timeout())
         self.ctx.emit(GroupJoined(self.ctx.node_id, st.gtype, gid, leader, now))
 
     def _join(self, st: _TypeState, gid: int, h: _Heard, now: float) -> None:
         """Join a group remembered from an earlier beacon (no forward: that seq is old)."""
-        self._become_member(st, gid, h.leader, h.weight, h.seq, h.hops, h.src, h.t, now)
+        self._become_member(st, gid, h.leader, h.weight, h.seq, h.hops, h.src, h.t, h.rssi, now)
 
-    def _adopt(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+    def _adopt(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         """Join the group of beacon ``f`` just heard, and forward it."""
-        self._become_member(st, f.group_id, f.leader, f.weight, f.seq, f.hops, f.src, now, now)
+        self._become_member(
+            st, f.group_id, f.leader, f.weight, f.seq, f.hops, f.src, now, rssi, now
+        )
         self._schedule_forward(st, now)
 
     def _create(self, st: _TypeState, now: float) -> None:
@@ -588,7 +624,7 @@ class Groups(Component):
         )
         self.stats.beacons_forwarded += 1
 
-    def _on_beacon(self, f: LeaderBeacon, now: float) -> None:
+    def _on_beacon(self, f: LeaderBeacon, rssi: float, now: float) -> None:
         st = self._types.get(f.group_type)
         if st is None:
             self.stats.beacons_unknown_type += 1
@@ -600,53 +636,65 @@ class Groups(Component):
                 old = st.children.get(f.src)
                 st.children[f.src] = (now, 0 if old is None else old[1])
             return
-        self._note_nearby(st, f, now)
+        self._note_nearby(st, f, rssi, now)
         role = st.role
         if role is Role.WAITING:
-            self._adopt(st, f, now)
+            self._adopt(st, f, rssi, now)
         elif role is Role.MEMBER:
             if f.group_id == st.gid:
-                self._same_group(st, f, now)
+                self._same_group(st, f, rssi, now)
             elif heavier(f.weight, f.group_id, st.weight, st.gid):
                 self._leave(st, now, LeaveReason.SWITCHED)
-                self._adopt(st, f, now)
+                self._adopt(st, f, rssi, now)
         elif role is Role.LEADER:
             if f.group_id == st.gid:
                 # Another leader with our id: an id clash or a duplicated handover.
                 if (f.weight, f.leader) > (st.weight, me):
-                    self._yield(st, f, now)
+                    self._yield(st, f, rssi, now)
             elif heavier(f.weight, f.group_id, st.weight, st.gid):
-                self._yield(st, f, now)
+                self._yield(st, f, rssi, now)
 
-    def _note_nearby(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+    def _note_nearby(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         h = st.nearby.get(f.group_id)
         if h is None or seq_newer(f.seq, h.seq) or h.leader != f.leader:
-            st.nearby[f.group_id] = _Heard(f.leader, f.weight, f.seq, f.hops, f.src, now)
-        elif f.seq == h.seq and f.hops < h.hops:
-            h.hops, h.src, h.t = f.hops, f.src, now
-        else:
-            h.t = max(h.t, now) if f.seq == h.seq else h.t
+            st.nearby[f.group_id] = _Heard(f.leader, f.weight, f.seq, f.hops, f.src, now, rssi)
+        elif f.seq == h.seq and (f.hops, -rssi) < (h.hops, -h.rssi):
+            h.hops, h.src, h.t, h.rssi = f.hops, f.src, now, rssi
 
-    def _same_group(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
-        st.upstream[f.src] = (f.seq, f.hops, now)
+    def _same_group(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
+        st.upstream[f.src] = _Up(f.seq, f.hops, now, rssi)
         if seq_newer(f.seq, st.seq):
+            # The first copy of a new seq sets the parent (the paper's rule) ...
             st.seq, st.leader, st.weight = f.seq, f.leader, f.weight
             st.hops = min(f.hops + 1, MAX_HOPS)
-            st.parent = f.src
+            st.parent, st.parent_rssi = f.src, rssi
             st.last_beacon = now
             self.timers.set(("lost", st.gtype), now + self._timeout())
             self._schedule_forward(st, now)
-        elif f.seq == st.seq and f.hops + 1 < st.hops:
+        elif f.seq == st.seq and self._better_parent(st, f, rssi):
+            # ... a later copy with fewer hops (or as few, over a stronger link
+            # that has not failed us) replaces it.
             st.hops = f.hops + 1
-            st.parent = f.src
+            st.parent, st.parent_rssi = f.src, rssi
 
-    def _yield(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+    def _better_parent(self, st: _TypeState, f: LeaderBeacon, rssi: float) -> bool:
+        if f.hops + 1 < st.hops:
+            return True
+        if f.hops + 1 > st.hops or f.src == st.parent:
+            return False
+        cur_failed = st.parent in st.failed
+        new_failed = f.src in st.failed
+        if cur_failed != new_failed:
+            return cur_failed
+        return rssi > st.parent_rssi
+
+    def _yield(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         old = st.gid
         self.ctx.emit(LeaderYielded(self.ctx.node_id, st.gtype, old, f.group_id, now))
         if f.group_id != old:
             self._report(st, now, GroupStatus.GONE, successor=f.group_id)
         self._leave(st, now, LeaveReason.YIELDED)
-        self._adopt(st, f, now)
+        self._adopt(st, f, rssi, now)
 
     # ----------------------------------------------------------------- handover
 
