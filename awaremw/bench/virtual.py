@@ -6,7 +6,9 @@ once per second. Two runs with the same seed give identical counters
 (``tests/test_virtual.py`` checks it on a smaller grid).
 
 JSON keys: ``motes``, ``sim_seconds``, ``wall_seconds``, ``speedup``
-(simulated / wall seconds), ``frames_tx``, ``deliveries`` (frames received by
+(simulated / wall seconds), ``cpu_seconds`` (this process's CPU time: on a
+shared machine, ``sim_seconds / cpu_seconds`` is the speed-up it would have
+alone), ``frames_tx``, ``deliveries`` (frames received by
 a core), ``mean_neighbours`` (table size at the end), ``dropped_loss``,
 ``dropped_distance``, ``preset``, ``seed``, ``spacing_m``.
 """
@@ -51,8 +53,10 @@ def run(
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
     net = build(motes, seed)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     net.run_until(duration)
     wall = time.perf_counter() - t0
+    cpu = time.process_time() - c0
     counters = net.counters
     frames_tx = sum(c.frames_tx for c in counters.values())
     deliveries = sum(c.frames_rx for c in counters.values())
@@ -61,6 +65,7 @@ def run(
         "motes": motes,
         "sim_seconds": duration,
         "wall_seconds": round(wall, 3),
+        "cpu_seconds": round(cpu, 3),
         "speedup": round(duration / wall, 2) if wall > 0 else math.inf,
         "frames_tx": frames_tx,
         "deliveries": deliveries,

@@ -11,7 +11,6 @@ simplest core to test drivers with. Garbage from the radio becomes a
 
 from __future__ import annotations
 
-import functools
 import random
 from dataclasses import dataclass
 
@@ -42,11 +41,19 @@ class PingResult:
     acked: bool
 
 
-@functools.lru_cache(maxsize=4096)
-def _decode_cached(data: bytes) -> Frame:
-    # Frames are immutable and a broadcast reaches many motes as the same bytes:
-    # decode once per distinct frame. Errors are not cached (they re-raise).
-    return decode(data)
+class _LastDecoded:
+    """The last frame decoded, by identity of its bytes: a broadcast reaches
+    many motes one after the other as the same bytes object, so each distinct
+    frame is decoded once. Frames are immutable, so sharing them is safe."""
+
+    __slots__ = ("data", "frame")
+
+    def __init__(self) -> None:
+        self.data: bytes | None = None
+        self.frame: Frame | None = None
+
+
+_last = _LastDecoded()
 
 
 class HelloMote:
@@ -89,11 +96,16 @@ class HelloMote:
         self._next_beacon = now + self.rng.uniform(0.0, self.period_s)
 
     def receive(self, frame: bytes, rssi_dbm: float, now: float) -> None:
-        try:
-            f = _decode_cached(frame)
-        except FrameError as e:
-            self._events.append(MalformedFrame(str(e), len(frame)))
-            return
+        last = _last
+        if frame is last.data:
+            f = last.frame
+        else:
+            try:
+                f = decode(frame)
+            except FrameError as e:
+                self._events.append(MalformedFrame(str(e), len(frame)))
+                return
+            last.data, last.frame = frame, f
         if type(f) is not Hello:
             self.ignored += 1
             return

@@ -253,6 +253,9 @@ class VirtualNetwork:
         node = self._nodes[node_id]
         was_in_grid = node.alive and node.static
         old_cell = node.cell
+        if node.pending:
+            self._flush(node)  # its bulk counts belong to its old lists
+        node.lists_ok = False
         if was_in_grid:
             self._grid_remove(node)
         elif node.alive:
