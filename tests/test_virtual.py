@@ -67,8 +67,7 @@ def grid_net(n: int, seed: int, spacing: float = 12.0) -> VirtualNetwork:
 def send(net: VirtualNetwork, core: Recorder, frame: bytes, dest: int = BROADCAST) -> None:
     """Make a Recorder transmit now (through the driver, like any core)."""
     tx = Transmission.broadcast(frame) if dest == BROADCAST else Transmission.unicast(frame, dest)
-    core.out.append(tx)
-    net._after(net._nodes[core.node_id])
+    net.call(core.node_id, lambda: core.out.append(tx))
 
 
 # --------------------------------------------------------------------------- mobility
@@ -186,8 +185,8 @@ def test_unicast_success_is_counted_once() -> None:
     events: list[tuple[int, object, float]] = []
     net.on_event = lambda n, e, t: events.append((n, e, t))
     net.run_until(0.0)
-    a.ping(2)
-    net._after(net._nodes[1])
+    tx = net.call(1, lambda: a.ping(2))
+    assert tx.dest == 2
     net.run_until(0.5)
     ca, cb = net.counters[1], net.counters[2]
     assert (ca.unicast_ok, ca.unicast_failed, ca.retries, ca.acks_rx) == (1, 0, 0, 1)

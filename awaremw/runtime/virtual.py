@@ -26,6 +26,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import TypeVar
 
 from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
 from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
@@ -44,6 +45,7 @@ from awaremw.radio.model import (
 )
 from awaremw.world.mobility import Mobility, Static
 
+T = TypeVar("T")
 EventHook = Callable[[int, object, float], None]
 TransmitHook = Callable[[int, Transmission, float], None]
 
@@ -291,6 +293,16 @@ class VirtualNetwork:
         node.queue.append(tx)
         if not node.busy:
             self._start_next(node)
+
+    def call(self, node_id: int, fn: Callable[[], T]) -> T:
+        """Call into a mote's core from outside now (an application API, a
+        gateway injecting a definition, a test), then collect what the core
+        wants (frames, events, new deadline), as the asyncio runtime does."""
+        node = self._nodes[node_id]
+        out = fn()
+        if node.started:
+            self._after(node)
+        return out
 
     def call_at(self, t: float, callback: Callable[[], None]) -> None:
         """Run ``callback()`` at virtual time ``t`` (scenario scripts)."""
