@@ -1,12 +1,484 @@
-"""PLACEHOLDER (engineer C replaces this): CTP-like collection tree."""
+"""A CTP-like collection tree to the gateway roots (Gnawali et al., SenSys 2009).
+
+Routing. Roots (``config.is_root``, any gateway mote; several are allowed)
+advertise cost 0. Every other mote keeps a bounded table of neighbours heard in
+:class:`CtpBeacon` frames (their advertised path cost and parent) and picks as
+parent the one minimising ``advertised cost + link cost``; its own cost is that
+sum. Costs are ETX x 10 integers. Beacons are paced by a Trickle timer
+(``ctp_tau_l`` .. ``ctp_tau_h``) that is reset when the parent changes, when the
+cost moves by at least the switch threshold, when a neighbour asks (``pull``:
+it has no route) and when the data path detects an inconsistency.
+
+Link cost. As MultiHopLQI maps CC2420 LQI to a cost with a cubic, we map the
+EWMA RSSI of the neighbour's frames: ETX 1 at or above ``ctp_rssi_good``,
+``ctp_rssi_max_etx`` at or below ``ctp_rssi_floor``, cubic in between. Unicast
+outcomes correct it: an EWMA (``ctp_etx_alpha``) of samples, ETX 1 for an
+acknowledged frame and ``ctp_fail_etx`` for one that failed every link-layer
+retry; the link cost is the larger of the two estimates.
+
+Parent choice. A better parent must win by ``ctp_parent_switch_threshold``
+(hysteresis). Neighbours whose advertised parent is this mote are never
+candidates. A parent whose unicasts fail ``ctp_evict_after_failures`` times in
+a row is evicted (its entry deleted: it comes back if it beacons again). A
+mote that loses its parent (eviction, the parent advertising no route or
+routing through us) poisons: it advertises ``NO_ROUTE`` with ``pull`` at once
+and, for ``ctp_holddown`` seconds, accepts only a neighbour whose advertised
+cost is below the cost it had (so it cannot be one of its own descendants,
+whose information is stale) other than the parent it lost; after the
+hold-down, any neighbour. From a route loss on, only neighbours heard since
+that loss are candidates (for switching too): entries of motes that died with
+the parent would otherwise be tried one by one, and the pull makes the
+neighbours that have a route beacon at once. That keeps the repair after a
+parent's death from building loops through a subtree whose information is
+stale; the data path breaks the loops that still form.
+
+Data. ``submit`` queues a payload (bounded queue; refused when full; with no
+route it waits). The head of the queue is unicast to the parent; the link layer
+acknowledges and retries, and after a failure the packet is retried at the
+routing level after a short random delay, possibly to another parent, up to
+``ctp_max_retries`` attempts. Forwarders keep a cache of ``(origin, seqno)``
+with the THL each packet arrived with: the same THL again is a duplicate (a
+retransmission whose ACK was lost) and is dropped; a different THL is forwarded
+(as in CTP, a packet that went round a transient loop is not a duplicate). Our
+own packet coming back, or data from our own parent, proves a loop: the mote
+poisons its route as above and keeps the packet. Data
+from a neighbour whose cost is not above ours is an inconsistency (CTP's
+datapath validation): reset the beacon Trickle, still forward the packet.
+Packets whose THL exceeds ``ctp_max_thl`` are dropped. Roots deduplicate per
+origin on ``seqno`` and emit :class:`Delivered` with ``thl`` = radio hops
+travelled (0 when the payload was submitted at the root itself).
+"""
 
 from __future__ import annotations
 
-from awaremw.protocol.frames import Payload
-from awaremw.protocol.mote import Component
+from collections import OrderedDict, deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+from awaremw.protocol.frames import BROADCAST, NO_ROUTE, CtpBeacon, CtpData, Frame, Payload
+from awaremw.protocol.mote import Component, MoteContext
+from awaremw.protocol.trickle import Trickle
+
+ETX_ONE = 10  # ETX 1.0 in the x10 integer scale of costs
+MAX_COST = NO_ROUTE - 1  # path costs saturate here (NO_ROUTE means "none")
+
+
+# --------------------------------------------------------------------------- events
+
+
+@dataclass(frozen=True, slots=True)
+class Delivered:
+    """Event at a root: ``payload`` from ``origin`` arrived after ``thl`` hops at ``t``."""
+
+    origin: int
+    payload: Payload
+    thl: int
+    t: float
+
+
+@dataclass(frozen=True, slots=True)
+class ParentChanged:
+    """Event: the mote's parent changed (None: no route); ``cost`` is the new path cost."""
+
+    old: int | None
+    new: int | None
+    cost: int
+
+
+@dataclass(frozen=True, slots=True)
+class DataDropped:
+    """Event: a packet was given up (``reason``: queue full, thl, retries)."""
+
+    origin: int
+    seqno: int
+    reason: str
+
+
+# --------------------------------------------------------------------------- state
+
+
+@dataclass(slots=True)
+class Neighbour:
+    """What a mote knows about one neighbour (mutable routing-table entry)."""
+
+    node: int
+    cost: int = NO_ROUTE  # its advertised path cost
+    parent: int = BROADCAST  # its advertised parent
+    rssi: float | None = None  # EWMA of the RSSI of its frames
+    ack_etx: float = float(ETX_ONE)  # EWMA of unicast outcomes, x10
+    failures: int = 0  # consecutive failed unicasts to it
+    last_heard: float = 0.0
+
+
+@dataclass(slots=True)
+class CollectionStats:
+    submitted: int = 0
+    delivered: int = 0  # at a root
+    forwarded: int = 0  # unicasts acknowledged (own and others' packets)
+    duplicates: int = 0
+    dropped: int = 0
+    inconsistencies: int = 0  # data from a neighbour whose cost is not above ours
+    loops: int = 0  # a packet came back to us: route poisoned
+    parent_changes: int = 0
+    evictions: int = 0
+    beacons: int = 0
+    data_tx: int = 0  # unicast attempts handed to the link layer
+
+
+@dataclass(slots=True)
+class _Packet:
+    origin: int
+    seqno: int
+    thl: int
+    payload: Payload
+    attempts: int = 0
+    rx_thl: int = field(default=-1)  # THL it arrived with, -1 if our own
 
 
 class Collection(Component):
+    """The collection-tree component of one mote."""
+
+    def __init__(self, ctx: MoteContext) -> None:
+        super().__init__(ctx)
+        cfg = ctx.config
+        # Beacons carry per-mote information, so there is no suppression (never
+        # hear_consistent): k only has to be >= 1.
+        self._trickle = Trickle(cfg.ctp_tau_l, cfg.ctp_tau_h, 1, ctx.rng)
+        self._neighbours: dict[int, Neighbour] = {}
+        self._parent: int | None = None
+        self._cost = 0 if cfg.is_root else NO_ROUTE
+        self._queue: deque[_Packet] = deque()
+        self._in_flight: CtpData | None = None
+        self._seqno = 0
+        self._dups: OrderedDict[tuple[int, int], int] = OrderedDict()  # -> THL heard
+        self._root_seen: dict[int, deque[int]] = {}
+        self._lost_cost: int | None = None  # cost before the route was lost
+        self._lost_parent: int | None = None  # not taken back during the hold-down
+        # Neighbours must have been heard since our last route loss to be chosen:
+        # older entries may be dead motes (a dead mote never says so).
+        self._fresh_since = float("-inf")
+        self._holddown_until = float("-inf")
+        self.stats = CollectionStats()
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def is_root(self) -> bool:
+        return self.ctx.config.is_root
+
+    @property
+    def parent(self) -> int | None:
+        return self._parent
+
+    @property
+    def cost(self) -> int:
+        """Path cost to a root, ETX x 10 (0 at a root, NO_ROUTE without a route)."""
+        return self._cost
+
+    @property
+    def neighbours(self) -> Mapping[int, Neighbour]:
+        return MappingProxyType(self._neighbours)
+
+    @property
+    def queue_length(self) -> int:
+        return len(self._queue)
+
+    @property
+    def beacon_trickle(self) -> Trickle:
+        return self._trickle
+
     def submit(self, payload: Payload, now: float) -> bool:
-        """Queue ``payload`` for the gateway roots; False if refused (no route, full)."""
-        return False
+        """Queue ``payload`` for a root. False if refused (queue full); without a
+        route it waits in the queue. At a root it is delivered at once."""
+        self._seqno = (self._seqno + 1) & 0xFFFF
+        if self.is_root:
+            self.stats.submitted += 1
+            self._deliver(self.ctx.node_id, self._seqno, payload, 0, now)
+            return True
+        if len(self._queue) >= self.ctx.config.ctp_queue:
+            return False
+        self.stats.submitted += 1
+        self._queue.append(_Packet(self.ctx.node_id, self._seqno, 0, payload))
+        self._pump(now)
+        return True
+
+    def link_cost(self, n: Neighbour) -> int:
+        """ETX x 10 of the link to ``n``: max of the RSSI mapping and the ACK EWMA."""
+        return max(self._rssi_cost(n.rssi), round(n.ack_etx))
+
+    # ------------------------------------------------------------------ Component hooks
+
+    def start(self, now: float) -> None:
+        self._trickle.start(now)
+        self._arm_beacon()
+
+    def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
+        if isinstance(frame, CtpBeacon):
+            self._on_beacon(frame, rssi_dbm, now)
+        elif isinstance(frame, CtpData):
+            self._on_data(frame, rssi_dbm, now)
+
+    def on_timer(self, name: object, now: float) -> None:
+        if name == "beacon":
+            if self._trickle.handle_timer(now):
+                self._send_beacon()
+            self._arm_beacon()
+        elif name == "retry":
+            self._pump(now)
+        elif name == "holddown":
+            self._update_route(now)
+            self._pump(now)
+
+    def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
+        if not isinstance(frame, CtpData) or frame is not self._in_flight:
+            return
+        self._in_flight = None
+        pkt = self._queue[0]
+        n = self._neighbours.get(frame.dst)
+        cfg = self.ctx.config
+        a = cfg.ctp_etx_alpha
+        if acked:
+            self._queue.popleft()
+            self.stats.forwarded += 1
+            if n is not None:
+                n.failures = 0
+                n.ack_etx = (1 - a) * n.ack_etx + a * ETX_ONE
+        else:
+            pkt.attempts += 1
+            if n is not None:
+                n.failures += 1
+                n.ack_etx = (1 - a) * n.ack_etx + a * cfg.ctp_fail_etx
+                if n.failures >= cfg.ctp_evict_after_failures:
+                    self._evict(n.node, now)
+            if pkt.attempts >= cfg.ctp_max_retries:
+                self._queue.popleft()
+                self._drop(pkt, "retries")
+            d = cfg.ctp_retry_delay
+            self.timers.set("retry", now + self.ctx.rng.uniform(d / 2, d))
+        self._update_route(now)  # the link estimate moved
+        self._pump(now)
+
+    # ------------------------------------------------------------------ routing
+
+    def _on_beacon(self, b: CtpBeacon, rssi: float, now: float) -> None:
+        self._note(b.src, rssi, now, b.cost, b.parent)
+        me = self.ctx.node_id
+        if b.pull and (self.is_root or self._parent is not None):
+            self._reset_trickle(now)
+        if b.src == self._parent and (b.cost >= NO_ROUTE or b.parent == me):
+            self._lose_parent(now)
+        self._update_route(now)
+        self._pump(now)
+
+    def _note(self, node: int, rssi: float, now: float, cost: int, parent: int) -> None:
+        n = self._neighbours.get(node)
+        if n is None:
+            n = Neighbour(node, cost, parent, rssi, last_heard=now)
+            if len(self._neighbours) >= self.ctx.config.ctp_neighbours:
+                # Full table: replace the worst entry (never the parent) if worse.
+                others = [x for x in self._neighbours.values() if x.node != self._parent]
+                if not others:
+                    return
+                worst = max(others, key=self._path_via)
+                if self._path_via(n) >= self._path_via(worst):
+                    return
+                del self._neighbours[worst.node]
+            self._neighbours[node] = n
+            return
+        n.cost, n.parent, n.last_heard = cost, parent, now
+        a = self.ctx.config.ctp_rssi_alpha
+        n.rssi = rssi if n.rssi is None else a * rssi + (1 - a) * n.rssi
+
+    def _rssi_cost(self, rssi: float | None) -> int:
+        cfg = self.ctx.config
+        if rssi is None or rssi <= cfg.ctp_rssi_floor:
+            return cfg.ctp_rssi_max_etx
+        if rssi >= cfg.ctp_rssi_good:
+            return ETX_ONE
+        x = (cfg.ctp_rssi_good - rssi) / (cfg.ctp_rssi_good - cfg.ctp_rssi_floor)
+        return ETX_ONE + round((cfg.ctp_rssi_max_etx - ETX_ONE) * x**3)
+
+    def _path_via(self, n: Neighbour) -> int:
+        if n.cost >= NO_ROUTE:
+            return NO_ROUTE
+        return min(n.cost + self.link_cost(n), MAX_COST)
+
+    def _best(
+        self,
+        below: int | None = None,
+        exclude: int | None = None,
+        fresh_since: float = float("-inf"),
+    ) -> tuple[Neighbour | None, int]:
+        """The neighbour with the cheapest path among those heard since
+        ``fresh_since`` and, during a hold-down, advertising a cost under
+        ``below``, other than ``exclude``."""
+        me = self.ctx.node_id
+        best: Neighbour | None = None
+        best_path = NO_ROUTE
+        limit = NO_ROUTE if below is None else below
+        for n in self._neighbours.values():
+            if n.cost >= limit or n.parent == me or n.node == exclude:
+                continue
+            if n.last_heard < fresh_since:
+                continue
+            p = self._path_via(n)
+            if p < best_path or (p == best_path and best is not None and n.node < best.node):
+                best, best_path = n, p
+        return best, best_path
+
+    def _update_route(self, now: float) -> None:
+        if self.is_root:
+            return
+        best, best_path = self._best(fresh_since=self._fresh_since)
+        if self._parent is not None:
+            cur = self._path_via(self._neighbours[self._parent])
+            threshold = self.ctx.config.ctp_parent_switch_threshold
+            if best is not None and best.node != self._parent and best_path + threshold < cur:
+                self._set_parent(best, best_path, now)
+            else:
+                self._set_cost(cur, now)
+            return
+        if best is None:
+            return
+        if now < self._holddown_until:
+            best, best_path = self._best(self._lost_cost, self._lost_parent, self._fresh_since)
+        if best is not None:
+            self._set_parent(best, best_path, now)
+
+    def _set_parent(self, n: Neighbour, path: int, now: float) -> None:
+        old = self._parent
+        self._parent = n.node
+        self._cost = path
+        self._lost_cost = self._lost_parent = None
+        self._holddown_until = float("-inf")
+        self.timers.cancel("holddown")
+        self.stats.parent_changes += 1
+        self.ctx.emit(ParentChanged(old, n.node, path))
+        self._announce(now)
+
+    def _set_cost(self, cost: int, now: float) -> None:
+        if cost != self._cost:
+            big = abs(cost - self._cost) >= self.ctx.config.ctp_parent_switch_threshold
+            self._cost = cost
+            if big:
+                self._reset_trickle(now)
+
+    def _lose_parent(self, now: float) -> None:
+        old = self._parent
+        if old is None:
+            return
+        self._lost_cost = self._cost
+        self._lost_parent = old
+        self._fresh_since = now
+        self._parent = None
+        self._cost = NO_ROUTE
+        self._holddown_until = now + self.ctx.config.ctp_holddown
+        self.timers.set("holddown", self._holddown_until)
+        self.stats.parent_changes += 1
+        self.ctx.emit(ParentChanged(old, None, NO_ROUTE))
+        self._announce(now)
+
+    def _evict(self, node: int, now: float) -> None:
+        self.stats.evictions += 1
+        del self._neighbours[node]
+        if node == self._parent:
+            self._lose_parent(now)
+
+    def _announce(self, now: float) -> None:
+        """A route change: beacon within tau_l even if the Trickle is already at
+        tau_l and has spoken in this interval (a plain reset would wait for the
+        next one), so that poison and new costs travel one hop per ~tau_l."""
+        self._trickle.start(now)
+        self._arm_beacon()
+
+    def _reset_trickle(self, now: float) -> None:
+        self._trickle.reset(now)
+        self._arm_beacon()
+
+    def _arm_beacon(self) -> None:
+        d = self._trickle.next_deadline()
+        if d is not None:
+            self.timers.set("beacon", d)
+
+    def _send_beacon(self) -> None:
+        self.stats.beacons += 1
+        pull = not self.is_root and self._parent is None
+        parent = BROADCAST if self._parent is None else self._parent
+        self.send(CtpBeacon(self.ctx.node_id, BROADCAST, self._cost, parent, pull))
+
+    # ------------------------------------------------------------------ data
+
+    def _on_data(self, d: CtpData, rssi: float, now: float) -> None:
+        me = self.ctx.node_id
+        n = self._neighbours.get(d.src)
+        if n is not None:
+            # Data from a neighbour says it routes through us, at that cost.
+            self._note(d.src, rssi, now, d.cost, me)
+        assert d.payload is not None  # CtpData validates it
+        if self.is_root:
+            self._deliver(d.origin, d.seqno, d.payload, d.thl + 1, now)
+            return
+        if d.cost <= self._cost:
+            # The sender thinks we are closer to a root than it is, and we are not:
+            # our beacons are stale there. Tell it soon; still forward the packet.
+            self.stats.inconsistencies += 1
+            self._reset_trickle(now)
+        key = (d.origin, d.seqno)
+        heard = self._dups.get(key)
+        if heard is None:
+            heard = next((p.rx_thl for p in self._queue if (p.origin, p.seqno) == key), None)
+        if heard == d.thl:
+            self.stats.duplicates += 1  # a retransmission whose ACK was lost
+            return
+        if d.src == self._parent or d.origin == me:
+            # Our own packet came back, or our parent routes through us: we are in
+            # a loop. Poison and re-attach; keep the packet. (A packet we already
+            # forwarded arriving with another THL is no proof: after a lost ACK and
+            # a parent change, two copies may travel different paths.)
+            self.stats.loops += 1
+            self._lose_parent(now)
+            self._update_route(now)
+        self._dups[key] = d.thl
+        self._dups.move_to_end(key)
+        if len(self._dups) > self.ctx.config.ctp_dup_cache:
+            self._dups.popitem(last=False)
+        pkt = _Packet(d.origin, d.seqno, d.thl + 1, d.payload, rx_thl=d.thl)
+        if pkt.thl > self.ctx.config.ctp_max_thl:
+            self._drop(pkt, "thl")
+            return
+        if len(self._queue) >= self.ctx.config.ctp_queue:
+            self._drop(pkt, "queue full")
+            return
+        self._queue.append(pkt)
+        self._pump(now)
+
+    def _deliver(self, origin: int, seqno: int, payload: Payload, thl: int, now: float) -> None:
+        seen = self._root_seen.get(origin)
+        if seen is None:
+            seen = self._root_seen[origin] = deque(maxlen=self.ctx.config.ctp_root_window)
+        if seqno in seen:
+            self.stats.duplicates += 1
+            return
+        seen.append(seqno)
+        self.stats.delivered += 1
+        self.ctx.emit(Delivered(origin, payload, thl, now))
+
+    def _drop(self, pkt: _Packet, reason: str) -> None:
+        self.stats.dropped += 1
+        self.ctx.emit(DataDropped(pkt.origin, pkt.seqno, reason))
+
+    def _pump(self, now: float) -> None:
+        """Hand the head of the queue to the link layer if nothing is in flight."""
+        if self._in_flight is not None or not self._queue or self._parent is None:
+            return
+        if "retry" in self.timers:
+            return
+        pkt = self._queue[0]
+        cost = min(self._cost, MAX_COST)
+        frame = CtpData(
+            self.ctx.node_id, self._parent, pkt.origin, pkt.seqno, pkt.thl, cost, pkt.payload
+        )
+        self._in_flight = frame
+        self.stats.data_tx += 1
+        self.send(frame)

@@ -33,8 +33,9 @@ class MiddlewareConfig:
     ctp_parent_switch_threshold: int = 15  # ETX x 10 improvement needed to switch parent
     ctp_evict_after_failures: int = 2  # failed unicasts (after retries) before dropping a parent
     ctp_neighbours: int = 16  # routing table size (the parent is never the one replaced)
-    ctp_rssi_good: float = -85.0  # dBm at or above which a link costs ETX 1 (CC2420 default)
-    ctp_rssi_floor: float = -95.0  # dBm at or below which a link costs ctp_rssi_max_etx
+    ctp_rssi_good: float = -90.0  # dBm at or above which a link costs ETX 1 (CC2420: sens. + 5)
+    ctp_rssi_floor: float = -95.0  # dBm at or below which a link costs ctp_rssi_max_etx (sens.)
+    ctp_rssi_alpha: float = 0.2  # EWMA weight of a frame's RSSI in the link estimate
     ctp_rssi_max_etx: int = 100  # ETX x 10 of a link at the floor (cubic in between)
     ctp_etx_alpha: float = 0.25  # EWMA weight of one unicast outcome in the link ETX
     ctp_fail_etx: int = 60  # ETX x 10 sample for a unicast that failed all link retries

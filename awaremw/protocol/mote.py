@@ -145,7 +145,8 @@ class AwareMote:
         self.collection = Collection(self.ctx)
         self.groups = Groups(self.ctx, self.collection)
         self.channels = Channels(self.ctx, self.groups, self.collection)
-        self.commands = Commands(self.ctx, self.groups)
+        # Engineer C: Commands learns each slot's version from dissemination.
+        self.commands = Commands(self.ctx, self.groups, self.dissemination.version_of)
         self.beacon = _HelloBeacon(self.ctx)
         self._components: tuple[Component, ...] = (
             self.dissemination,

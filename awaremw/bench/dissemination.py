@@ -1,0 +1,296 @@
+"""``awaremw bench dissemination``: Trickle propagation per hop, steady-state cost.
+
+A square grid of :class:`~awaremw.protocol.mote.AwareMote` cores (default 400
+motes, 20 x 20, CC2420 preset, 15 m spacing) on the virtual-clock driver, one
+gateway mote (collection root) in a corner. After ``--warmup`` seconds (tree
+formed) the gateway injects one channel definition; every mote's adoption time
+is recorded and set against its hop distance from the gateway in the radio
+graph (links whose mean RSSI is at least ``--hop-rssi`` dBm both ways). Then
+the network is left alone until ``--settle`` seconds after the injection
+(every Trickle back near tau_h) and the dissemination frames (DripItem,
+DripSummary) and collection beacons are counted for ``--window`` seconds.
+No data is submitted: this is the control-plane cost of an idle network.
+
+JSON keys:
+
+* ``motes``, ``grid``, ``spacing_m``, ``seed``, ``preset``;
+* ``seconds_per_hop``: least-squares slope of adoption delay against hop
+  distance; ``propagation_max_s`` (last mote's delay), ``max_hops``,
+  ``mean_delay_per_hop_s`` (mean of delay / hops), ``coverage`` (fraction of
+  motes that adopted the item within ``--propagation-timeout``);
+* ``tx_per_mote_per_hour``: dissemination frames plus collection beacons per
+  mote per hour in the window; ``drip_tx_per_mote_per_hour`` and
+  ``ctp_beacons_per_mote_per_hour`` split it; ``window_s``;
+* ``wall_seconds``.
+
+The scenario helpers (grid of motes with optional periodic traffic, route and
+connectivity checks) are shared with the tests.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from awaremw.protocol.collection import ParentChanged
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.core import Transmission
+from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.frames import (
+    ChannelDef,
+    CommandDef,
+    CtpBeacon,
+    DataRecord,
+    DripItem,
+    DripSummary,
+    ItemBody,
+    ItemKind,
+    peek_header,
+)
+from awaremw.protocol.mote import AwareMote
+from awaremw.radio.model import RadioModel, preset
+from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.world.mobility import Static
+
+Event = tuple[int, object, float]
+
+
+class RecordingApp:
+    """An application offering no attribute; it records the commands it runs."""
+
+    def __init__(self) -> None:
+        self.commands: list[tuple[CommandDef, float]] = []
+
+    def offers(self, attr: int) -> bool:
+        return False
+
+    def read(self, attr: int, now: float) -> float | None:
+        return None
+
+    def on_command(self, command: CommandDef, now: float) -> None:
+        self.commands.append((command, now))
+
+
+class TrafficMote(AwareMote):
+    """An AwareMote that also submits one DataRecord every ``period`` seconds
+    (from ``first`` on) to the collection tree, through the driver contract
+    (its own deadline), as a group leader would. ``value`` is the submit time."""
+
+    def __init__(
+        self,
+        node_id: int,
+        config: MiddlewareConfig,
+        period: float | None = None,
+        first: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        self.app = RecordingApp()
+        super().__init__(node_id, self.app, config, random.Random(seed * 1_000_003 + node_id))
+        self.period = period
+        self.next_submit = first
+        self.submitted = 0
+        self.refused = 0
+
+    def next_deadline(self) -> float | None:
+        d = super().next_deadline()
+        if self.period is None:
+            return d
+        return self.next_submit if d is None else min(d, self.next_submit)
+
+    def handle_timer(self, now: float) -> None:
+        if self.period is not None and now >= self.next_submit:
+            rec = DataRecord(1, 1, 1, self.submitted & 0xFFFFFFFF, 0, now, 1, self.node_id)
+            if self.collection.submit(rec, now):
+                self.submitted += 1
+            else:
+                self.refused += 1
+            self.next_submit += self.period
+        super().handle_timer(now)
+
+
+def call_core(net: VirtualNetwork, node_id: int, fn: Callable[[], object]) -> None:
+    """Run ``fn`` (a call into the core of ``node_id``, e.g. a gateway's ``inject``)
+    now, then let the driver collect the core's output and new deadline, as the
+    asyncio runtime does after calling into a core from the event loop.
+
+    VirtualNetwork has no public call for this yet; its own tests use ``_after``.
+    """
+    fn()
+    net._after(net._nodes[node_id])
+
+
+def inject_at(
+    net: VirtualNetwork,
+    mote: AwareMote,
+    t: float,
+    kind: ItemKind,
+    item_id: int,
+    version: int,
+    item: ItemBody | None,
+) -> None:
+    """At virtual time ``t``, inject an item into (gateway) ``mote``."""
+    net.call_at(
+        t,
+        lambda: call_core(
+            net, mote.node_id, lambda: mote.inject(kind, item_id, version, item, net.now)
+        ),
+    )
+
+
+def build_grid(
+    side: int,
+    spacing: float,
+    roots: Iterable[int] = (0,),
+    seed: int = 1,
+    period: float | None = None,
+    first: float = 20.0,
+    radio: str = "cc2420",
+    overrides: dict[str, Any] | None = None,
+) -> tuple[VirtualNetwork, dict[int, TrafficMote], list[Event]]:
+    """``side`` x ``side`` TrafficMotes (ids row by row); returns the network, the
+    motes and the list the network's events are appended to."""
+    net = VirtualNetwork(RadioModel(preset(radio), seed), seed)
+    events: list[Event] = []
+    net.on_event = lambda node, e, t: events.append((node, e, t))
+    rng = random.Random(seed)
+    root_set = set(roots)
+    base = MiddlewareConfig(mtu=preset(radio).mtu).with_overrides(overrides or {})
+    motes: dict[int, TrafficMote] = {}
+    for i in range(side * side):
+        cfg = base.with_overrides({"is_root": i in root_set})
+        p = None if i in root_set else period
+        m = TrafficMote(i, cfg, p, first + rng.uniform(0.0, period or 0.0), seed)
+        motes[i] = m
+        net.add(m, Static((i % side) * spacing, (i // side) * spacing))
+    return net, motes, events
+
+
+def route_of(motes: dict[int, TrafficMote], node: int) -> list[int]:
+    """The parent chain from ``node``; it stops at a mote without parent or at the
+    first repeated mote (then the last element repeats an earlier one: a loop)."""
+    route = [node]
+    seen = {node}
+    while (p := motes[route[-1]].collection.parent) is not None:
+        route.append(p)
+        if p in seen:
+            break
+        seen.add(p)
+    return route
+
+
+def hop_distances(
+    net: VirtualNetwork, ids: Iterable[int], src: int, min_rssi: float
+) -> dict[int, int]:
+    """BFS hop counts from ``src`` over links with mean RSSI >= ``min_rssi`` both ways."""
+    nodes = list(ids)
+    dist = {src: 0}
+    todo = deque([src])
+    while todo:
+        a = todo.popleft()
+        for b in nodes:
+            if b in dist or b == a:
+                continue
+            if net.mean_rssi(a, b) >= min_rssi and net.mean_rssi(b, a) >= min_rssi:
+                dist[b] = dist[a] + 1
+                todo.append(b)
+    return dist
+
+
+def mesh_connected(
+    net: VirtualNetwork, ids: Iterable[int], root: int, min_rssi: float
+) -> set[int]:
+    """The motes among ``ids`` joined to ``root`` by links of mean RSSI >= ``min_rssi``."""
+    return set(hop_distances(net, ids, root, min_rssi))
+
+
+def _slope(xs: list[float], ys: list[float]) -> float:
+    n = len(xs)
+    mx, my = sum(xs) / n, sum(ys) / n
+    sxx = sum((x - mx) ** 2 for x in xs)
+    if sxx == 0:
+        return 0.0
+    return sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sxx
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    side = int(args.side)
+    seed = int(args.seed)
+    t_wall = time.perf_counter()
+    net, motes, events = build_grid(side, float(args.spacing), (0,), seed, radio=args.radio)
+    counts = {"drip": 0, "ctp": 0}
+    counting = [False]
+
+    def on_transmit(node: int, tx: Transmission, t: float) -> None:
+        if counting[0]:
+            ftype = peek_header(tx.frame)[0]
+            if ftype in (DripItem.TYPE, DripSummary.TYPE):
+                counts["drip"] += 1
+            elif ftype == CtpBeacon.TYPE:
+                counts["ctp"] += 1
+
+    net.on_transmit = on_transmit
+    net.run_until(float(args.warmup))
+    # Propagation of one injected item.
+    t_inj = net.now
+    chan = ChannelDef(attr=0, group_type=1, group_id=0xFFFF, period_ms=2000, agg=0)
+    inject_at(net, motes[0], t_inj, ItemKind.CHANNEL, 1, 1, chan)
+    net.run_until(t_inj + float(args.propagation_timeout))
+    adopted: dict[int, float] = {}
+    for node, e, t in events:
+        if isinstance(e, ItemAdopted) and e.kind == ItemKind.CHANNEL and t >= t_inj:
+            adopted.setdefault(node, t - t_inj)
+    hops = hop_distances(net, motes, 0, float(args.hop_rssi))
+    pts = [(hops[n], d) for n, d in adopted.items() if n in hops and hops[n] > 0]
+    xs = [float(h) for h, _ in pts]
+    ys = [d for _, d in pts]
+    # Steady state: control-plane frames over the window.
+    net.run_until(t_inj + float(args.settle))
+    counting[0] = True
+    window = float(args.window)
+    net.run_until(net.now + window)
+    counting[0] = False
+    n = len(motes)
+    per_hour = 3600.0 / window / n
+    parent_changes = sum(1 for _, e, _ in events if isinstance(e, ParentChanged))
+    return {
+        "motes": n,
+        "grid": f"{side}x{side}",
+        "spacing_m": float(args.spacing),
+        "seed": seed,
+        "preset": args.radio,
+        "seconds_per_hop": round(_slope(xs, ys), 3) if pts else None,
+        "mean_delay_per_hop_s": round(sum(d / h for h, d in zip(xs, ys, strict=True)) / len(pts), 3)
+        if pts
+        else None,
+        "propagation_max_s": round(max(adopted.values()), 3) if adopted else None,
+        "max_hops": max(hops.values()),
+        "coverage": round(len(adopted) / (n - 1), 4),
+        "tx_per_mote_per_hour": round((counts["drip"] + counts["ctp"]) * per_hour, 3),
+        "drip_tx_per_mote_per_hour": round(counts["drip"] * per_hour, 3),
+        "ctp_beacons_per_mote_per_hour": round(counts["ctp"] * per_hour, 3),
+        "window_s": window,
+        "parent_changes": parent_changes,
+        "wall_seconds": round(time.perf_counter() - t_wall, 2),
+    }
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--side", type=int, default=20, help="grid side (motes = side^2)")
+    parser.add_argument("--spacing", type=float, default=15.0, help="grid spacing, m")
+    parser.add_argument("--radio", default="cc2420", help="radio preset")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--warmup", type=float, default=60.0, help="s before the injection")
+    parser.add_argument(
+        "--propagation-timeout", type=float, default=120.0, help="s to wait for every mote"
+    )
+    parser.add_argument(
+        "--settle", type=float, default=3600.0, help="s after the injection before counting"
+    )
+    parser.add_argument("--window", type=float, default=3600.0, help="s of steady state counted")
+    parser.add_argument(
+        "--hop-rssi", type=float, default=-92.0, help="dBm: a link counts as one hop above this"
+    )

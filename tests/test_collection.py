@@ -1,0 +1,361 @@
+"""Collection tree: unit tests of the component on a fake clock, and grid scenarios
+on the virtual-clock driver (tree without loops, delivery, duplicates, repair)."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from awaremw.bench.dissemination import build_grid, mesh_connected, route_of
+from awaremw.protocol.collection import (
+    Collection,
+    DataDropped,
+    Delivered,
+    ParentChanged,
+)
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.frames import (
+    BROADCAST,
+    NO_ROUTE,
+    CtpBeacon,
+    CtpData,
+    DataRecord,
+    Frame,
+    decode,
+)
+from awaremw.protocol.mote import MoteContext
+
+GOOD = -70.0  # dBm: link cost ETX 1
+
+
+def rec(i: int = 0) -> DataRecord:
+    return DataRecord(1, 1, 7, i, 0, 21.5, 3, 5)
+
+
+class Unit:
+    """One Collection component on a fake clock, with its outbox decoded."""
+
+    def __init__(self, node: int = 5, **cfg: object) -> None:
+        self.ctx = MoteContext(
+            node, MiddlewareConfig().with_overrides(cfg), random.Random(node), None
+        )
+        self.c = Collection(self.ctx)
+        self.now = 0.0
+        self.c.start(0.0)
+
+    def sent(self) -> list[Frame]:
+        out = [decode(t.frame) for t in self.ctx.outbox]
+        self.ctx.outbox.clear()
+        return out
+
+    def events(self) -> list[object]:
+        out, self.ctx.event_list = self.ctx.event_list, []
+        return out
+
+    def beacon(self, src: int, cost: int, parent: int = 0, rssi: float = GOOD) -> None:
+        self.c.on_frame(CtpBeacon(src, BROADCAST, cost, parent), rssi, self.now)
+
+    def data(self, src: int, origin: int, seqno: int, thl: int, cost: int) -> None:
+        f = CtpData(src, self.ctx.node_id, origin, seqno, thl, cost, rec(seqno))
+        self.c.on_frame(f, GOOD, self.now)
+
+    def advance(self, until: float) -> None:
+        while (t := self.c.timers.next_deadline()) is not None and t <= until:
+            self.now = t
+            for name in self.c.timers.due(t):
+                self.c.on_timer(name, t)
+        self.now = until
+
+    def result(self, acked: bool) -> None:
+        """Report the outcome of the pending unicast."""
+        ((tx_id, (owner, frame)),) = self.ctx.pending.items()
+        del self.ctx.pending[tx_id]
+        assert owner is self.c
+        self.c.on_link_result(frame, acked, self.now)
+
+
+# --------------------------------------------------------------------------- unit: routing
+
+
+def test_root_has_cost_zero_and_delivers_its_own_payloads() -> None:
+    u = Unit(0, is_root=True)
+    assert u.c.is_root and u.c.cost == 0 and u.c.parent is None
+    u.advance(0.5)
+    (b,) = u.sent()
+    assert b == CtpBeacon(0, BROADCAST, 0, BROADCAST, False)
+    assert u.c.submit(rec(1), 1.0)
+    assert u.events() == [Delivered(0, rec(1), 0, 1.0)]
+
+
+def test_boot_pulls_then_attaches_to_the_root() -> None:
+    u = Unit()
+    assert u.c.cost == NO_ROUTE and u.c.parent is None
+    u.advance(0.5)
+    (b,) = u.sent()
+    assert isinstance(b, CtpBeacon) and b.pull and b.cost == NO_ROUTE
+    u.advance(40.0)  # Trickle grows meanwhile
+    u.sent()
+    u.beacon(0, 0, BROADCAST)
+    assert u.c.parent == 0 and u.c.cost == 10
+    assert u.events() == [ParentChanged(None, 0, 10)]
+    u.advance(40.5)  # a route change is announced within tau_l
+    (b,) = u.sent()
+    assert b == CtpBeacon(5, BROADCAST, 10, 0, False)
+
+
+def test_link_cost_from_rssi_is_cubic_between_good_and_floor() -> None:
+    u = Unit(ctp_rssi_good=-90.0, ctp_rssi_floor=-95.0, ctp_rssi_max_etx=100)
+    n = u.c  # the mapping is a method of the component
+    costs = [n._rssi_cost(r) for r in (-80.0, -90.0, -91.0, -92.5, -94.0, -95.0, -99.0)]
+    assert costs[0] == costs[1] == 10 and costs[-2] == costs[-1] == 100
+    assert costs[1] < costs[2] < costs[3] < costs[4] < costs[5]
+    assert costs[3] == 10 + round(90 * 0.5**3)
+    assert n._rssi_cost(None) == 100
+
+
+def test_ack_failures_raise_the_link_cost() -> None:
+    u = Unit(ctp_etx_alpha=0.5, ctp_fail_etx=60, ctp_evict_after_failures=5)
+    u.beacon(0, 0, BROADCAST)
+    assert u.c.cost == 10
+    u.c.submit(rec(1), 0.0)
+    u.result(False)
+    nb = u.c.neighbours[0]
+    assert nb.ack_etx == pytest.approx(35.0) and u.c.link_cost(nb) == 35
+    assert u.c.cost == 35
+    u.advance(1.0)  # routing-level retry
+    u.result(True)
+    assert u.c.neighbours[0].ack_etx == pytest.approx(22.5) and u.c.cost == 22
+
+
+def test_parent_switch_needs_the_hysteresis_margin() -> None:
+    u = Unit(ctp_parent_switch_threshold=15)
+    u.beacon(1, 30, 0)
+    assert u.c.parent == 1 and u.c.cost == 40
+    u.beacon(2, 18, 0)  # 28: better by 12 only
+    assert u.c.parent == 1
+    u.beacon(2, 10, 0)  # 20: better by 20
+    assert u.c.parent == 2 and u.c.cost == 20
+    assert [e for e in u.events() if isinstance(e, ParentChanged)][-1] == ParentChanged(1, 2, 20)
+
+
+def test_children_are_never_parents() -> None:
+    u = Unit()
+    u.beacon(1, 50, 0)
+    u.beacon(2, 10, 5)  # cheaper, but routes through us
+    assert u.c.parent == 1
+
+
+def test_pull_resets_beacon_trickle_only_with_a_route() -> None:
+    u = Unit()
+    u.advance(100.0)
+    t = u.c.beacon_trickle
+    assert t.interval is not None and t.interval > 8
+    u.c.on_frame(CtpBeacon(9, BROADCAST, NO_ROUTE, BROADCAST, True), GOOD, 100.0)
+    assert t.interval > 8  # we cannot help
+    u.beacon(0, 0, BROADCAST)
+    u.advance(200.0)
+    assert t.interval > 8
+    u.c.on_frame(CtpBeacon(9, BROADCAST, NO_ROUTE, BROADCAST, True), GOOD, 200.0)
+    assert t.interval == u.ctx.config.ctp_tau_l
+
+
+def test_parent_advertising_no_route_is_dropped_with_holddown() -> None:
+    u = Unit(ctp_holddown=2.0)
+    u.beacon(1, 20, 0)
+    u.beacon(2, 45, 3)
+    assert u.c.parent == 1 and u.c.cost == 30
+    u.now = 10.0
+    u.beacon(1, NO_ROUTE, BROADCAST)
+    assert u.c.parent is None and u.c.cost == NO_ROUTE
+    # Entries heard before the loss are not candidates; 2 is heard again but its
+    # cost (45) is not below ours before the loss (30): maybe our descendant.
+    u.beacon(2, 45, 3)
+    assert u.c.parent is None
+    u.advance(10.5)
+    beacons = [f for f in u.sent() if isinstance(f, CtpBeacon)]
+    assert beacons and beacons[-1].pull and beacons[-1].cost == NO_ROUTE  # poison
+    u.now = 11.0
+    u.beacon(4, 25, 0)  # cheaper than what we lost: taken at once
+    assert u.c.parent == 4 and u.c.cost == 35
+    assert [e for e in u.events() if isinstance(e, ParentChanged)] == [
+        ParentChanged(None, 1, 30),
+        ParentChanged(1, None, NO_ROUTE),
+        ParentChanged(None, 4, 35),
+    ]
+
+
+def test_after_holddown_a_costlier_parent_is_accepted() -> None:
+    u = Unit(ctp_holddown=2.0)
+    u.beacon(1, 20, 0)
+    u.now = 10.0
+    u.beacon(1, NO_ROUTE, BROADCAST)
+    u.beacon(2, 60, 3)
+    assert u.c.parent is None
+    u.advance(12.5)
+    assert u.c.parent == 2 and u.c.cost == 70
+
+
+# --------------------------------------------------------------------------- unit: data path
+
+
+def test_submit_without_route_waits_and_queue_is_bounded() -> None:
+    u = Unit(ctp_queue=3)
+    assert all(u.c.submit(rec(i), 0.0) for i in range(3))
+    assert not u.c.submit(rec(3), 0.0)  # full: refused
+    assert not [f for f in u.sent() if isinstance(f, CtpData)]
+    u.beacon(0, 0, BROADCAST)
+    (d,) = [f for f in u.sent() if isinstance(f, CtpData)]
+    assert (d.dst, d.origin, d.seqno, d.thl, d.cost, d.payload) == (0, 5, 1, 0, 10, rec(0))
+    for i in (1, 2):
+        u.result(True)
+        (d,) = [f for f in u.sent() if isinstance(f, CtpData)]
+        assert d.payload == rec(i)
+    u.result(True)
+    assert u.c.queue_length == 0 and u.c.stats.forwarded == 3
+
+
+def test_forwarding_increments_thl_and_suppresses_duplicates() -> None:
+    u = Unit()
+    u.beacon(0, 0, BROADCAST)
+    u.data(7, 7, 1, 0, 20)
+    (d,) = [f for f in u.sent() if isinstance(f, CtpData)]
+    assert (d.origin, d.seqno, d.thl, d.cost) == (7, 1, 1, 10)
+    u.data(7, 7, 1, 0, 20)  # retransmission (our ACK was lost): still in the queue
+    u.result(True)
+    u.data(7, 7, 1, 0, 20)  # and again, after it left
+    assert u.c.stats.duplicates == 2 and not u.sent()
+    u.data(8, 7, 1, 3, 20)  # another copy via another path (THL differs): forwarded
+    assert len([f for f in u.sent() if isinstance(f, CtpData)]) == 1
+
+
+def test_thl_limit_drops() -> None:
+    u = Unit(ctp_max_thl=4)
+    u.beacon(0, 0, BROADCAST)
+    u.data(7, 9, 1, 4, 20)
+    assert DataDropped(9, 1, "thl") in u.events()
+    assert not u.sent()
+
+
+def test_inconsistent_cost_resets_trickle_but_forwards() -> None:
+    u = Unit()
+    u.beacon(0, 30, 1)
+    u.advance(200.0)
+    u.sent()
+    t = u.c.beacon_trickle
+    assert t.interval is not None and t.interval > 8
+    u.data(7, 7, 1, 0, 35)  # cost 35 <= our 40: stale somewhere
+    assert t.interval == u.ctx.config.ctp_tau_l
+    assert u.c.stats.inconsistencies == 1 and u.c.parent == 0
+    assert len([f for f in u.sent() if isinstance(f, CtpData)]) == 1
+
+
+def test_data_from_own_parent_or_own_packet_back_poisons() -> None:
+    u = Unit()
+    u.beacon(1, 20, 0)
+    u.data(1, 9, 1, 2, 30)  # our parent sends us data: a two-node loop
+    assert u.c.parent is None and u.c.stats.loops == 1
+    u.now = 1.0
+    u.beacon(2, 10, 0)
+    assert u.c.parent == 2
+    u.data(3, 5, 77, 4, 30)  # our own packet came back
+    assert u.c.parent is None and u.c.stats.loops == 2
+
+
+def test_eviction_after_consecutive_failures_and_drop_after_retries() -> None:
+    u = Unit(ctp_evict_after_failures=2, ctp_max_retries=3, ctp_retry_delay=0.2)
+    u.beacon(1, 10, 0)
+    u.beacon(2, 30, 0)
+    assert u.c.parent == 1
+    u.now = 1.0
+    u.beacon(2, 30, 0)  # heard again
+    u.c.submit(rec(1), u.now)
+    u.result(False)
+    assert u.c.parent == 1
+    u.advance(1.3)
+    u.result(False)  # second failure in a row: evicted
+    assert 1 not in u.c.neighbours
+    # 2 was heard before the loss: it must speak again (our pull asks it to).
+    assert u.c.parent is None
+    u.now = 1.4
+    u.beacon(2, 30, 0)
+    u.advance(3.5)  # after the hold-down (its cost 30 >= ours before, 20)
+    assert u.c.parent == 2
+    u.result(False)
+    assert DataDropped(5, 1, "retries") in u.events()
+    assert u.c.queue_length == 0
+
+
+def test_root_delivers_once_per_origin_seqno() -> None:
+    u = Unit(0, is_root=True)
+    u.data(7, 9, 1, 2, 20)
+    u.data(8, 9, 1, 4, 30)  # a copy via another path
+    u.data(7, 9, 2, 2, 20)
+    assert [(e.origin, e.thl) for e in u.events() if isinstance(e, Delivered)] == [(9, 3), (9, 3)]
+    assert u.c.stats.duplicates == 1
+
+
+# --------------------------------------------------------------------------- scenarios
+
+
+def test_tree_forms_without_loops_and_delivers_every_record_once() -> None:
+    net, motes, events = build_grid(10, 15.0, {0}, seed=3, period=5.0)
+    net.run_until(80.0)
+    for i, m in motes.items():
+        r = route_of(motes, i)
+        assert r[-1] == 0, f"mote {i}: route {r} does not end at the root"
+        assert len(set(r)) == len(r)
+        assert m.collection.cost < NO_ROUTE
+    delivered = [(e.origin, e.payload) for _, e, t in events if isinstance(e, Delivered)]
+    assert len(delivered) == len(set(delivered))  # no duplicate reached the application
+    assert not [e for _, e, _ in events if isinstance(e, DataDropped)]
+    # Every record submitted up to 3 s before the end reached the root (the
+    # records' epoch counts each mote's submissions, value is the submit time).
+    got = {(o, p.epoch) for o, p in delivered if isinstance(p, DataRecord)}
+    for i, m in motes.items():
+        for k in range(m.submitted):
+            first = m.next_submit - m.submitted * 5.0
+            if first + k * 5.0 < net.now - 3.0:
+                assert (i, k) in got, f"record {k} of mote {i} lost"
+    assert {o for o, _ in delivered} == set(range(1, 100))
+    thl = [e.thl for _, e, _ in events if isinstance(e, Delivered)]
+    assert max(thl) <= 12  # a 10 x 10 grid with ~15-25 m hops: no detours
+
+
+def test_several_roots_split_the_tree() -> None:
+    net, motes, events = build_grid(10, 15.0, {0, 99}, seed=4, period=5.0)
+    net.run_until(60.0)
+    ends = {route_of(motes, i)[-1] for i in motes}
+    assert ends == {0, 99}
+    by_root: dict[int, set[int]] = {0: set(), 99: set()}
+    for node, e, _ in events:
+        if isinstance(e, Delivered):
+            by_root[node].add(e.origin)
+    assert by_root[0] and by_root[99]
+    assert by_root[0] | by_root[99] == set(range(1, 99))
+
+
+REPAIR_BOUND_S = 20.0  # documented in docs/protocol-dissemination.md
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_repair_after_30_percent_of_motes_die(seed: int) -> None:
+    period = 5.0
+    net, motes, events = build_grid(10, 12.0, {0}, seed=seed, period=period)
+    net.run_until(60.0)
+    kill_t = net.now
+    rng = random.Random(seed)
+    dead = set(rng.sample(range(1, 100), 30))
+    for d in dead:
+        net.kill(d)
+    connected = mesh_connected(net, [i for i in motes if i not in dead], 0, min_rssi=-94.0)
+    assert len(connected) > 40  # the scenario keeps a real network
+    net.run_until(kill_t + REPAIR_BOUND_S + period)
+    first: dict[int, float] = {}
+    for _, e, t in events:
+        if isinstance(e, Delivered) and e.payload.value > kill_t:  # type: ignore[union-attr]
+            first.setdefault(e.origin, t - kill_t)
+    late = {i: first.get(i) for i in connected - {0} if first.get(i, 1e9) > REPAIR_BOUND_S}
+    assert not late, f"motes not delivering within {REPAIR_BOUND_S} s of the kill: {late}"
+    for i in connected:
+        assert route_of(motes, i)[-1] == 0
