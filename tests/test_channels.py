@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import random
 from typing import Any
 
 import pytest
+from scenarios import LOSSLESS, Scenario, in_disc
 
 from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE
 from awaremw.protocol.channels import ChannelRefused, Channels, RecordProduced
 from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.dissemination import ItemAdopted
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     ANY_GROUP_TYPE,
@@ -18,15 +21,18 @@ from awaremw.protocol.frames import (
     AggId,
     ChannelDef,
     CommandDef,
+    Condition,
     CtpData,
     DataRecord,
     DripItem,
     Frame,
     GroupReport,
     GroupStatus,
+    GroupTypeDef,
     Handover,
     ItemKind,
     LeaderBeacon,
+    Op,
     Partial,
     Payload,
     decode,
@@ -388,3 +394,116 @@ def test_largest_frames_of_groups_and_channels_fit_the_mtu(preset: str) -> None:
         type(f).__name__ + str(i): len(encode(f, mtu)) for i, f in enumerate(_largest_frames())
     }
     assert max(sizes.values()) <= mtu, sizes
+
+
+# --------------------------------------------------------------------------- scenarios
+
+
+HOT = GroupTypeDef((Condition(T, Op.GT, 50.0),))
+
+
+def test_every_function_equals_ground_truth_per_epoch_on_lossless_links() -> None:
+    inside = in_disc(48, 48, 30)
+
+    def temperature(p: tuple[float, float], t: float) -> float:
+        if not inside(p):
+            return 20.0
+        return 60.0 + p[0] / 10 + p[1] / 7 + (t % 5)  # differs per mote and per epoch
+
+    sc = Scenario(seed=5, preset=LOSSLESS)
+    sc.grid(9, 9, {T: temperature})
+    sc.run_until(1.0)
+    sc.define_group(1, HOT)
+    for cid, agg in enumerate(AggId):
+        sc.define_channel(cid, chan(agg, period_ms=2000))
+    sc.run_until(60.0)
+    members = {n for n in sc.motes if inside(sc.position(n))}
+    assert len(members) >= 20
+    assert set(sc.memberships(1)) == members
+    truth_fns = {
+        AggId.AVG: lambda v: sum(v) / len(v),
+        AggId.MIN: min,
+        AggId.MAX: max,
+        AggId.SUM: sum,
+        AggId.COUNT: len,
+    }
+    recs = [r for _, r in sc.records() if r.epoch >= 10]
+    assert len(recs) == 5 * 20  # epochs 10..29, one record per channel and epoch
+    for r in recs:
+        values = [temperature(sc.position(n), r.epoch * 2.0) for n in members]
+        assert r.count == len(members)
+        # float32 on the wire: relative error ~1e-7 per addition
+        assert r.value == pytest.approx(truth_fns[AggId(r.agg)](values), rel=1e-5), r
+    stats = [m.channels.stats for m in sc.motes.values()]
+    assert sum(s.late_forwarded + s.late_dropped + s.link_dropped for s in stats) == 0
+
+
+def test_under_loss_the_count_says_which_readings_were_included() -> None:
+    """Each member reads a distinct power of two, so a SUM names exactly the readings
+    it includes (exact in float32 below 2**24): its popcount must equal the count."""
+    lossy = dataclasses.replace(PRESETS["cc2420"], shadowing_sigma_db=6.0)
+    spacing = 14.0
+    inside = in_disc(2.5 * spacing, 2.5 * spacing, 2.6 * spacing)
+    index: dict[tuple[float, float], int] = {}
+    for j in range(6):
+        for i in range(6):
+            p = (i * spacing, j * spacing)
+            if inside(p):
+                index[p] = len(index)
+    assert len(index) <= 24
+
+    def power(p: tuple[float, float], t: float) -> float:
+        return float(2 ** index.get(p, 0))
+
+    def hot(p: tuple[float, float], t: float) -> float:
+        return 80.0 if inside(p) else 20.0
+
+    sc = Scenario(seed=7, preset=lossy)
+    sc.grid(6, 6, {T: hot, HUMIDITY: power}, spacing=spacing)
+    sc.run_until(1.0)
+    sc.define_group(1, HOT)
+    sc.define_channel(1, chan(AggId.SUM, period_ms=2000, attr=HUMIDITY))
+    sc.run_until(200.0)
+    recs = [r for _, r in sc.records(since=20.0)]
+    assert len(recs) >= 85
+    for r in recs:
+        assert bin(int(r.value)).count("1") == r.count, r
+        assert r.count <= len(index)
+    assert any(r.count < len(index) for r in recs)  # the links did lose data
+    assert sum(m.channels.stats.link_dropped for m in sc.motes.values()) > 0
+
+
+def test_period_changed_on_line_takes_effect_within_one_dissemination_round() -> None:
+    inside = in_disc(70, 70, 30)
+    sc = Scenario(seed=9)
+    sc.add(0, (0.0, 0.0), is_root=True)  # the gateway's mote, in a corner
+    sc.grid(9, 9, {T: lambda p, t: 80.0 if inside(p) else 20.0}, spacing=12.0, first_id=1)
+    sc.run_until(1.0)
+    sc.define_group(1, HOT, everywhere=False, at=[0])
+    sc.define_channel(1, chan(AggId.COUNT, period_ms=4000), everywhere=False, at=[0])
+    sc.run_until(40.0)
+    before = [r for _, r in sc.records(since=30.0)]
+    assert before and all(r.count == len(sc.memberships(1)) for r in before)
+    change = 40.0
+    sc.define_channel(1, chan(AggId.COUNT, period_ms=1000), everywhere=False, at=[0])
+    sc.run_until(70.0)
+    members = set(sc.memberships(1))
+    got = {
+        n: t
+        for t, n, e in sc.of_type(ItemAdopted, change)
+        if e.kind is ItemKind.CHANNEL and e.version == 2
+    }
+    assert members <= set(got)
+    spread = max(got[n] for n in members)  # one dissemination round reaches the group
+    recs = sc.records(since=change)
+    new = [(t, r) for t, r in recs if r.epoch * 1.0 >= change]
+    # The first record of the new period comes within one new period of the round.
+    assert new[0][0] <= spread + 1.0 + 0.01, (new[0], spread)
+    # From then on one complete record per second.
+    steady = [r for t, r in new if t > spread + 2.0]
+    epochs = [r.epoch for r in steady]
+    assert epochs == list(range(epochs[0], epochs[0] + len(epochs)))
+    assert all(r.count == len(members) for r in steady)
+    # And no record of the old period after the round plus an old period.
+    old = [t for t, r in recs if r.epoch * 4.0 < change + 4.0 and r.epoch < 20]
+    assert all(t <= spread + 4.0 for t in old)
