@@ -218,10 +218,10 @@ def field_snapshots(
     for k, t in enumerate(times):
         ax = fig.add_subplot(rows, cols, k + 1)
         grid = [[world.value(field, x, y, t) for x in xs] for y in ys]
+        lo = world.ambient_temperature if field == "temperature" else None
         ax.imshow(
-            grid, origin="lower", extent=(xs[0], xs[-1], ys[0], ys[-1]), cmap="inferno",
-            alpha=0.55, vmin=world.ambient_temperature if field == "temperature" else None,
-            aspect="equal",
+            grid, origin="lower", extent=(xs[0], xs[-1], ys[0], ys[-1]), cmap="YlOrRd",
+            alpha=0.75, vmin=lo, vmax=None if lo is None else lo + 120.0, aspect="equal",
         )  # fmt: skip
         if threshold is not None:
             ax.contour(xs, ys, grid, levels=[threshold], colors="#ff4444", linewidths=0.8)

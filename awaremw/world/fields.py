@@ -22,6 +22,7 @@ offending key.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import math
@@ -40,18 +41,38 @@ class WorldError(ValueError):
 # --------------------------------------------------------------------------- seeded hashing
 
 
+_M64 = 0xFFFFFFFFFFFFFFFF
+
+
+def _mix(x: int) -> int:
+    """splitmix64 finaliser: a well-mixed 64-bit bijection."""
+    x = (x + 0x9E3779B97F4A7C15) & _M64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _M64
+    return x ^ (x >> 31)
+
+
+@functools.lru_cache(maxsize=4096)
+def _str_u64(s: str) -> int:
+    return int.from_bytes(hashlib.blake2b(s.encode(), digest_size=8).digest(), "little")
+
+
 def hash_u64(*parts: int | float | str) -> int:
-    """A stable 64-bit hash of ``parts`` (same value in every process and run)."""
-    h = hashlib.blake2b(digest_size=8)
+    """A stable 64-bit hash of ``parts`` (same value in every process and run).
+
+    Integers are mixed directly, floats by their IEEE bits, strings by a cached
+    BLAKE2b digest; each part goes through a splitmix64 round.
+    """
+    h = 0x243F6A8885A308D3
     for p in parts:
         if isinstance(p, str):
-            b = p.encode()
-            h.update(b"s" + struct.pack("<I", len(b)) + b)
+            v = _str_u64(p)
         elif isinstance(p, float):
-            h.update(b"f" + struct.pack("<d", p))
+            v = struct.unpack("<Q", struct.pack("<d", p))[0] ^ 0x5851F42D4C957F2D
         else:
-            h.update(b"i" + struct.pack("<q", p))
-    return int.from_bytes(h.digest(), "little")
+            v = p & _M64
+        h = _mix(h ^ v)
+    return h
 
 
 def uniform_hash(*parts: int | float | str) -> float:
@@ -153,24 +174,28 @@ class Source:
         )
 
     def profile(self, x: float, y: float, t: float) -> float:
-        """0..1 shape at (x, y) times 1; multiply by the state's peak for the value."""
+        """0..1 shape at (x, y): 1 in the core, Gaussian falloff outside it."""
         s = self.state(t)
-        if s is None:
-            return 0.0
+        return 0.0 if s is None else self._shape(s, x, y)
+
+    def value(self, x: float, y: float, t: float) -> float:
+        s = self.state(t)
+        return 0.0 if s is None else s.peak * self._shape(s, x, y)
+
+    def _shape(self, s: SourceState, x: float, y: float) -> float:
         d = math.hypot(x - s.x, y - s.y) - s.radius
         if d <= 0:
             return 1.0
         z = d / self.edge
         return 0.0 if z > 8.0 else math.exp(-0.5 * z * z)
 
-    def value(self, x: float, y: float, t: float) -> float:
-        s = self.state(t)
-        if s is None:
-            return 0.0
-        return s.peak * self.profile(x, y, t)
-
 
 # --------------------------------------------------------------------------- world
+
+
+@functools.lru_cache(maxsize=65536)
+def _lattice(seed: int, i: int, j: int) -> float:
+    return 2.0 * uniform_hash(seed, "texture", i, j) - 1.0
 
 
 def _magnus_psat(t_c: float) -> float:
@@ -260,7 +285,7 @@ class World:
         fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
 
         def lat(i: int, j: int) -> float:
-            return 2.0 * uniform_hash(self.seed, "texture", i, j) - 1.0
+            return _lattice(self.seed, i, j)
 
         top = lat(ix, iy) * (1 - fx) + lat(ix + 1, iy) * fx
         bot = lat(ix, iy + 1) * (1 - fx) + lat(ix + 1, iy + 1) * fx

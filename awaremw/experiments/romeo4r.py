@@ -1,0 +1,132 @@
+"""Section V of the paper: a group tracks the Romeo 4R robot.
+
+Runs ``nodes/romeo4r.toml`` (virtual clock, or the real-time fleet over Zenoh
+with the gateway and an MQTT subscriber), then scores the tracking group
+against the ground truth and draws the paper's figures:
+
+* ``romeo4r_snapshots.png`` -- the group following the robot (Fig. 8);
+* ``romeo4r_rssi.png`` -- RSSI of the robot's beacons at motes 1, 4 and 17
+  against the membership threshold (Fig. 9);
+* ``romeo4r_membership.png`` -- group size against the true member count;
+* ``metrics.json`` -- the figures of docs/experiments.md.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from awaremw.experiments import metrics as M
+from awaremw.experiments import plots
+from awaremw.experiments.scenario import Scenario
+from awaremw.experiments.virtual import RunResult
+from awaremw.nodes import config_for
+from awaremw.protocol.attributes import is_rssi
+from awaremw.protocol.frames import Op
+
+SAMPLE_DT = 0.5  # s between scored instants
+
+
+def settle_time(sc: Scenario) -> float:
+    """One leader-beacon period of the sensing motes: the lag the scoring allows."""
+    spec = sc.deployment.node(sc.sensors[0])
+    return config_for(spec, sc.deployment).beacon_period
+
+
+def threshold_of(sc: Scenario) -> tuple[float, float]:
+    """(threshold, hysteresis) of the tracking group's RSSI condition."""
+    defn = sc.group_def()
+    for c in defn.conditions:
+        if is_rssi(c.attr) and c.op in (Op.GT, Op.GE):
+            return c.value, defn.hysteresis
+    raise ValueError(f"{sc.name}: the tracking group has no 'rssi:<robot> >' condition")
+
+
+def analyse(result: RunResult, out: Path) -> dict[str, Any]:
+    """Metrics and figures of a finished run; writes them into ``out``."""
+    sc = result.scenario
+    rec = result.recorder
+    truth = sc.truth()
+    gtype = sc.tracking_group
+    defn = sc.group_def()
+    sensors = sc.sensors
+    robot = sc.robot
+    if robot is None:
+        raise ValueError(f"{sc.name}: no robot in the deployment")
+    settle = settle_time(sc)
+    end = result.duration - settle
+
+    # The pass: while the ground truth has members (the robot is sensed).
+    grid = M.instants(sc.define_at, end, SAMPLE_DT)
+    sensed = [t for t in grid if truth.members(defn, t, sensors)]
+    t0, t1 = (sensed[0], sensed[-1]) if sensed else (sc.define_at, end)
+    series = M.membership_series(rec, truth, defn, gtype, M.instants(t0, t1, SAMPLE_DT), settle,
+                                 sensors)  # fmt: skip
+    s = M.score(series)
+    ids = rec.group_ids(gtype, t0, t1 + settle)
+    first = M.first_arrival(rec, t0, channel=sc.channel, gtype=gtype)
+    traffic = M.traffic(result.traffic, sensors)
+    produced_in_run = len(rec.produced)
+    out.mkdir(parents=True, exist_ok=True)
+    metrics: dict[str, Any] = {
+        "scenario": sc.name,
+        "mode": result.mode,
+        "speed": result.speed,
+        "duration_s": result.duration,
+        "settle_s": settle,
+        "pass_s": [t0, t1],
+        "membership_precision": s.precision,
+        "membership_recall": s.recall,
+        "membership_f1": s.f1,
+        "membership_instants": s.instants,
+        "membership_tp_fp_fn": [s.tp, s.fp, s.fn],
+        "distinct_group_ids": len(ids),
+        "group_ids": sorted(ids),
+        "handovers": M.handover_count(rec, gtype, t0, t1 + settle),
+        "elections": len([e for e in rec.elections if e.group_type == gtype]),
+        "robot_entry_s": t0,
+        "first_record_s": None if first is None else first.t - t0,
+        "first_record_via": None if first is None else first.via,
+        "delivery_ratio": M.delivery_ratio(rec, result.duration - 5.0),
+        "records_produced": produced_in_run,
+        "records_delivered": len(rec.arrivals),
+        "frames_per_mote": traffic.frames_tx,
+        "frames_rx_per_mote": traffic.frames_rx,
+        "energy_mj_per_mote": traffic.energy_mj,
+        "motes_scored": len(sensors),
+    }
+    _figures(sc, rec, truth, series, out, settle)
+    return M.rounded(metrics)
+
+
+def _figures(
+    sc: Scenario,
+    rec: M.Recorder,
+    truth: Any,
+    series: list[M.Instant],
+    out: Path,
+    settle: float,
+) -> None:
+    gtype = sc.tracking_group
+    defn = sc.group_def()
+    robot = sc.robot
+    assert robot is not None
+    snaps = [float(t) for t in sc.get("snapshots_s", [])] or [
+        t0 for t0 in M.instants(series[0].t, series[-1].t, (series[-1].t - series[0].t) / 5)
+    ]
+    plots.tracking_snapshots(
+        out / "romeo4r_snapshots.png", rec, truth, gtype, defn, snaps, sc.sensors, robot,
+        sc.field, settle=0.0,
+        title="Group tracking Romeo 4R (colour: group id; star: leader; ring: true member)",
+    )  # fmt: skip
+    thr, hyst = threshold_of(sc)
+    motes = [int(m) for m in sc.get("rssi_motes", [])]
+    if motes:
+        plots.rssi_traces(
+            out / "romeo4r_rssi.png", rec, truth, robot, motes, thr, hyst, gtype,
+            max(0.0, series[0].t - 10), min(series[-1].t + 15, sc.duration),
+        )  # fmt: skip
+    plots.membership_sizes(
+        out / "romeo4r_membership.png", series,
+        title=f"Tracking group size vs truth (members compared {settle:g} s later)",
+    )  # fmt: skip
