@@ -411,7 +411,7 @@ class VirtualNetwork:
         self._schedule_attempt(node, len(tx.frame), seq, 0)
 
     def _schedule_attempt(self, node: _Node, n: int, seq: int, attempt: int) -> None:
-        h = packet_hash(node.backoff_h, packet_key(seq, attempt))
+        h = packet_hash(node.backoff_h, (seq << 8) | (attempt << 1))  # packet_key(seq, attempt)
         t = (
             self._now
             + (h & 0xFFFFFFFF) * _U32 * self._backoff_max
@@ -437,9 +437,10 @@ class VirtualNetwork:
         if tx.dest == BROADCAST:
             s.busy = False
             s.cur = None
-            self._broadcast(s, frame, n, packet_key(seq, 0))
-            self._check_battery(s)
-            if s.alive and not s.busy:
+            self._broadcast(s, frame, n, seq << 8)  # packet_key(seq, 0)
+            if s.battery is not None:
+                self._check_battery(s)
+            if s.queue and s.alive and not s.busy:
                 self._start_next(s)
         else:
             self._unicast(s, tx, frame, n, seq, s.cur_attempt)
