@@ -160,6 +160,7 @@ class VirtualNetwork:
         self._seq = 0
         self._nodes: dict[int, _Node] = {}
         self._counters: dict[int, MoteCounters] = {}
+        self._cores: dict[int, MoteCore] = {}
         self._grid: dict[tuple[int, int], list[_Node]] = {}
         self._moving: list[_Node] = []
         p = self.preset
@@ -180,7 +181,8 @@ class VirtualNetwork:
 
     @property
     def cores(self) -> dict[int, MoteCore]:
-        return {i: n.core for i, n in self._nodes.items()}
+        """Every mote's current core by id (the driver's own dict: do not mutate)."""
+        return self._cores
 
     @property
     def counters(self) -> dict[int, MoteCounters]:
@@ -220,6 +222,7 @@ class VirtualNetwork:
         node = _Node(core, counters, mobility, txp, self.model.max_range_m(txp), battery)
         node.backoff_h = self.model.backoff_link_hash(nid)
         self._nodes[nid] = node
+        self._cores[nid] = core
         self._push(t, _START, node, None)
 
     def kill(self, node_id: int, reason: str = "killed") -> None:
