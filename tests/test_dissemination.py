@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 import random
 from collections.abc import Callable
 
 import pytest
 
+from awaremw.bench.dissemination import TrafficMote, build_grid, inject_at
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.dissemination import (
     Dissemination,
@@ -31,6 +33,7 @@ from awaremw.protocol.frames import (
     decode,
 )
 from awaremw.protocol.mote import MoteContext
+from awaremw.world.mobility import Static
 
 CH = ItemKind.CHANNEL
 GT = ItemKind.GROUP_TYPE
@@ -332,3 +335,85 @@ def test_boot_summary_makes_an_ahead_neighbour_speak_up() -> None:
     net.run_until(3004.0)
     assert two.items[(CH, 1)] == (2, CHAN2)
     assert net.nodes[3][0].items[(CH, 1)] == (2, CHAN2)
+
+
+# --------------------------------------------------------------------------- virtual network
+
+
+SHORT: dict[str, object] = {"drip_tau_h": 120.0}
+
+
+def adopted_by(
+    events: list[tuple[int, object, float]], kind: ItemKind, item_id: int
+) -> dict[int, tuple[int, bool, float]]:
+    """node -> (version, deleted, t) of the last ItemAdopted for the key."""
+    out: dict[int, tuple[int, bool, float]] = {}
+    for node, e, t in events:
+        if isinstance(e, ItemAdopted) and (e.kind, e.item_id) == (kind, item_id):
+            out[node] = (e.version, e.deleted, t)
+    return out
+
+
+def test_gateway_item_reaches_every_mote_and_deletion_follows() -> None:
+    net, motes, events = build_grid(10, 15.0, {0}, seed=7)
+    net.run_until(20.0)
+    inject_at(net, motes[0], 20.0, CH, 1, 1, CHAN)
+    inject_at(net, motes[0], 20.0, GT, 2, 1, HOT)
+    net.run_until(45.0)
+    for i, m in motes.items():
+        assert m.dissemination.items[(CH, 1)] == (1, CHAN), i
+        assert m.dissemination.items[(GT, 2)] == (1, HOT), i
+    got = adopted_by(events, CH, 1)
+    assert max(t for _, _, t in got.values()) - 20.0 < 20.0  # 18-hop diagonal
+    inject_at(net, motes[0], 60.0, CH, 1, 2, None)
+    net.run_until(85.0)
+    for i, m in motes.items():
+        assert m.dissemination.items[(CH, 1)] == (2, None), i
+    assert all(d for _, d, _ in adopted_by(events, CH, 1).values())
+
+
+def test_one_survivor_brings_new_motes_up_to_date_without_gateway() -> None:
+    # tau_h = 120 s keeps the test short; catching up must take seconds, not tau_h.
+    net, motes, _events = build_grid(6, 12.0, {0}, seed=8, overrides=SHORT)
+    net.run_until(5.0)
+    inject_at(net, motes[0], 5.0, CH, 1, 1, CHAN)
+    inject_at(net, motes[0], 5.0, CH, 2, 1, CHAN2)
+    inject_at(net, motes[0], 5.0, GT, 1, 1, HOT)
+    inject_at(net, motes[0], 30.0, CH, 2, 2, None)  # a deletion too
+    net.run_until(600.0)  # every Trickle at tau_h
+    survivor = 14
+    for i in motes:
+        if i != survivor:
+            net.kill(i)
+    want = dict(motes[survivor].dissemination.items)
+    assert want[(CH, 2)] == (2, None) and len(want) == 3
+    sx, sy = net.position(survivor)
+    t0 = net.now
+    new = []
+    for k in range(8):
+        m = TrafficMote(100 + k, MiddlewareConfig().with_overrides(SHORT), seed=8)
+        net.add(m, Static(sx + 10.0 * math.cos(k), sy + 10.0 * math.sin(k)))
+        new.append(m)
+    net.run_until(t0 + 5.0)
+    for m in new:
+        assert dict(m.dissemination.items) == want, m.node_id
+    # The components of the newcomers saw the live items (not the tombstone).
+    assert all(m.dissemination.version_of(CH, 1) == 1 for m in new)
+
+
+def test_mote_that_was_off_catches_up_from_its_neighbours() -> None:
+    net, motes, _events = build_grid(6, 12.0, {0}, seed=9, overrides=SHORT)
+    net.run_until(5.0)
+    inject_at(net, motes[0], 5.0, CH, 1, 1, CHAN)
+    net.run_until(300.0)
+    off = 33  # far corner from the gateway
+    net.kill(off)
+    inject_at(net, motes[0], 301.0, CH, 1, 2, CHAN2)
+    inject_at(net, motes[0], 301.0, GT, 1, 1, HOT)
+    net.run_until(900.0)  # everybody else up to date, Trickles at tau_h
+    back = TrafficMote(off, MiddlewareConfig().with_overrides(SHORT), seed=99)  # its memory is gone
+    net.add(back, Static(*net.position(off)))
+    t0 = net.now
+    net.run_until(t0 + 5.0)
+    assert back.dissemination.items[(CH, 1)] == (2, CHAN2)
+    assert back.dissemination.items[(GT, 1)] == (1, HOT)
