@@ -3,8 +3,8 @@
 Builds motes on engineer A's :class:`~awaremw.runtime.virtual.VirtualNetwork`
 with a scripted application whose attributes are functions of ``(position,
 t)`` (so regions can move across a static grid, or motes across a region),
-records every event, defines items the way the gateway would (as DripItem
-frames on the air) and checks the group invariants against ground truth.
+records every event, injects definitions the way a gateway does and checks
+the group invariants against ground truth.
 
 ``LOSSLESS`` is the CC2420 preset without shadowing and fading: every link up
 to ``LOSSLESS_RANGE`` metres delivers every frame, nothing beyond does. On a
@@ -23,16 +23,7 @@ from typing import Any
 from awaremw.protocol.attributes import X, Y
 from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.frames import (
-    BROADCAST,
-    ChannelDef,
-    CommandDef,
-    DripItem,
-    GroupTypeDef,
-    ItemBody,
-    ItemKind,
-    encode,
-)
+from awaremw.protocol.frames import ChannelDef, CommandDef, GroupTypeDef, ItemBody, ItemKind
 from awaremw.protocol.groups import Membership
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import PRESETS, RadioModel, RadioPreset
@@ -168,18 +159,19 @@ class Scenario:
         everywhere: bool = True,
         at: Iterable[int] | None = None,
     ) -> int:
-        """Put a new version of an item on the air as DripItem broadcasts.
+        """Inject a new version of an item, as a gateway does.
 
-        ``everywhere``: from every live mote at once (every mote hears it from a
-        neighbour within milliseconds), else only from the motes ``at`` (a
-        gateway's injection, spread by dissemination). Returns the version.
+        ``everywhere``: at every live mote at once (the definition is known
+        network-wide at this instant), else only at the motes ``at`` (a
+        gateway's mote; dissemination spreads it). Returns the version.
         """
         v = self._versions.get((kind, item_id), 0) + 1
         self._versions[(kind, item_id)] = v
         srcs = self.alive() if everywhere else list(at or [])
+        now = self.net.now
         for s in srcs:
-            frame = DripItem(s, BROADCAST, kind, item_id, v, item)
-            self.net.inject(s, encode(frame, self.config.mtu))
+            mote = self.motes[s]
+            self.net.call(s, lambda m=mote: m.inject(kind, item_id, v, item, now))
         return v
 
     def define_group(self, gtype: int, defn: GroupTypeDef | None, **kw: Any) -> int:

@@ -18,7 +18,7 @@ from scenarios import Point, Scenario, in_disc, indicator, moving_disc
 
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.frames import ANY_GROUP_ID, AggId, ChannelDef, Condition, GroupTypeDef, Op
-from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected
+from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected, Role
 
 HOT = GroupTypeDef((Condition(TEMPERATURE, Op.GT, 50.0),))
 Region = Callable[[Point, float], bool]
@@ -124,7 +124,9 @@ def test_region_moving_across_the_grid_keeps_its_id_and_members_follow() -> None
         always = set.intersection(*window)
         ever = set.union(*window)
         assert always <= members <= ever, (t, sorted(always - members), sorted(members - ever))
-        assert len(sc.leaders(1)) == 1, (t, sc.leaders(1))
+        handing = [n for n in sc.alive() if sc.motes[n].groups.role(1) is Role.HANDING_OVER]
+        # One leader, or for a few ms one Handover in flight and none yet.
+        assert len(sc.leaders(1)) == 1 or (not sc.leaders(1) and len(handing) == 1), t
     assert len(ids) == 1  # one id from start to end: handover, never re-creation
     causes = [e.cause for _, _, e in sc.of_type(LeaderElected)]
     assert causes.count(ElectionCause.HANDOVER) >= 5
