@@ -80,6 +80,7 @@ class MqttSettings:
     session_expiry_s: int = 86_400
     persistent_session: bool = True
     drain_timeout_s: float = 2.0  # on stop, how long to try to deliver the backlog
+    max_inflight: int = 16  # stream messages awaiting their PUBACK at once
 
     @classmethod
     def from_url(cls, url: str, **overrides: object) -> MqttSettings:
@@ -368,33 +369,80 @@ class MqttBridge:
                     n,
                     self.settings.buffer_size,
                 )
-            await client.publish(
-                self.settings.topic(STATS_TOPIC), self.stats_json(), qos=0, retain=True
+            await _publish(
+                client, self.settings.topic(STATS_TOPIC), self.stats_json(), qos=0, retain=True
             )
 
     async def _flush(self, client: aiomqtt.Client) -> None:
-        """Publish dirty retained topics, then the FIFO in order, until both are empty."""
-        while self._dirty or self._fifo:
-            if self._dirty:
-                topic = next(iter(self._dirty))
-                payload = self._dirty.pop(topic)
-                try:
-                    await client.publish(topic, payload, qos=1, retain=True)
-                except BaseException:
-                    self._dirty.setdefault(topic, payload)  # unless a newer value arrived
-                    raise
+        """Publish dirty retained topics, then the FIFO in order, until both are empty.
+
+        Up to ``max_inflight`` stream messages are in flight at once (paho sends
+        them in order on the one connection); a message leaves the buffer when
+        the broker acknowledged it and every older one. If the connection
+        breaks, the unacknowledged ones go back to the head of the buffer, in
+        order, to be sent first on the next connection.
+        """
+        inflight: deque[tuple[_Item, asyncio.Task[None]]] = deque()
+        try:
+            while self._dirty or self._fifo or inflight:
+                if self._dirty and not inflight:
+                    topic = next(iter(self._dirty))
+                    payload = self._dirty.pop(topic)
+                    try:
+                        await _publish(client, topic, payload, qos=1, retain=True)
+                    except BaseException:
+                        self._dirty.setdefault(topic, payload)  # unless a newer value arrived
+                        raise
+                    continue
+                while self._fifo and len(inflight) < self.settings.max_inflight:
+                    item = self._fifo.popleft()
+                    task = asyncio.ensure_future(
+                        client.publish(item.topic, item.payload, qos=item.qos)
+                    )
+                    inflight.append((item, task))
+                if inflight:
+                    await _settled(inflight[0][1])
+                    inflight.popleft()
+                    self.stats.published += 1
+        finally:
+            self._requeue(inflight)
+
+    def _requeue(self, inflight: deque[tuple[_Item, asyncio.Task[None]]]) -> None:
+        for item, task in reversed(inflight):
+            if task.done() and not task.cancelled() and task.exception() is None:
+                self.stats.published += 1  # acknowledged: delivered, never again
                 continue
-            item = self._fifo.popleft()
-            try:
-                await client.publish(item.topic, item.payload, qos=item.qos)
-            except aiomqtt.MqttCodeError:
-                self._fifo.appendleft(item)  # refused locally (not connected): never sent
-                raise
-            except BaseException:
-                # Unacknowledged: send it again first on the next connection. The
-                # broker may have got it before the break; that is the one
-                # possible duplicate, counted.
-                self._fifo.appendleft(item)
+            never_sent = (
+                task.done()
+                and not task.cancelled()
+                and isinstance(task.exception(), aiomqtt.MqttCodeError)  # refused locally
+            )
+            task.cancel()
+            self._fifo.appendleft(item)
+            if not never_sent:
+                # The broker may have had it before the break: the only case in
+                # which a message can arrive twice. Counted.
                 self.stats.resent += 1
-                raise
-            self.stats.published += 1
+
+
+async def _settled(task: asyncio.Task[None]) -> None:
+    """Wait for ``task`` and return or raise its outcome.
+
+    Unlike ``await task``, cancelling the waiter always raises here: Python
+    3.11's ``asyncio.wait_for`` (inside aiomqtt's publish) swallows a
+    cancellation that races with the completion of what it waits for, which
+    would leave a cancelled sender running on a dead connection.
+    """
+    await asyncio.wait({task})
+    task.result()
+
+
+async def _publish(
+    client: aiomqtt.Client, topic: str, payload: bytes, *, qos: int, retain: bool = False
+) -> None:
+    task = asyncio.ensure_future(client.publish(topic, payload, qos=qos, retain=retain))
+    try:
+        await _settled(task)
+    except asyncio.CancelledError:
+        task.cancel()
+        raise

@@ -1,0 +1,192 @@
+"""``awaremw bench bridge``: latency and throughput from the sensor network to MQTT.
+
+Two measurements, one JSON object (``--json``):
+
+* **end to end** (unless ``--no-fleet``): a real fleet (``--deployment``,
+  default ``grid_small``) and the gateway in this process, a broker
+  (``--mqtt URL``, default: the embedded amqtt broker), an MQTT subscriber on
+  ``aware/data/#``. A group type that every mote joins and one channel with
+  period ``--period`` are defined over MQTT; for ``--duration`` emulated
+  seconds each record's *latency* is the time from the leader's sample (the
+  start of the record's epoch on the shared clock: TAG-style epochs sample at
+  the epoch start) to its arrival at the subscriber, and its *delivery time*
+  the time from the leader's :class:`RecordProduced` event (final aggregate
+  ready) to the arrival. The latency therefore includes the TAG slot schedule
+  of the epoch (the leader finalises in its slot, up to one period after the
+  sample), the collection tree and the bridge; the delivery time only the
+  collection tree, gateway and broker.
+* **bridge throughput**: ``--records`` synthetic records handed to the
+  gateway as fast as it takes them; sustained records/s until the subscriber
+  has every one of them.
+
+Keys: ``latency_p50_ms``, ``latency_p99_ms`` (sample at the leader -> MQTT
+subscriber), ``delivery_p50_ms``, ``delivery_p99_ms`` (leader's record ->
+subscriber), ``latency_records`` (records measured end to end),
+``records_per_s`` (bridge throughput), ``throughput_records``,
+``broker`` (``embedded`` or the URL without password), ``mqtt_protocol``,
+``deployment``, ``period_s``, ``speed``. Latency keys are ``null`` with
+``--no-fleet``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import statistics
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from typing import Any
+
+import aiomqtt
+
+from awaremw.gateway.bridge import Inject
+from awaremw.gateway.broker import EmbeddedBroker
+from awaremw.gateway.mqtt import MqttSettings
+from awaremw.gateway.service import GatewayService, GatewaySettings
+from awaremw.protocol.frames import DataRecord
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mqtt", default=None, metavar="URL", help="broker (default: embedded)")
+    p.add_argument(
+        "--sub-mqtt",
+        default=None,
+        metavar="URL",
+        help="the subscriber's URL if its account differs (default: --mqtt)",
+    )
+    p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
+    p.add_argument("--records", type=int, default=5000, help="records for the throughput run")
+    p.add_argument("--deployment", default="grid_small", help="fleet for the end-to-end run")
+    p.add_argument("--duration", type=float, default=40.0, help="emulated seconds end to end")
+    p.add_argument("--period", type=float, default=1.0, help="channel period, s")
+    p.add_argument("--speed", type=float, default=1.0, help="emulation speed factor")
+    p.add_argument("--no-fleet", action="store_true", help="only the throughput run")
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    return asyncio.run(_main(args))
+
+
+def percentile(xs: list[float], q: float) -> float | None:
+    if not xs:
+        return None
+    if len(xs) == 1:
+        return xs[0]
+    return statistics.quantiles(xs, n=100, method="inclusive")[max(0, min(98, round(q) - 1))]
+
+
+@contextlib.asynccontextmanager
+async def broker_url(url: str | None) -> AsyncIterator[str]:
+    if url:
+        yield url
+        return
+    async with EmbeddedBroker() as b:
+        yield b.url
+
+
+@dataclass
+class _Arrivals:
+    times: dict[str, float]
+    event: asyncio.Event
+
+
+async def _subscriber(url: str, topic: str, ready: asyncio.Event, out: _Arrivals) -> None:
+    s = MqttSettings.from_url(url)
+    async with aiomqtt.Client(
+        s.host,
+        s.port,
+        username=s.username,
+        password=s.password,
+        protocol=aiomqtt.ProtocolVersion.V311,
+    ) as c:
+        await c.subscribe(topic, qos=1)
+        ready.set()
+        async for m in c.messages:
+            now = time.perf_counter()
+            payload = m.payload if isinstance(m.payload, bytes) else b""
+            with contextlib.suppress(ValueError):
+                doc = json.loads(payload)
+                key = f"{m.topic.value}/{doc['epoch']}"
+                out.times.setdefault(key, now)
+                out.event.set()
+
+
+async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[float, str]:
+    svc = GatewayService(
+        [0],
+        settings=GatewaySettings(prefix=prefix),
+        mqtt=MqttSettings.from_url(url, client_id="awaremw-bench-gw", persistent_session=False),
+    )
+
+    def inject(node: int, inj: Inject) -> None:
+        pass
+
+    svc.bind(inject, lambda: 0.0)
+    arrivals = _Arrivals({}, asyncio.Event())
+    ready = asyncio.Event()
+    sub = asyncio.create_task(_subscriber(sub_url, f"{prefix}/data/#", ready, arrivals))
+    try:
+        await asyncio.wait_for(ready.wait(), 10)
+        async with svc:
+            assert svc.mqtt is not None
+            await asyncio.wait_for(svc.mqtt.connected.wait(), 10)
+            t0 = time.perf_counter()
+            for i in range(n):
+                rec = DataRecord(1, 1, 1 + i % 16, i, 0, float(i), 1, 1)
+                svc.on_event(0, _Delivered(rec, float(i)), float(i))
+                if i % 200 == 199:
+                    await asyncio.sleep(0)  # let the sender and subscriber run
+            while len(arrivals.times) < n:
+                arrivals.event.clear()
+                await asyncio.wait_for(arrivals.event.wait(), 30)
+            elapsed = time.perf_counter() - t0
+            return n / elapsed, svc.mqtt.stats.protocol
+    finally:
+        sub.cancel()
+        with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+            await sub
+
+
+@dataclass(frozen=True)
+class _Delivered:
+    payload: DataRecord
+    t: float
+
+
+async def _main(args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "latency_p50_ms": None,
+        "latency_p99_ms": None,
+        "delivery_p50_ms": None,
+        "delivery_p99_ms": None,
+        "latency_records": 0,
+        "deployment": None if args.no_fleet else args.deployment,
+        "period_s": args.period,
+        "speed": args.speed,
+    }
+    async with broker_url(args.mqtt) as url:
+        out["broker"] = "embedded" if args.mqtt is None else MqttSettings.from_url(url).url
+        if not args.no_fleet:
+            from awaremw.bench._bridge_e2e import end_to_end
+
+            lat, dlv = await end_to_end(
+                url, args.deployment, args.duration, args.period, args.speed
+            )
+            out["latency_records"] = len(lat)
+            out["latency_p50_ms"] = _ms(percentile(lat, 50))
+            out["latency_p99_ms"] = _ms(percentile(lat, 99))
+            out["delivery_p50_ms"] = _ms(percentile(dlv, 50))
+            out["delivery_p99_ms"] = _ms(percentile(dlv, 99))
+        sub_url = args.sub_mqtt or url
+        rate, proto = await _throughput(url, sub_url, args.prefix, args.records)
+        out["records_per_s"] = round(rate, 1)
+        out["throughput_records"] = args.records
+        out["mqtt_protocol"] = proto
+    return out
+
+
+def _ms(x: float | None) -> float | None:
+    return None if x is None else round(x * 1000.0, 2)
