@@ -136,7 +136,8 @@ class _Node:
         self.last_useq: dict[int, int] = {}  # src -> last unicast link seq (duplicates)
         # Static sender caches (see the module docstring).
         self.lists_ok = False
-        self.near: list[tuple[_Node, float, int]] = []
+        # (receiver, its counters, its core, mean RSSI, fading link hash)
+        self.near: list[tuple[_Node, MoteCounters, MoteCore, float, int]] = []
         self.far_loss: list[_Node] = []
         self.far_dist: list[_Node] = []
         self.pending = 0
@@ -466,23 +467,27 @@ class VirtualNetwork:
             mask = _M64
             mul = _MUL
             shift = _SHIFT
-            for r, mean, lh in s.near:
-                # Inlined RadioModel.decide(lh, mean, bits, key): the hot path.
+            for r, rc, core, mean, lh in s.near:
+                # Inlined RadioModel.decide(lh, mean, bits, key), the hot path.
+                # packet_hash is z ^ (z >> 31): its top 12 bits (the normal
+                # deviate) are z's, so the xorshift is only needed for the
+                # uniform draw, inside the PRR's transitional band.
                 z = ((lh ^ kg) * mul) & mask
-                z ^= z >> 31
                 rssi = mean - sf * normal[z >> shift]
-                if rssi < sens or (
-                    rssi - noise < one and (z & 0xFFFFFFFF) * _U32 >= prr_bits(rssi, bits)
-                ):
+                if rssi < sens:
                     if r.alive:
-                        r.counters.dropped_loss += 1
+                        rc.dropped_loss += 1
                     continue
+                if rssi - noise < one:
+                    z ^= z >> 31
+                    if (z & 0xFFFFFFFF) * _U32 >= prr_bits(rssi, bits):
+                        if r.alive:
+                            rc.dropped_loss += 1
+                        continue
                 if not r.alive:
                     continue
-                rc = r.counters
                 rc.frames_rx += 1
                 rc.bytes_rx += n
-                core = r.core
                 core.receive(frame, rssi, now)
                 # Inlined _after(r): usually nothing to send, no event, same deadline.
                 txs = core.drain()
@@ -680,7 +685,7 @@ class VirtualNetwork:
 
     def _build_lists(self, s: _Node) -> None:
         m = self.model
-        near: list[tuple[_Node, float, int]] = []
+        near: list[tuple[_Node, MoteCounters, MoteCore, float, int]] = []
         far_loss: list[_Node] = []
         far_dist: list[_Node] = []
         for lst in self._cells_around(s.cell):
@@ -695,7 +700,7 @@ class VirtualNetwork:
                 if m.never_delivers(mean):
                     far_loss.append(r)
                 else:
-                    near.append((r, mean, m.fading_link_hash(s.id, r.id)))
+                    near.append((r, r.counters, r.core, mean, m.fading_link_hash(s.id, r.id)))
         if s.pending:
             self._flush(s)
         s.near, s.far_loss, s.far_dist = near, far_loss, far_dist
