@@ -274,11 +274,12 @@ def _number(v: object, what: str) -> float:
     return float(v)
 
 
-def _integer(v: object, what: str) -> int:
+def _integer(v: object, what: str, *, or_any: bool = False) -> int:
     if isinstance(v, float) and v.is_integer():
         v = int(v)
     if isinstance(v, bool) or not isinstance(v, int):
-        raise WrongType(f"{what} must be an integer, got {_type_name(v)}")
+        kind = 'an integer or "*"' if or_any else "an integer"
+        raise WrongType(f"{what} must be {kind}, got {_type_name(v)}")
     return v
 
 
@@ -403,14 +404,14 @@ def parse_channel(
     if gt_doc == ANY:
         gtype = ANY_GROUP_TYPE
     else:
-        gtype = _integer(gt_doc, 'group_type (an integer or "*")')
+        gtype = _integer(gt_doc, "group_type", or_any=True)
         if not 0 <= gtype <= limits.max_group_type:
             raise GroupTypeOutOfRange(f"group_type {gtype} out of range 0..{limits.max_group_type}")
     gid_doc = obj.get("group_id", ANY)
     if gid_doc == ANY:
         gid = ANY_GROUP_ID
     else:
-        gid = _integer(gid_doc, 'group_id (an integer or "*")')
+        gid = _integer(gid_doc, "group_id", or_any=True)
         if not 1 <= gid < ANY_GROUP_ID:
             raise GroupIdOutOfRange(f"group_id {gid} out of range 1..{ANY_GROUP_ID - 1}")
     period = _number(obj["period_s"], "period_s")
@@ -492,7 +493,9 @@ def _parse_target(
     if isinstance(target, dict) and set(target) == {"group_type", "group_id"}:
         gt = _integer(target["group_type"], "target.group_type")
         any_id = target["group_id"] == ANY
-        gid = ANY_GROUP_ID if any_id else _integer(target["group_id"], 'target.group_id (or "*")')
+        gid = (
+            ANY_GROUP_ID if any_id else _integer(target["group_id"], "target.group_id", or_any=True)
+        )
         if not 0 <= gt <= limits.max_group_type:
             raise UnknownTarget(f"target group_type {gt} out of range 0..{limits.max_group_type}")
         if not any_id and not 1 <= gid < ANY_GROUP_ID:
