@@ -435,7 +435,10 @@ def test_every_function_equals_ground_truth_per_epoch_on_lossless_links() -> Non
         # float32 on the wire: relative error ~1e-7 per addition
         assert r.value == pytest.approx(truth_fns[AggId(r.agg)](values), rel=1e-5), r
     stats = [m.channels.stats for m in sc.motes.values()]
-    assert sum(s.late_forwarded + s.late_dropped + s.link_dropped for s in stats) == 0
+    # Nothing lost (a partial late for its parent, after a beacon changed the tree
+    # mid-epoch, is forwarded on its own and still makes the leader's deadline).
+    assert sum(s.late_dropped + s.link_dropped + s.orphan_dropped for s in stats) == 0
+    assert sum(s.late_forwarded for s in stats) <= 0.01 * sum(s.partials_sent for s in stats)
 
 
 def test_under_loss_the_count_says_which_readings_were_included() -> None:

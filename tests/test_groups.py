@@ -300,6 +300,28 @@ def test_equal_hops_prefer_the_stronger_link_and_avoid_failed_parents() -> None:
     assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
 
 
+def test_good_link_beats_fewer_hops_until_the_hop_count_is_on_the_air() -> None:
+    h = H()  # floor -90 dBm
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, seq=3, hops=0), rssi=-94.0)  # the leader, over a weak link
+    m = h.g.membership(1)
+    assert m is not None and (m.parent, m.hops) == (2, 1)
+    h.advance(h.cfg.forward_jitter * 0.99)
+    assert h.sent() == []  # a weak parent: it waits longer before forwarding
+    h.hear(beacon(src=7, seq=3, hops=1), rssi=-80.0)  # a good link, one hop more
+    m = h.g.membership(1)
+    assert m is not None and (m.parent, m.hops) == (7, 2)
+    h.advance(2 * h.cfg.forward_jitter)
+    (f,) = h.sent()
+    assert isinstance(f, LeaderBeacon) and f.hops == 2
+    # Our hop count is public now: it may not grow any more, even for a good link.
+    h.hear(beacon(src=8, seq=4, hops=0), rssi=-93.0)
+    h.advance(h.now + 2 * h.cfg.forward_jitter)
+    h.sent()
+    h.hear(beacon(src=9, seq=4, hops=1), rssi=-70.0)
+    assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
+
+
 def test_member_switches_to_heavier_group_and_ignores_lighter() -> None:
     h = H()
     h.g.define(1, HOT, 0.0)

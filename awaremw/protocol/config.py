@@ -55,6 +55,7 @@ class MiddlewareConfig:
     max_group_types: int = 8
     max_group_depth: int = 16  # hops; TAG slots per epoch are planned for this depth
     handover_grace: float = 0.2  # after the ACK, wait this long for a refusal before leaving
+    group_link_rssi_floor: float = -90.0  # dBm; weaker links are a group parent of last resort
 
     # Channels
     max_channels: int = 8

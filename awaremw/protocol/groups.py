@@ -214,7 +214,8 @@ class _TypeState:
     beacons: int = 0  # beacons sent as leader of this group
     readings: int = 0  # readings in the leader's latest aggregated epoch
     nearby: dict[int, _Heard] = field(default_factory=dict)
-    parent_rssi: float = -math.inf  # RSSI of the copy of the beacon that made the parent
+    parent_rssi: float = -math.inf  # link RSSI (EWMA) of the parent when it was chosen
+    forwarded: bool = True  # the current seq was re-broadcast (our hop count is public)
     upstream: dict[int, _Up] = field(default_factory=dict)
     failed: dict[int, float] = field(default_factory=dict)  # neighbour -> last failed unicast
     children: dict[int, tuple[float, int]] = field(default_factory=dict)  # n -> (t, readings)
@@ -369,11 +370,23 @@ class Groups(Component):
             st.parent, st.hops, st.parent_rssi = n, u.hops + 1, u.rssi
 
     def _alternatives(self, st: _TypeState) -> list[tuple[int, _Up]]:
-        # Only copies of the current seq: their hop counts are consistent with ours,
-        # which keeps the tree loop-free (see docs/protocol-groups.md).
+        # Only copies of the current seq with fewer hops than ours: a switch never
+        # raises our advertised hop count, which keeps the tree loop-free.
         ups = [(n, u) for n, u in st.upstream.items() if u.seq == st.seq and u.hops < st.hops]
-        ups.sort(key=lambda x: (x[0] in st.failed, x[1].hops, -x[1].rssi))
+        ups.sort(key=lambda x: self._link_key(st, x[0], x[1].hops + 1, x[1].rssi))
         return ups
+
+    def _link_key(
+        self, st: _TypeState, node: int, hops: int, rssi: float
+    ) -> tuple[bool, bool, int, float]:
+        """Order of parent candidates: not failed, a good link, fewest hops, strongest."""
+        return (node in st.failed, rssi < self.ctx.config.group_link_rssi_floor, hops, -rssi)
+
+    def _link_rssi(self, node: int, rssi: float) -> float:
+        # The mote's EWMA of everything heard from the node (updated with this
+        # frame before dispatch) is steadier than one frame's RSSI.
+        s = self.ctx.rssi.get(node)
+        return rssi if s is None else s.dbm
 
     # ----------------------------------------------------------------- Component hooks
 
@@ -508,7 +521,8 @@ class Groups(Component):
         st.role = Role.MEMBER
         st.gid, st.leader, st.weight, st.seq = gid, leader, weight, seq
         st.hops = min(hops + 1, MAX_HOPS)
-        st.parent, st.parent_rssi = src, rssi
+        st.parent, st.parent_rssi = src, self._link_rssi(src, rssi)
+        st.forwarded = True  # _adopt clears it: it forwards the beacon it joined on
         st.last_beacon = heard_at
         st.upstream = {src: _Up(seq, hops, heard_at, rssi)}
         st.failed = {}
@@ -525,6 +539,7 @@ class Groups(Component):
         self._become_member(
             st, f.group_id, f.leader, f.weight, f.seq, f.hops, f.src, now, rssi, now
         )
+        st.forwarded = False
         self._schedule_forward(st, now)
 
     def _create(self, st: _TypeState, now: float) -> None:
@@ -606,9 +621,14 @@ class Groups(Component):
     def _schedule_forward(self, st: _TypeState, now: float) -> None:
         name = ("fwd", st.gtype)
         if name not in self.timers:
-            self.timers.set(name, now + self.ctx.rng.uniform(0, self.ctx.config.forward_jitter))
+            j = self.ctx.config.forward_jitter
+            # Over a weak link, wait one more jitter: a copy over a good link
+            # usually arrives meanwhile and can still become the parent.
+            weak = st.parent_rssi < self.ctx.config.group_link_rssi_floor
+            self.timers.set(name, now + (j if weak else 0.0) + self.ctx.rng.uniform(0, j))
 
     def _forward(self, st: _TypeState) -> None:
+        st.forwarded = True
         # Built at send time: carries the best hop count learnt during the jitter.
         self.send(
             LeaderBeacon(
@@ -662,31 +682,27 @@ class Groups(Component):
             h.hops, h.src, h.t, h.rssi = f.hops, f.src, now, rssi
 
     def _same_group(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
-        st.upstream[f.src] = _Up(f.seq, f.hops, now, rssi)
+        lr = self._link_rssi(f.src, rssi)
+        st.upstream[f.src] = _Up(f.seq, f.hops, now, lr)
+        hops = min(f.hops + 1, MAX_HOPS)
         if seq_newer(f.seq, st.seq):
-            # The first copy of a new seq sets the parent (the paper's rule) ...
+            # The first copy of a new seq sets the parent ...
             st.seq, st.leader, st.weight = f.seq, f.leader, f.weight
-            st.hops = min(f.hops + 1, MAX_HOPS)
-            st.parent, st.parent_rssi = f.src, rssi
+            st.hops = hops
+            st.parent, st.parent_rssi = f.src, lr
+            st.forwarded = False
             st.last_beacon = now
             self.timers.set(("lost", st.gtype), now + self._timeout())
             self._schedule_forward(st, now)
-        elif f.seq == st.seq and self._better_parent(st, f, rssi):
-            # ... a later copy with fewer hops (or as few, over a stronger link
-            # that has not failed us) replaces it.
-            st.hops = f.hops + 1
-            st.parent, st.parent_rssi = f.src, rssi
-
-    def _better_parent(self, st: _TypeState, f: LeaderBeacon, rssi: float) -> bool:
-        if f.hops + 1 < st.hops:
-            return True
-        if f.hops + 1 > st.hops or f.src == st.parent:
-            return False
-        cur_failed = st.parent in st.failed
-        new_failed = f.src in st.failed
-        if cur_failed != new_failed:
-            return cur_failed
-        return rssi > st.parent_rssi
+        elif f.seq == st.seq and f.src != st.parent:
+            # ... a later copy replaces it if better by _link_key (good links
+            # first, then fewest hops); once our hop count is on the air it may
+            # only stay or shrink (loop freedom, docs/protocol-groups.md).
+            new = self._link_key(st, f.src, hops, lr)
+            cur = self._link_key(st, st.parent or 0, st.hops, st.parent_rssi)
+            if new < cur and (not st.forwarded or hops <= st.hops):
+                st.hops = hops
+                st.parent, st.parent_rssi = f.src, lr
 
     def _yield(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         old = st.gid
