@@ -44,6 +44,13 @@ class EmulatedClock:
         # monotonic value at which emulated time is 0
         self._offset = mono - (wall - self.start_wall)
 
+    def restart(self, start_wall: float) -> None:
+        """Re-anchor emulated time 0 at ``start_wall`` (before anything is scheduled:
+        a launcher's workers set up first and learn the shared start afterwards)."""
+        mono = self.monotonic()
+        self.start_wall = float(start_wall)
+        self._offset = mono - (time.time() - self.start_wall)
+
     def now(self) -> float:
         """Emulated seconds since the shared start (negative before it)."""
         return (self.monotonic() - self._offset) * self.speed

@@ -37,9 +37,15 @@ class SessionSettings:
     mode: Mode = "peer"
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
+    connect_timeout_s: float = 10.0
 
     def config(self) -> zenoh.Config:
-        return make_config(self.mode, connect=self.connect, listen=self.listen)
+        return make_config(
+            self.mode,
+            connect=self.connect,
+            listen=self.listen,
+            connect_timeout_s=self.connect_timeout_s,
+        )
 
 
 def make_config(
@@ -47,8 +53,13 @@ def make_config(
     *,
     connect: Sequence[str] = (),
     listen: Sequence[str] = (),
+    connect_timeout_s: float = 10.0,
 ) -> zenoh.Config:
-    """A Zenoh config with multicast scouting off and exactly these endpoints."""
+    """A Zenoh config with multicast scouting off and exactly these endpoints.
+
+    With ``connect`` endpoints, opening keeps trying for ``connect_timeout_s``
+    (the router may still be starting), then fails.
+    """
     for ep in (*connect, *listen):
         check_endpoint(ep)
     cfg = zenoh.Config()
@@ -57,8 +68,7 @@ def make_config(
     cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
-        # Keep trying while the router is starting instead of failing at open().
-        cfg.insert_json5("connect/timeout_ms", "10000")
+        cfg.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
         cfg.insert_json5("connect/exit_on_failure", "true")
     return cfg
 

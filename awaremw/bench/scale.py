@@ -1,0 +1,301 @@
+"""``awaremw bench scale``: how many motes the real-time Zenoh emulation sustains.
+
+Motes on a square grid (CC2420 preset: 12 m spacing, about ten neighbours
+that hear each beacon), each running :class:`~awaremw.protocol.hello.HelloMote`
+beaconing once per second, over real Zenoh sessions: in this process
+(``--processes 1``) or spread over worker processes in x stripes joined by an
+embedded router (``--processes N``). After ``--duration`` emulated seconds
+every radio is frozen, frames in flight land for ``--grace`` wall seconds, and
+the counters are gathered.
+
+Target (``--search``): timer lag p99 below ``--max-p99-ms`` (50) and delivery
+above ``--min-delivery`` (0.99). ``--search`` doubles ``--motes`` while the
+target holds, then bisects between the last pass and the first failure.
+
+JSON keys (one object; with ``--search`` the best passing run's keys plus
+``search`` = the list of trials):
+
+* ``motes``, ``processes``, ``duration_s``, ``speed``, ``handler``,
+  ``preset``, ``seed``, ``spacing_m``;
+* ``timer_lag_p50_ms``, ``timer_lag_p99_ms``, ``timer_lag_max_ms``: how late
+  motes' timers ran (wall ms after their deadline), after ``--warmup``
+  emulated seconds;
+* ``frames_tx``, ``frames_rx``; ``frames_expected``: receptions the loss model
+  keeps among in-range receivers for the frames actually sent (recomputed
+  from the seeded model, packet by packet); ``delivery_ratio`` =
+  ``frames_rx / frames_expected`` (below 1: frames lost by the emulation
+  itself -- late subscriptions, dropped Zenoh samples);
+  ``rx_per_tx`` (mean receivers per beacon);
+* ``envelopes_rx`` (frames that crossed processes through Zenoh),
+  ``malformed``; ``cpu_s`` (all processes), ``cpu_per_process``,
+  ``wall_s``; ``meets_target``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import gc
+import math
+import time
+from typing import Any
+
+from awaremw.radio.counters import MoteCounters
+from awaremw.radio.model import CC2420, RadioModel, cell_of, packet_key, preset
+from awaremw.radio.zenoh_medium import Handler
+from awaremw.runtime.deployment import Deployment, NodeSpec
+from awaremw.runtime.driver import percentile
+from awaremw.runtime.fleet import Fleet, FleetLauncher, hello_core
+
+SPACING_M = 12.0  # CC2420 at 0 dBm: about ten neighbours hear each beacon
+
+
+def grid_deployment(
+    motes: int, seed: int = 1, radio: str = "cc2420", spacing: float | None = None
+) -> Deployment:
+    """``motes`` static motes on a square grid, spaced for about ten neighbours."""
+    p = preset(radio)
+    if spacing is None:
+        # Scale the CC2420 spacing by the preset's range (same neighbour count).
+        spacing = (
+            SPACING_M * RadioModel(p, seed).max_range_m() / RadioModel(CC2420, 0).max_range_m()
+        )
+    cols = max(1, math.ceil(math.sqrt(motes)))
+    rows = max(1, math.ceil(motes / cols))
+    nodes = tuple(
+        NodeSpec(
+            id=i,
+            kind="hello",
+            position=(spacing * (0.5 + i % cols), spacing * (0.5 + i // cols)),
+        )
+        for i in range(motes)
+    )
+    return Deployment(
+        name=f"scale-{motes}",
+        area=(spacing * cols, spacing * rows),
+        radio=radio,
+        seed=seed,
+        tx_power_dbm=p.tx_power_dbm,
+        nodes=nodes,
+    )
+
+
+def expected_receptions(dep: Deployment, frames_tx: dict[int, int]) -> int:
+    """Receptions the loss model keeps for every broadcast actually sent.
+
+    For sender ``s`` that sent ``n`` frames (link sequence numbers 0..n-1, all
+    broadcasts), every mote within one cell and within range is a receiver;
+    each packet is decided by the same seeded model the media use.
+    """
+    model = dep.radio_model()
+    size = model.cell_size_m
+    grid: dict[tuple[int, int], list[NodeSpec]] = {}
+    for s in dep.nodes:
+        grid.setdefault(cell_of(*s.position, size), []).append(s)
+    overhead = dep.preset.phy_overhead_bytes
+    total = 0
+    for s in dep.nodes:
+        n = frames_tx.get(s.id, 0)
+        if not n:
+            continue
+        txp = dep.tx_power_of(s)
+        rng = model.max_range_m(txp)
+        bits = [8 * (_hello_len(s.id, seq, dep.preset.mtu) + overhead) for seq in range(n)]
+        cx, cy = cell_of(*s.position, size)
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for r in grid.get((cx + dx, cy + dy), ()):
+                    if r.id == s.id:
+                        continue
+                    d = math.dist(r.position, s.position)
+                    if d > rng:
+                        continue
+                    mean = model.mean_rssi(s.id, r.id, d, txp)
+                    if model.never_delivers(mean):
+                        continue
+                    lh = model.fading_link_hash(s.id, r.id)
+                    for seq in range(n):
+                        ok, _ = model.decide(lh, mean, bits[seq], packet_key(seq & 0xFFFF, 0))
+                        total += ok
+    return total
+
+
+def _hello_len(src: int, seq: int, mtu: int) -> int:
+    # The HelloMote's n-th beacon carries seq n (msgpack: its length grows with
+    # seq), and it is also the n-th frame of its radio (link seq n).
+    from awaremw.protocol.frames import BROADCAST, Hello, encode
+
+    return len(encode(Hello(src, BROADCAST, seq & 0xFFFF), mtu))
+
+
+async def run_once(
+    motes: int,
+    duration: float,
+    *,
+    processes: int = 1,
+    speed: float = 1.0,
+    seed: int = 1,
+    radio: str = "cc2420",
+    handler: str = "callback",
+    warmup: float = 2.0,
+    grace: float = 1.0,
+    max_p99_ms: float = 50.0,
+    min_delivery: float = 0.99,
+) -> dict[str, Any]:
+    """One measured run (see the module docstring for the keys)."""
+    dep = grid_deployment(motes, seed, radio)
+    h: Handler = "channel" if handler == "channel" else "callback"
+    cpu: list[float] = []
+    lag: list[float] = []
+    envelopes = 0
+    t0 = time.perf_counter()
+    if processes <= 1:
+        cpu0 = time.process_time()
+        async with Fleet(
+            dep, hello_core, speed=speed, handler=h, control=False, freeze_gc=True
+        ) as fleet:
+            await fleet.wait_until(warmup)
+            assert fleet.lag is not None
+            fleet.lag.clear()
+            await fleet.run(duration)
+            fleet.medium.freeze()
+            await asyncio.sleep(grace)
+            counters = dict(fleet.counters)
+            lag = list(fleet.lag.samples)
+            envelopes = fleet.medium.stats.envelopes_rx
+        cpu.append(time.process_time() - cpu0)
+        gc.unfreeze()
+    else:
+        async with FleetLauncher(
+            dep, processes=processes, core_factory=hello_core, speed=speed, handler=h
+        ) as launcher:
+            await launcher.run(warmup)
+            launcher.reset_lag()
+            await launcher.run(duration)
+            await launcher.freeze(grace)
+        counters = launcher.counters()
+        for r in launcher.results:
+            if r.error:
+                raise RuntimeError(f"worker {r.name}: {r.error}")
+            cpu.append(r.cpu_s)
+            lag.extend(r.lag_ms)
+            envelopes += r.stats.get("envelopes_rx", 0)
+    wall = time.perf_counter() - t0
+    tot = MoteCounters()
+    for c in counters.values():
+        tot.add(c)
+    expected = expected_receptions(dep, {i: c.frames_tx for i, c in counters.items()})
+    delivery = tot.frames_rx / expected if expected else math.nan
+    p50, p99 = percentile(lag, 50), percentile(lag, 99)
+    return {
+        "motes": motes,
+        "processes": processes,
+        "duration_s": duration,
+        "speed": speed,
+        "handler": h,
+        "preset": dep.radio,
+        "seed": seed,
+        "spacing_m": round(dep.nodes[1].position[0] - dep.nodes[0].position[0], 3)
+        if motes > 1
+        else None,
+        "timer_lag_p50_ms": round(p50, 3),
+        "timer_lag_p99_ms": round(p99, 3),
+        "timer_lag_max_ms": round(max(lag), 3) if lag else math.nan,
+        "timer_samples": len(lag),
+        "frames_tx": tot.frames_tx,
+        "frames_rx": tot.frames_rx,
+        "frames_expected": expected,
+        "delivery_ratio": round(delivery, 5),
+        "rx_per_tx": round(tot.frames_rx / tot.frames_tx, 2) if tot.frames_tx else 0.0,
+        "envelopes_rx": envelopes,
+        "malformed": tot.malformed,
+        "cpu_s": round(sum(cpu), 2),
+        "cpu_per_process": [round(c, 2) for c in cpu],
+        "wall_s": round(wall, 2),
+        "meets_target": bool(p99 < max_p99_ms and delivery > min_delivery),
+    }
+
+
+async def search(args: argparse.Namespace) -> dict[str, Any]:
+    """Largest motes count meeting the target: double, then bisect (to ~5 %)."""
+    trials: list[dict[str, Any]] = []
+
+    async def trial(n: int) -> bool:
+        r = await run_once(n, **_run_kwargs(args))
+        trials.append(r)
+        return bool(r["meets_target"])
+
+    n = max(2, int(args.motes))
+    best: int | None = None
+    fail: int | None = None
+    while n <= args.max_motes:
+        if await trial(n):
+            best = n
+            n *= 2
+        else:
+            fail = n
+            break
+    if best is not None and fail is not None:
+        lo, hi = best, fail
+        while hi - lo > max(50, lo // 20):
+            mid = (lo + hi) // 2
+            if await trial(mid):
+                lo = mid
+            else:
+                hi = mid
+        best = lo
+    summary = [
+        {k: t[k] for k in ("motes", "timer_lag_p99_ms", "delivery_ratio", "meets_target")}
+        for t in trials
+    ]
+    out: dict[str, Any]
+    if best is None:
+        out = dict(trials[0]) if trials else {"motes": 0}
+        out["motes_max"] = 0
+    else:
+        out = dict(next(t for t in trials if t["motes"] == best and t["meets_target"]))
+        out["motes_max"] = best
+    out["search"] = summary
+    return out
+
+
+def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    return {
+        "duration": float(args.duration),
+        "processes": int(args.processes),
+        "speed": float(args.speed),
+        "seed": int(args.seed),
+        "radio": str(args.radio),
+        "handler": str(args.handler),
+        "warmup": float(args.warmup),
+        "grace": float(args.grace),
+        "max_p99_ms": float(args.max_p99_ms),
+        "min_delivery": float(args.min_delivery),
+    }
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--motes", type=int, default=500, help="motes (start value with --search)")
+    parser.add_argument("--duration", type=float, default=20.0, help="emulated seconds measured")
+    parser.add_argument("--processes", type=int, default=1, help="worker processes")
+    parser.add_argument("--speed", type=float, default=1.0, help="speed factor")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--radio", default="cc2420", help="radio preset")
+    parser.add_argument(
+        "--handler",
+        choices=("callback", "channel"),
+        default="callback",
+        help="how Zenoh samples reach the loop: batched callback or polled FIFO channel",
+    )
+    parser.add_argument("--warmup", type=float, default=2.0, help="emulated s before lag counts")
+    parser.add_argument("--grace", type=float, default=1.0, help="wall s for frames in flight")
+    parser.add_argument("--max-p99-ms", type=float, default=50.0)
+    parser.add_argument("--min-delivery", type=float, default=0.99)
+    parser.add_argument("--search", action="store_true", help="find the largest N on target")
+    parser.add_argument("--max-motes", type=int, default=16000, help="upper bound for --search")
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    if args.search:
+        return asyncio.run(search(args))
+    return asyncio.run(run_once(int(args.motes), **_run_kwargs(args)))

@@ -1,0 +1,89 @@
+"""``awaremw bench NAME [--json] [benchmark arguments]``: run a registered benchmark.
+
+Names come from :data:`awaremw.bench.BENCHMARKS`; each module adds its own
+arguments (``awaremw bench NAME --help``) and returns one dict, printed as one
+JSON object with ``--json`` or as ``key: value`` lines otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+import sys
+from typing import Any
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from awaremw.bench import BENCHMARKS
+
+    p = subparsers.add_parser(
+        "bench",
+        help="run a benchmark (" + ", ".join(BENCHMARKS) + ")",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        add_help=False,  # "bench NAME --help" is the benchmark's own help
+    )
+    p.add_argument("-h", "--help", action="store_true", help="this help, or NAME's")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("name", nargs="?", metavar="NAME", help=", ".join(BENCHMARKS))
+    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    p.set_defaults(func=run, _bench_parser=p)
+
+
+def run(args: argparse.Namespace) -> int:
+    from awaremw.bench import BENCHMARKS
+
+    outer: argparse.ArgumentParser = args._bench_parser
+    if args.name is None:
+        outer.print_help()
+        return 0 if args.help else 2
+    if args.name not in BENCHMARKS:
+        print(
+            f"awaremw bench: unknown benchmark {args.name!r}; known: {', '.join(BENCHMARKS)}",
+            file=sys.stderr,
+        )
+        return 2
+    modname = BENCHMARKS[args.name]
+    try:
+        mod = importlib.import_module(modname)
+    except ModuleNotFoundError as e:
+        if e.name is not None and modname.startswith(e.name):
+            print(
+                f"awaremw bench: benchmark {args.name!r} is registered but its module "
+                f"{modname} is not available",
+                file=sys.stderr,
+            )
+            return 2
+        raise
+    for attr in ("add_arguments", "run"):
+        if not callable(getattr(mod, attr, None)):
+            print(f"awaremw bench: {modname} has no {attr}()", file=sys.stderr)
+            return 2
+    inner = argparse.ArgumentParser(
+        prog=f"awaremw bench {args.name}",
+        description=(mod.__doc__ or "").strip() or None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    inner.add_argument("--json", action="store_true", help="print one JSON object")
+    mod.add_arguments(inner)
+    rest = list(args.rest)
+    if args.help:
+        rest.append("--help")
+    ns = inner.parse_args(rest)
+    as_json = bool(ns.json or args.json)
+    result: dict[str, Any] = mod.run(ns)
+    if as_json:
+        print(json.dumps(result, default=_jsonable))
+    else:
+        width = max((len(k) for k in result), default=0)
+        for k, v in result.items():
+            print(f"{k:<{width}}  {v}")
+    return 0
+
+
+def _jsonable(v: object) -> Any:
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return str(v)

@@ -1,0 +1,360 @@
+"""``awaremw fleet`` (run a deployment's motes) and ``awaremw fleet-ctl`` (add/kill at run time).
+
+::
+
+    awaremw fleet grid_small --duration 30 --speed 2
+    awaremw fleet large --processes 2 --listen tcp/127.0.0.1:7447
+    awaremw fleet-ctl add 99 --kind tmote --position 20 30
+    awaremw fleet-ctl kill 7
+    awaremw fleet-ctl list
+
+Without ``--connect`` the fleet is reachable on ``--listen`` (default
+``tcp/127.0.0.1:7447``): its own session with one process, the embedded
+router with ``--processes N``. With ``--connect`` it joins an existing router
+(``awaremw router``). ``fleet-ctl`` asks every fleet process through the
+Zenoh queryables ``<prefix>/ctl/fleet/*`` (docs/runtime.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+from typing import Any
+
+from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser(
+        "fleet",
+        help="run a deployment's motes (one process or many)",
+        description="Run the motes of DEPLOYMENT on the Zenoh radio medium.",
+    )
+    p.add_argument("deployment", metavar="DEPLOYMENT", help="path or shipped name (nodes/*.toml)")
+    p.add_argument("--processes", type=int, default=1, metavar="N", help="worker processes")
+    p.add_argument(
+        "--connect", action="append", default=[], metavar="ENDPOINT", help="join this router"
+    )
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"where gateways and fleet-ctl reach the fleet (default {DEFAULT_ROUTER_ENDPOINT} "
+        "unless --connect)",
+    )
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="emulated seconds")
+    p.add_argument("--speed", type=float, default=1.0, metavar="X", help="speed factor")
+    p.add_argument("--plain", action="store_true", help="plain log lines (no live view)")
+    p.add_argument("--prefix", default="aware", help="Zenoh key prefix (default aware)")
+    p.add_argument(
+        "--progress", type=float, default=2.0, metavar="S", help="wall seconds between lines"
+    )
+    p.add_argument(
+        "--hello", action="store_true", help="run the HelloMote stand-in instead of the node kinds"
+    )
+    p.add_argument(
+        "--without-kind",
+        action="append",
+        default=[],
+        metavar="KIND",
+        help="do not run motes of this kind here (e.g. gateway, run by awaremw gateway)",
+    )
+    p.set_defaults(func=run_fleet)
+
+    c = subparsers.add_parser(
+        "fleet-ctl",
+        help="add, kill or list motes of running fleets",
+        description="Talk to running fleets through <prefix>/ctl/fleet/* on Zenoh.",
+    )
+    c.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"fleet or router endpoint (default {DEFAULT_ROUTER_ENDPOINT})",
+    )
+    c.add_argument("--prefix", default="aware", help="Zenoh key prefix (default aware)")
+    c.add_argument("--timeout", type=float, default=3.0, metavar="S", help="wait for answers")
+    csub = c.add_subparsers(dest="op", metavar="OP", required=True)
+    a = csub.add_parser("add", help="add a mote (validated like a [[nodes]] entry)")
+    a.add_argument("id", type=int)
+    a.add_argument("--kind", required=True)
+    a.add_argument("--position", type=float, nargs=2, metavar=("X", "Y"))
+    a.add_argument("--path", nargs="+", metavar="X,Y", help="waypoints of a moving mote")
+    a.add_argument("--speed-mps", type=float, default=None)
+    a.add_argument("--loop", action="store_true")
+    a.add_argument("--tx-power", type=float, default=None, metavar="DBM")
+    a.add_argument("--battery", type=float, default=None, metavar="MJ")
+    a.add_argument("--boot", type=float, default=None, metavar="S")
+    k = csub.add_parser("kill", help="switch a mote off")
+    k.add_argument("id", type=int)
+    csub.add_parser("list", help="motes on the air and where they are")
+    csub.add_parser("stats", help="counters and timer lag of every fleet process")
+    c.set_defaults(func=run_ctl)
+
+
+# --------------------------------------------------------------------------- fleet
+
+
+def _load(arg: str, hello: bool) -> Any:
+    from awaremw.runtime.deployment import load
+
+    kinds: list[str] | None = None
+    validate = None
+    if not hello:
+        with contextlib.suppress(ImportError):
+            from awaremw import nodes
+
+            kinds = nodes.kind_names()
+            validate = nodes.validate
+    dep = load(arg, kinds)
+    if validate is not None:
+        validate(dep)
+    return dep
+
+
+def run_fleet(args: argparse.Namespace) -> int:
+    from awaremw.runtime.deployment import DeploymentError
+
+    if args.processes < 1:
+        print("awaremw fleet: --processes must be >= 1", file=sys.stderr)
+        return 2
+    if not args.speed > 0:
+        print("awaremw fleet: --speed must be > 0", file=sys.stderr)
+        return 2
+    try:
+        dep = _load(args.deployment, args.hello)
+    except DeploymentError as e:
+        print(f"awaremw fleet: {e}", file=sys.stderr)
+        return 2
+    try:
+        return asyncio.run(_run_fleet(args, dep))
+    except _StartError as e:
+        print(f"awaremw fleet: {e}", file=sys.stderr)
+        return 2
+
+
+class _StartError(Exception):
+    pass
+
+
+async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
+    import zenoh
+
+    from awaremw.runtime.fleet import Fleet, FleetLauncher, FleetSnapshot, LaunchError, hello_core
+
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    listen = args.listen or ([] if args.connect else [DEFAULT_ROUTER_ENDPOINT])
+    factory = hello_core if args.hello else None
+    where = ", ".join(args.connect) if args.connect else ", ".join(listen)
+    print(
+        f"awaremw fleet: {dep.name}: {len(dep.nodes)} motes, {args.processes} process(es), "
+        f"speed x{args.speed:g}, Zenoh {'via ' if args.connect else 'on '}{where}",
+        flush=True,
+    )
+
+    def show(s: FleetSnapshot) -> None:
+        print(s.line(), flush=True)
+
+    async def wait_end(clock_now: Any) -> None:
+        if args.duration is None:
+            await stop.wait()
+            return
+        while not stop.is_set():
+            left = (args.duration - clock_now()) / args.speed
+            if left <= 0:
+                return
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), min(left, args.progress))
+            if args.processes == 1 and not stop.is_set() and left > args.progress:
+                show(fleet.snapshot())
+
+    skip = frozenset(args.without_kind)
+    if args.processes == 1:
+        try:
+            fleet = Fleet(
+                dep,
+                factory,
+                speed=args.speed,
+                prefix=args.prefix,
+                connect=args.connect,
+                listen=listen,
+                freeze_gc=True,
+                node_filter=(lambda s: s.kind not in skip) if skip else None,
+            )
+            await fleet.__aenter__()
+        except zenoh.ZError as e:
+            await fleet.aclose()
+            raise _StartError(f"cannot open the Zenoh session on {where}: {e}") from None
+        try:
+            await wait_end(fleet.now)
+            fleet.raise_errors()
+            show(fleet.snapshot())
+        finally:
+            await fleet.aclose()
+        return 0
+
+    launcher = FleetLauncher(
+        dep,
+        processes=args.processes,
+        core_factory=factory,
+        speed=args.speed,
+        prefix=args.prefix,
+        connect=args.connect,
+        listen=listen,
+        progress_s=args.progress,
+        on_progress=show,
+        exclude_kinds=skip,
+    )
+    try:
+        await launcher.__aenter__()
+    except zenoh.ZError as e:
+        raise _StartError(f"cannot start the Zenoh router on {where}: {e}") from None
+    except LaunchError as e:
+        raise _StartError(str(e)) from None
+    print(
+        f"awaremw fleet: workers {launcher.motes_per_worker} motes, router {launcher.endpoint}",
+        flush=True,
+    )
+    code = 0
+    try:
+        run = asyncio.create_task(launcher.run(args.duration))
+        stopper = asyncio.create_task(stop.wait())
+        done, _ = await asyncio.wait({run, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        for t in (run, stopper):
+            if t not in done:
+                t.cancel()
+        if run in done and run.exception() is not None:
+            print(f"awaremw fleet: {run.exception()}", file=sys.stderr)
+            code = 1
+    finally:
+        await launcher.__aexit__(None, None, None)
+    tot = launcher.counters()
+    tx = sum(c.frames_tx for c in tot.values())
+    rx = sum(c.frames_rx for c in tot.values())
+    print(f"awaremw fleet: done at t={launcher.now():.1f}s: frames tx={tx} rx={rx}", flush=True)
+    for r in launcher.results:
+        if r.error:
+            print(f"awaremw fleet: worker {r.name}: {r.error}", file=sys.stderr)
+            code = 1
+    return code
+
+
+# --------------------------------------------------------------------------- fleet-ctl
+
+
+def _node_entry(args: argparse.Namespace) -> dict[str, Any]:
+    entry: dict[str, Any] = {"id": args.id, "kind": args.kind}
+    if (args.position is None) == (args.path is None):
+        raise ValueError("give exactly one of --position X Y or --path X,Y ...")
+    if args.position is not None:
+        entry["position"] = list(args.position)
+    else:
+        pts = []
+        for w in args.path:
+            try:
+                x, y = (float(v) for v in w.split(","))
+            except ValueError:
+                raise ValueError(f"bad waypoint {w!r}: expected X,Y") from None
+            pts.append([x, y])
+        entry["path"] = pts
+        if args.speed_mps is not None:
+            entry["speed_mps"] = args.speed_mps
+        if args.loop:
+            entry["loop"] = True
+    for key, val in (("tx_power_dbm", args.tx_power), ("battery_mj", args.battery)):
+        if val is not None:
+            entry[key] = val
+    if args.boot is not None:
+        entry["boot_s"] = args.boot
+    return entry
+
+
+def control_query(
+    connect: list[str], prefix: str, request: dict[str, Any], timeout: float
+) -> list[dict[str, Any]]:
+    """Send one control request to every fleet process; their JSON replies."""
+    import zenoh
+
+    from awaremw.runtime.zenoh_session import SessionSettings, close_quietly, open_session
+
+    session = open_session(SessionSettings("client", tuple(connect), connect_timeout_s=2.0))
+    out: list[dict[str, Any]] = []
+    try:
+        replies = session.get(
+            f"{prefix}/ctl/fleet/*",
+            payload=json.dumps(request).encode(),
+            timeout=timeout,
+            target=zenoh.QueryTarget.ALL,
+        )
+        for reply in replies:
+            ok = reply.ok
+            if ok is None:
+                continue
+            try:
+                d = json.loads(ok.payload.to_bytes())
+            except ValueError:
+                continue
+            if isinstance(d, dict):
+                out.append(d)
+    finally:
+        close_quietly(session)
+    return out
+
+
+def run_ctl(args: argparse.Namespace) -> int:
+    import zenoh
+
+    connect = args.connect or [DEFAULT_ROUTER_ENDPOINT]
+    if args.op == "add":
+        try:
+            req: dict[str, Any] = {"op": "add", "node": _node_entry(args)}
+        except ValueError as e:
+            print(f"awaremw fleet-ctl: {e}", file=sys.stderr)
+            return 2
+    elif args.op == "kill":
+        req = {"op": "kill", "id": args.id}
+    else:
+        req = {"op": args.op}
+    try:
+        replies = control_query(connect, args.prefix, req, args.timeout)
+    except zenoh.ZError as e:
+        print(f"awaremw fleet-ctl: cannot reach {', '.join(connect)}: {e}", file=sys.stderr)
+        return 1
+    if not replies:
+        print(
+            f"awaremw fleet-ctl: no fleet answered on {args.prefix}/ctl/fleet/* "
+            f"via {', '.join(connect)}",
+            file=sys.stderr,
+        )
+        return 1
+    replies.sort(key=lambda d: str(d.get("fleet")))
+    errors = [d for d in replies if not d.get("ok")]
+    done = [d for d in replies if d.get("done")]
+    if args.op in ("list", "stats"):
+        for d in replies:
+            if args.op == "list":
+                for nid, (x, y) in sorted(d.get("motes", {}).items(), key=lambda kv: int(kv[0])):
+                    print(f"{nid}\t{x:.2f}\t{y:.2f}\t{d.get('fleet')}")
+            else:
+                print(json.dumps(d.get("snapshot", d)))
+        return 0
+    for d in errors:
+        print(f"awaremw fleet-ctl: fleet {d.get('fleet')}: {d.get('error')}", file=sys.stderr)
+    if errors:
+        return 1
+    if not done:
+        what = "ran" if args.op == "kill" else "took"
+        print(f"awaremw fleet-ctl: no fleet {what} node {args.id}", file=sys.stderr)
+        return 1
+    verb = "added to" if args.op == "add" else "killed in"
+    print(f"node {args.id} {verb} fleet {', '.join(str(d.get('fleet')) for d in done)}")
+    return 0

@@ -1,0 +1,898 @@
+"""The Zenoh medium: an emulated radio channel carried over Zenoh pub/sub.
+
+One :class:`ZenohMedium` per process. It owns the process's radio
+subscriptions and a :class:`Radio` per local mote (its link layer: transmit
+queue, MAC backoff, airtime, sequence numbers, ACK wait and retries, duplicate
+filter, counters, battery). The rules are those of the virtual-clock driver
+(``docs/radio.md``, "Medium semantics"; :mod:`awaremw.runtime.virtual`), so a
+run over Zenoh and a virtual run of the same deployment count the same things
+the same way. ``docs/runtime.md`` describes the Zenoh side.
+
+Key expressions: a frame from ``src`` standing in cell ``(cx, cy)`` (cells of
+side ``model.cell_size_m`` >= the radio's maximum range) is published on
+``<prefix>/radio/<cx>/<cy>/<src>``. A mote can only hear senders in its own
+cell and the 8 around it. The process subscribes once per grid *column* its
+motes need (``<prefix>/radio/<cx>/*/*``), never per mote: with spatial stripes
+along x a process needs a handful of columns, hence a handful of subscriptions
+(each callback subscriber otherwise costs a thread). Received samples are
+copied out on the Zenoh thread into a deque; one ``call_soon_threadsafe``
+wakes the event loop per batch, not per sample, and the loop fans each
+envelope out to the local motes in range.
+
+Frames between motes of the same process never go through Zenoh: publishers
+use ``allowed_destination=REMOTE`` and subscribers ``allowed_origin=REMOTE``,
+and local receivers are served directly (the same code path decides).
+
+Receiver side: distance, RSSI and loss come from
+:class:`~awaremw.radio.model.RadioModel` keyed by ``(seed, src, dst,
+packet_key(seq, attempt))`` -- identical in every process. A unicast is
+considered only by its destination; the destination's medium sends the
+emulated auto-ACK back (an ACK envelope) and the sender's medium decides its
+reception on the reverse link. The sender waits ``preset.ack_timeout_s``
+(emulated) but never less than ``ack_wait_floor_s`` of wall time for remote
+destinations (Zenoh and the loops need that long to answer), then retries up
+to ``preset.max_retries`` times and reports the outcome to the core.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass
+from typing import Any, Literal, Protocol
+
+import zenoh
+
+from awaremw.protocol.core import Transmission
+from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
+from awaremw.radio.counters import Battery, MoteCounters
+from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
+from awaremw.radio.model import (
+    _GOLDEN,
+    _M64,
+    _NORMAL,
+    _SHIFT,
+    _U32,
+    RadioModel,
+    cell_of,
+    packet_hash,
+    packet_key,
+)
+from awaremw.runtime.clock import EmulatedClock
+from awaremw.world.mobility import Mobility, Static
+
+log = logging.getLogger(__name__)
+
+Handler = Literal["callback", "channel"]
+Cell = tuple[int, int]
+
+DEFAULT_PREFIX = "aware"
+DEFAULT_ACK_WAIT_FLOOR_S = 0.05  # wall seconds; see the module docstring
+CHANNEL_POLL_S = 0.002  # wall seconds between polls in "channel" mode
+CHANNEL_CAPACITY = 1 << 16
+
+
+class RadioSink(Protocol):
+    """What a medium delivers to: the driver of one mote (``MoteRunner``)."""
+
+    node_id: int
+
+    def radio_receive(self, frame: bytes, rssi_dbm: float, now: float) -> None: ...
+
+    def radio_link_result(self, tx: Transmission, acked: bool, now: float) -> None: ...
+
+    def radio_down(self, reason: str, now: float) -> None: ...
+
+
+@dataclass(slots=True)
+class MediumStats:
+    """Per-process figures (not per mote)."""
+
+    envelopes_rx: int = 0  # envelopes taken from Zenoh
+    malformed_envelopes: int = 0  # garbage on a radio key
+    batches: int = 0  # loop wake-ups that drained the inbox
+    max_batch: int = 0
+    frames_published: int = 0
+    acks_published: int = 0
+    ignored: int = 0  # valid envelopes no local mote could hear (other cells / dest)
+    subscriptions: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class Radio:
+    """The link layer of one local mote. Created by :meth:`ZenohMedium.attach`."""
+
+    __slots__ = (
+        "alive",
+        "backoff_h",
+        "battery",
+        "busy",
+        "cell",
+        "counters",
+        "cur",
+        "handle",
+        "last_useq",
+        "medium",
+        "mobility",
+        "node_id",
+        "pos_t",
+        "pub",
+        "pub_cell",
+        "queue",
+        "range_m",
+        "seq",
+        "sink",
+        "static",
+        "tx_power",
+        "x",
+        "y",
+    )
+
+    def __init__(
+        self,
+        medium: ZenohMedium,
+        sink: RadioSink,
+        mobility: Mobility,
+        tx_power: float,
+        range_m: float,
+        battery: Battery | None,
+        counters: MoteCounters,
+    ) -> None:
+        self.medium = medium
+        self.sink = sink
+        self.node_id = sink.node_id
+        self.mobility = mobility
+        self.static = isinstance(mobility, Static)
+        self.tx_power = tx_power
+        self.range_m = range_m
+        self.battery = battery
+        self.counters = counters
+        self.alive = True
+        self.x, self.y = 0.0, 0.0
+        self.cell: Cell = (0, 0)
+        self.pos_t = -math.inf
+        self.queue: deque[Transmission] = deque()
+        self.busy = False
+        self.cur: tuple[Transmission, int, int] | None = None  # (tx, seq, attempt)
+        self.handle: asyncio.TimerHandle | None = None  # tx end or ACK wait
+        self.seq = 0
+        self.backoff_h = medium.model.backoff_link_hash(self.node_id)
+        self.last_useq: dict[int, int] = {}
+        self.pub: zenoh.Publisher | None = None
+        self.pub_cell: Cell | None = None
+
+    def send(self, txs: Iterable[Transmission]) -> None:
+        """Queue frames the core drained; they go on the air one after another."""
+        if not self.alive:
+            return
+        m = self.medium
+        for tx in txs:
+            m._check_tx(self, tx)
+            self.queue.append(tx)
+        if not self.busy and self.queue:
+            m._start_next(self)
+
+    def position(self) -> tuple[float, float]:
+        """Where the mote is now (refreshes a moving mote's cell)."""
+        self.medium._locate(self, self.medium.clock.now())
+        return self.x, self.y
+
+    def energy_mj(self) -> float:
+        return self.counters.energy_mj(self.medium.model.preset, self.tx_power)
+
+
+class _SenderCache:
+    """Receivers of one static sender among this process's static motes."""
+
+    __slots__ = ("far_dist", "far_loss", "gen", "near", "pending", "txp", "x", "y")
+
+    def __init__(self, x: float, y: float, txp: float, gen: int) -> None:
+        self.x, self.y, self.txp, self.gen = x, y, txp, gen
+        self.near: list[tuple[Radio, float, int]] = []  # (receiver, mean rssi, link hash)
+        self.far_loss: list[Radio] = []  # in range, but no fading draw can deliver
+        self.far_dist: list[Radio] = []  # in the 3x3 cells, beyond range
+        self.pending = 0  # frames not yet folded into far_* counters
+
+
+class ZenohMedium:
+    """The radio medium of one process. Create, :meth:`open` inside the loop, attach radios.
+
+    The session is the caller's (one per process); the medium only declares
+    subscribers and publishers on it and undeclares them in :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        model: RadioModel,
+        clock: EmulatedClock,
+        *,
+        prefix: str = DEFAULT_PREFIX,
+        handler: Handler = "callback",
+        ack_wait_floor_s: float = DEFAULT_ACK_WAIT_FLOOR_S,
+    ) -> None:
+        if "*" in prefix or prefix.endswith("/") or not prefix:
+            raise ValueError(f"bad key prefix {prefix!r}")
+        self.session = session
+        self.model = model
+        self.preset = model.preset
+        self.clock = clock
+        self.prefix = prefix
+        self.handler: Handler = handler
+        self.ack_wait_floor_s = ack_wait_floor_s
+        self.cell_size = model.cell_size_m
+        self.stats = MediumStats()
+        self.radios: dict[int, Radio] = {}
+        self._counters: dict[int, MoteCounters] = {}
+        self._grid: dict[Cell, list[Radio]] = {}  # static local motes by cell
+        self._moving: list[Radio] = []
+        self._columns: set[int] = set()
+        self._subs: list[zenoh.Subscriber[Any]] = []
+        self._chans: list[zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]]] = []
+        self._caches: dict[int, _SenderCache] = {}
+        self._gen = 0  # topology generation: bumps invalidate every _SenderCache
+        self._inbox: deque[tuple[bytes, str]] = deque()
+        self._wakeup = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._poll: asyncio.TimerHandle | None = None
+        self._closed = False
+        self._frozen = False
+        self._mobility_handle: asyncio.TimerHandle | None = None
+        p = self.preset
+        self._sens = p.sensitivity_dbm
+        self._noise = p.noise_floor_dbm
+        self._one_snr = model._one_snr_db
+        self._sigma_f = p.fading_sigma_db
+        self._overhead = p.phy_overhead_bytes
+        self.on_malformed: Callable[[str, str], None] | None = None  # (key, reason)
+        # Optional per-link delivery counts {(src, dst): frames}, for tests and
+        # experiments (who heard whom); None = not tracked (the default).
+        self.links: dict[tuple[int, int], int] | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def open(self) -> None:
+        """Bind to the running loop (call from inside it)."""
+        self._loop = asyncio.get_running_loop()
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        if self._loop is None:
+            raise RuntimeError("ZenohMedium.open() was not called from the event loop")
+        return self._loop
+
+    def close(self) -> None:
+        """Undeclare subscriptions and publishers; radios go silent."""
+        if self._closed:
+            return
+        self._closed = True
+        for r in list(self.radios.values()):
+            self._silence(r)
+        for sub in (*self._subs, *self._chans):
+            with contextlib.suppress(zenoh.ZError):  # session already closed
+                sub.undeclare()  # type: ignore[no-untyped-call]
+        self._subs.clear()
+        self._chans.clear()
+        if self._poll is not None:
+            self._poll.cancel()
+        if self._mobility_handle is not None:
+            self._mobility_handle.cancel()
+        self._inbox.clear()
+
+    def freeze(self) -> None:
+        """Stop putting new frames on the air (benchmarks: let in-flight frames land)."""
+        self._frozen = True
+
+    # ------------------------------------------------------------------ motes
+
+    def attach(
+        self,
+        sink: RadioSink,
+        mobility: Mobility,
+        *,
+        tx_power_dbm: float | None = None,
+        battery_mj: float | None = None,
+    ) -> Radio:
+        """Put a mote on the air. Re-attaching a dead mote's id keeps its counters."""
+        nid = sink.node_id
+        if not isinstance(nid, int) or not 0 <= nid <= MAX_NODE_ID:
+            raise ValueError(f"node id {nid!r} outside 0..{MAX_NODE_ID}")
+        if nid in self.radios:
+            raise ValueError(f"node {nid} is already on this medium")
+        txp = self.preset.tx_power_dbm if tx_power_dbm is None else float(tx_power_dbm)
+        self.preset.check_tx_power(txp)
+        counters = self._counters.setdefault(nid, MoteCounters())
+        battery = None if battery_mj is None else Battery(battery_mj)
+        r = Radio(self, sink, mobility, txp, self.model.max_range_m(txp), battery, counters)
+        self.radios[nid] = r
+        r.x, r.y = mobility.position(self.clock.now())
+        r.cell = cell_of(r.x, r.y, self.cell_size)
+        r.pos_t = self.clock.now()
+        if r.static:
+            self._grid.setdefault(r.cell, []).append(r)
+            self._topology_changed()
+        else:
+            self._moving.append(r)
+            self._ensure_mobility_tick()
+        self._ensure_columns(r.cell)
+        self._ensure_publisher(r)  # declared now rather than at the first frame (slow-ish)
+        return r
+
+    def detach(self, node_id: int) -> None:
+        """Take a mote off the air (killed). Its counters stay readable."""
+        r = self.radios.pop(node_id, None)
+        if r is None:
+            return
+        self._silence(r)
+        if r.static:
+            self._grid[r.cell].remove(r)
+            self._topology_changed()
+        else:
+            self._moving.remove(r)
+
+    def prime(self, senders: Iterable[tuple[int, float, float, float]]) -> int:
+        """Precompute receiver lists for static senders ``(id, x, y, tx_power)``
+        (local ones and known remote ones), so the first frames do not pay for
+        them. Returns how many lists were built."""
+        n = 0
+        for src, x, y, txp in senders:
+            c = self._caches.get(src)
+            if c is None or c.gen != self._gen or c.x != x or c.y != y or c.txp != txp:
+                cell = cell_of(x, y, self.cell_size)
+                if any(True for _ in self._cells_around(cell)):
+                    self._build_cache(src, x, y, txp)
+                    n += 1
+        return n
+
+    def prime_local(self) -> int:
+        """:meth:`prime` for every static local mote."""
+        return self.prime(
+            (r.node_id, r.x, r.y, r.tx_power) for r in self.radios.values() if r.static
+        )
+
+    @property
+    def counters(self) -> dict[int, MoteCounters]:
+        """Per-mote counters (every mote ever attached here), bulk drops folded in."""
+        self._flush_all()
+        return self._counters
+
+    def positions(self) -> dict[int, tuple[float, float]]:
+        return {nid: r.position() for nid, r in self.radios.items()}
+
+    def key_for(self, cell: Cell, src: int) -> str:
+        return f"{self.prefix}/radio/{cell[0]}/{cell[1]}/{src}"
+
+    @property
+    def columns(self) -> frozenset[int]:
+        """Grid columns this process subscribes to."""
+        return frozenset(self._columns)
+
+    # ------------------------------------------------------------------ subscriptions
+
+    def _ensure_columns(self, cell: Cell) -> None:
+        for cx in (cell[0] - 1, cell[0], cell[0] + 1):
+            if cx not in self._columns and not self._closed:
+                self._columns.add(cx)
+                self._subscribe(f"{self.prefix}/radio/{cx}/*/*")
+
+    def _subscribe(self, key: str) -> None:
+        if self.handler == "callback":
+            # indirect=False: run on Zenoh's own thread (no extra Python thread per
+            # subscriber); the callback only copies bytes and maybe wakes the loop.
+            self._subs.append(
+                self.session.declare_subscriber(
+                    key,
+                    zenoh.handlers.Callback(self._on_sample, indirect=False),
+                    allowed_origin=zenoh.Locality.REMOTE,
+                )
+            )
+        else:
+            self._chans.append(
+                self.session.declare_subscriber(
+                    key,
+                    zenoh.handlers.FifoChannel(CHANNEL_CAPACITY),
+                    allowed_origin=zenoh.Locality.REMOTE,
+                )
+            )
+            if self._poll is None:
+                self._poll = self.loop.call_later(CHANNEL_POLL_S, self._poll_channels)
+        self.stats.subscriptions += 1
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        # Zenoh thread: copy the data out, wake the loop once per batch. Never
+        # touch asyncio objects here except through call_soon_threadsafe.
+        self._inbox.append((sample.payload.to_bytes(), str(sample.key_expr)))
+        if not self._wakeup:
+            self._wakeup = True
+            loop = self._loop
+            if loop is None:
+                return
+            with contextlib.suppress(RuntimeError):  # loop closed while Zenoh still delivers
+                loop.call_soon_threadsafe(self._drain_inbox)
+
+    def _drain_inbox(self) -> None:
+        self._wakeup = False  # before popping: a sample appended later schedules again
+        inbox = self._inbox
+        n = 0
+        while inbox:
+            data, key = inbox.popleft()
+            n += 1
+            self._receive_envelope(data, key)
+        st = self.stats
+        st.batches += 1
+        if n > st.max_batch:
+            st.max_batch = n
+
+    def _poll_channels(self) -> None:
+        self._poll = None
+        if self._closed:
+            return
+        n = 0
+        for sub in self._chans:
+            while True:
+                s = sub.try_recv()
+                if s is None:
+                    break
+                n += 1
+                self._receive_envelope(s.payload.to_bytes(), str(s.key_expr))
+        if n:
+            st = self.stats
+            st.batches += 1
+            st.max_batch = max(st.max_batch, n)
+        self._poll = self.loop.call_later(CHANNEL_POLL_S, self._poll_channels)
+
+    # ------------------------------------------------------------------ receive side
+
+    def _receive_envelope(self, data: bytes, key: str) -> None:
+        if self._closed:
+            return
+        self.stats.envelopes_rx += 1
+        try:
+            env = decode_envelope(data)
+        except MalformedEnvelope as e:
+            self._malformed(key, str(e))
+            return
+        now = self.clock.now()
+        if env.kind is Kind.ACK:
+            self._ack_in(env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.dest, now)
+        elif env.dest == BROADCAST:
+            self._hear_broadcast(env.src, env.x, env.y, env.tx_power, env.seq, env.frame, now)
+        else:
+            r = self.radios.get(env.dest)
+            if r is None:
+                self.stats.ignored += 1
+                return
+            if self._hear_unicast(
+                env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.frame, r, now
+            ):
+                # The destination got it: its auto-ACK goes back to the sender's process.
+                self._publish(r, Kind.ACK, env.seq, env.attempt, now, env.src, b"")
+
+    def _malformed(self, key: str, reason: str) -> None:
+        """Garbage on a radio key: counted per process and at the local motes that
+        listen to the cell named by the key (if the key names one)."""
+        self.stats.malformed_envelopes += 1
+        log.debug("malformed envelope on %s: %s", key, reason)
+        if self.on_malformed is not None:
+            self.on_malformed(key, reason)
+        parts = key.split("/")
+        if len(parts) < 4:
+            return
+        try:
+            cx, cy = int(parts[-3]), int(parts[-2])
+        except ValueError:
+            return
+        now = self.clock.now()
+        for r in self._listeners((cx, cy), now):
+            r.counters.malformed += 1
+
+    def _listeners(self, cell: Cell, now: float) -> list[Radio]:
+        """Local motes whose 3x3 neighbourhood contains ``cell``."""
+        cx, cy = cell
+        out = [r for lst in self._cells_around(cell) for r in lst]
+        for r in self._moving:
+            self._locate(r, now)
+            if abs(r.cell[0] - cx) <= 1 and abs(r.cell[1] - cy) <= 1:
+                out.append(r)
+        return out
+
+    def _hear_broadcast(
+        self, src: int, sx: float, sy: float, txp: float, seq: int, frame: bytes, now: float
+    ) -> None:
+        n = len(frame)
+        bits = 8 * (n + self._overhead)
+        key = packet_key(seq, 0)
+        c = self._caches.get(src)
+        if c is None or c.gen != self._gen or c.x != sx or c.y != sy or c.txp != txp:
+            c = self._build_cache(src, sx, sy, txp)
+        links = self.links
+        heard = False
+        if c.near or c.far_loss or c.far_dist:
+            heard = True
+            c.pending += 1
+            kg = (key * _GOLDEN) & _M64
+            sens = self._sens
+            noise = self._noise
+            one = self._one_snr
+            sf = self._sigma_f
+            prr_bits = self.model.prr_bits
+            for r, mean, lh in c.near:
+                if not r.alive:
+                    continue
+                # Inlined RadioModel.decide(lh, mean, bits, key): the hot path.
+                z = ((lh ^ kg) + _GOLDEN) & _M64
+                z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+                z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _M64
+                z ^= z >> 31
+                rssi = mean - sf * _NORMAL[z >> _SHIFT]
+                if rssi < sens or (
+                    rssi - noise < one and (z & 0xFFFFFFFF) * _U32 >= prr_bits(rssi, bits)
+                ):
+                    r.counters.dropped_loss += 1
+                    continue
+                rc = r.counters
+                rc.frames_rx += 1
+                rc.bytes_rx += n
+                if links is not None:
+                    k = (src, r.node_id)
+                    links[k] = links.get(k, 0) + 1
+                r.sink.radio_receive(frame, rssi, now)
+                if r.battery is not None:
+                    self._check_battery(r, now)
+        if self._moving:
+            scell = cell_of(sx, sy, self.cell_size)
+            rng = self.model.max_range_m(txp)
+            for r in list(self._moving):
+                if r.node_id == src or not r.alive:
+                    continue
+                self._locate(r, now)
+                if abs(r.cell[0] - scell[0]) > 1 or abs(r.cell[1] - scell[1]) > 1:
+                    continue
+                heard = True
+                d = math.hypot(r.x - sx, r.y - sy)
+                if d > rng:
+                    r.counters.dropped_distance += 1
+                    continue
+                m = self.model
+                ok, rssi = m.decide(
+                    m.fading_link_hash(src, r.node_id),
+                    m.mean_rssi(src, r.node_id, d, txp),
+                    bits,
+                    key,
+                )
+                if not ok:
+                    r.counters.dropped_loss += 1
+                    continue
+                rc = r.counters
+                rc.frames_rx += 1
+                rc.bytes_rx += n
+                if links is not None:
+                    k = (src, r.node_id)
+                    links[k] = links.get(k, 0) + 1
+                r.sink.radio_receive(frame, rssi, now)
+                self._check_battery(r, now)
+        if not heard:
+            self.stats.ignored += 1
+
+    def _build_cache(self, src: int, sx: float, sy: float, txp: float) -> _SenderCache:
+        old = self._caches.get(src)
+        if old is not None and old.pending:
+            self._flush(old)
+        c = _SenderCache(sx, sy, txp, self._gen)
+        m = self.model
+        rng = m.max_range_m(txp)
+        for lst in self._cells_around(cell_of(sx, sy, self.cell_size)):
+            for r in lst:
+                if r.node_id == src:
+                    continue
+                d = math.hypot(r.x - sx, r.y - sy)
+                if d > rng:
+                    c.far_dist.append(r)
+                    continue
+                mean = m.mean_rssi(src, r.node_id, d, txp)
+                if m.never_delivers(mean):
+                    c.far_loss.append(r)
+                else:
+                    c.near.append((r, mean, m.fading_link_hash(src, r.node_id)))
+        self._caches[src] = c
+        return c
+
+    def _hear_unicast(
+        self,
+        src: int,
+        sx: float,
+        sy: float,
+        txp: float,
+        seq: int,
+        attempt: int,
+        frame: bytes,
+        r: Radio,
+        now: float,
+    ) -> bool:
+        """The destination ``r`` hears (or not) one attempt. Returns whether it
+        got the frame (and so sent its auto-ACK)."""
+        if not r.alive:
+            return False
+        self._locate(r, now)
+        scell = cell_of(sx, sy, self.cell_size)
+        if abs(r.cell[0] - scell[0]) > 1 or abs(r.cell[1] - scell[1]) > 1:
+            self.stats.ignored += 1
+            return False  # not listening to the sender's cell: hears nothing, counts nothing
+        d = math.hypot(r.x - sx, r.y - sy)
+        rc = r.counters
+        if d > self.model.max_range_m(txp):
+            rc.dropped_distance += 1
+            return False
+        n = len(frame)
+        m = self.model
+        ok, rssi = m.decide(
+            m.fading_link_hash(src, r.node_id),
+            m.mean_rssi(src, r.node_id, d, txp),
+            8 * (n + self._overhead),
+            packet_key(seq, attempt),
+        )
+        if not ok:
+            rc.dropped_loss += 1
+            return False
+        rc.frames_rx += 1
+        rc.bytes_rx += n
+        if self.links is not None:
+            k = (src, r.node_id)
+            self.links[k] = self.links.get(k, 0) + 1
+        if r.last_useq.get(src) == seq:
+            rc.duplicates += 1  # a retry of a frame already received: ACK it, do not deliver
+        else:
+            r.last_useq[src] = seq
+            r.sink.radio_receive(frame, rssi, now)
+        if not r.alive:  # switched off by whoever handled the frame
+            return False
+        rc.acks_tx += 1  # the hardware auto-ACK, on the reverse link at r's power
+        self._check_battery(r, now)
+        return True
+
+    def _ack_in(
+        self,
+        acker: int,
+        ax: float,
+        ay: float,
+        atxp: float,
+        seq: int,
+        attempt: int,
+        dest: int,
+        now: float,
+    ) -> None:
+        s = self.radios.get(dest)
+        if s is None or s.cur is None or not s.alive:
+            self.stats.ignored += 1
+            return
+        tx, cseq, cattempt = s.cur
+        if tx.dest != acker or cseq != seq or attempt > cattempt:
+            self.stats.ignored += 1  # a late ACK of an earlier frame
+            return
+        self._locate(s, now)
+        if self._ack_heard(acker, ax, ay, atxp, s, seq, attempt):
+            if s.handle is not None:
+                s.handle.cancel()
+                s.handle = None
+            self._uc_done(s, True)
+
+    def _ack_heard(
+        self, acker: int, ax: float, ay: float, atxp: float, s: Radio, seq: int, attempt: int
+    ) -> bool:
+        d = math.hypot(s.x - ax, s.y - ay)
+        if d > self.model.max_range_m(atxp):
+            return False
+        ok, _ = self.model.ack_reception(acker, s.node_id, d, atxp, packet_key(seq, attempt, True))
+        return ok
+
+    # ------------------------------------------------------------------ send side
+
+    def _check_tx(self, r: Radio, tx: Transmission) -> None:
+        # A core that sends an oversize frame or to itself has a bug: raise.
+        if len(tx.frame) > self.preset.mtu:
+            raise ValueError(f"node {r.node_id}: frame of {len(tx.frame)} bytes > MTU")
+        d = tx.dest
+        if d != BROADCAST and (not 0 <= d <= MAX_NODE_ID or d == r.node_id):
+            raise ValueError(f"node {r.node_id}: bad destination {d}")
+
+    def _start_next(self, r: Radio) -> None:
+        if not r.queue or self._frozen or self._closed:
+            return
+        tx = r.queue.popleft()
+        seq = r.seq
+        r.seq = (seq + 1) & 0xFFFF
+        r.busy = True
+        r.cur = (tx, seq, 0)
+        self._schedule_attempt(r, len(tx.frame), seq, 0)
+
+    def _schedule_attempt(self, r: Radio, n: int, seq: int, attempt: int) -> None:
+        h = packet_hash(r.backoff_h, packet_key(seq, attempt))
+        backoff = (h & 0xFFFFFFFF) * _U32 * self.preset.mac_backoff_s
+        when = self.clock.to_monotonic(self.clock.now() + backoff + self.preset.airtime_s(n))
+        r.handle = self.loop.call_at(when, self._tx_end, r)
+
+    def _tx_end(self, r: Radio) -> None:
+        r.handle = None
+        if not r.alive or r.cur is None or self._closed:
+            return
+        tx, seq, attempt = r.cur
+        frame = tx.frame
+        n = len(frame)
+        c = r.counters
+        c.frames_tx += 1
+        c.bytes_tx += n
+        now = self.clock.now()
+        self._locate(r, now)
+        if tx.dest == BROADCAST:
+            self._publish(r, Kind.FRAME, seq, 0, now, BROADCAST, frame)
+            r.busy = False
+            r.cur = None
+            self._hear_broadcast(r.node_id, r.x, r.y, r.tx_power, seq, frame, now)
+            if self._check_battery(r, now) and r.alive and not r.busy:
+                self._start_next(r)
+            return
+        # Unicast: a local destination is decided here and now; a remote one
+        # answers with an ACK envelope (or not) before the wait expires.
+        dest = self.radios.get(tx.dest)
+        p = self.preset
+        if dest is not None:
+            got = self._hear_unicast(
+                r.node_id, r.x, r.y, r.tx_power, seq, attempt, frame, dest, now
+            )
+            acked = got and self._ack_heard(
+                dest.node_id, dest.x, dest.y, dest.tx_power, r, seq, attempt
+            )
+            if not self._check_battery(r, now):
+                return
+            wait = p.ack_turnaround_s + p.ack_airtime_s if acked else p.ack_timeout_s
+            r.handle = self.loop.call_at(
+                self.clock.to_monotonic(now + wait), self._uc_done, r, acked
+            )
+            return
+        self._publish(r, Kind.FRAME, seq, attempt, now, tx.dest, frame)
+        if not self._check_battery(r, now):
+            return
+        wall = max(self.clock.wall_seconds(p.ack_timeout_s), self.ack_wait_floor_s)
+        r.handle = self.loop.call_later(wall, self._uc_done, r, False)
+
+    def _uc_done(self, r: Radio, acked: bool) -> None:
+        r.handle = None
+        if not r.alive or r.cur is None or self._closed:
+            return
+        tx, seq, attempt = r.cur
+        c = r.counters
+        if not acked and attempt < self.preset.max_retries and not self._frozen:
+            c.retries += 1
+            r.cur = (tx, seq, attempt + 1)
+            self._schedule_attempt(r, len(tx.frame), seq, attempt + 1)
+            return
+        if acked:
+            c.acks_rx += 1
+            c.unicast_ok += 1
+        else:
+            c.unicast_failed += 1
+        r.busy = False
+        r.cur = None
+        now = self.clock.now()
+        r.sink.radio_link_result(tx, acked, now)
+        if acked and not self._check_battery(r, now):
+            return
+        if r.alive and not r.busy:
+            self._start_next(r)
+
+    def _publish(
+        self, r: Radio, kind: Kind, seq: int, attempt: int, now: float, dest: int, frame: bytes
+    ) -> None:
+        """Put one envelope from ``r`` on its current cell's key (remote processes only)."""
+        if self._closed:
+            return
+        data = encode_envelope(
+            kind, r.node_id, r.x, r.y, r.tx_power, seq, attempt, now, dest, frame
+        )
+        pub = r.pub
+        if pub is None or r.pub_cell != r.cell:
+            pub = self._ensure_publisher(r)
+        pub.put(data)
+        if kind is Kind.ACK:
+            self.stats.acks_published += 1
+        else:
+            self.stats.frames_published += 1
+
+    def _ensure_publisher(self, r: Radio) -> zenoh.Publisher:
+        """The publisher of ``r``'s current cell key (re-declared when it moves)."""
+        pub = r.pub
+        if pub is None or r.pub_cell != r.cell:
+            if pub is not None:
+                pub.undeclare()  # type: ignore[no-untyped-call]
+            pub = r.pub = self.session.declare_publisher(
+                self.key_for(r.cell, r.node_id), allowed_destination=zenoh.Locality.REMOTE
+            )
+            r.pub_cell = r.cell
+        return pub
+
+    # ------------------------------------------------------------------ battery, death
+
+    def _check_battery(self, r: Radio, now: float) -> bool:
+        """False (and the mote is switched off) once its battery is spent."""
+        b = r.battery
+        if b is None or not r.alive:
+            return r.alive
+        if b.is_dead(r.counters, self.preset, r.tx_power):
+            self.detach(r.node_id)
+            r.sink.radio_down("battery", now)
+            return False
+        return True
+
+    def _silence(self, r: Radio) -> None:
+        r.alive = False
+        r.queue.clear()
+        r.busy = False
+        r.cur = None
+        if r.handle is not None:
+            r.handle.cancel()
+            r.handle = None
+        if r.pub is not None:
+            with contextlib.suppress(zenoh.ZError):
+                r.pub.undeclare()  # type: ignore[no-untyped-call]
+            r.pub = None
+            r.pub_cell = None
+
+    # ------------------------------------------------------------------ geometry
+
+    def _locate(self, r: Radio, now: float) -> None:
+        """Refresh a moving mote's position and cell for ``now``."""
+        if r.static or r.pos_t == now:
+            return
+        r.x, r.y = r.mobility.position(now)
+        r.pos_t = now
+        cell = cell_of(r.x, r.y, self.cell_size)
+        if cell != r.cell:
+            r.cell = cell
+            self._ensure_columns(cell)
+
+    def _ensure_mobility_tick(self) -> None:
+        # Moving receivers must be subscribed to the columns they move into even
+        # if they neither send nor hear anything for a while.
+        if self._mobility_handle is None and self._loop is not None:
+            self._mobility_handle = self._loop.call_later(0.5, self._mobility_tick)
+
+    def _mobility_tick(self) -> None:
+        self._mobility_handle = None
+        if self._closed or not self._moving:
+            return
+        now = self.clock.now()
+        for r in self._moving:
+            self._locate(r, now)
+        self._mobility_handle = self.loop.call_later(0.5, self._mobility_tick)
+
+    def _cells_around(self, cell: Cell) -> Iterable[list[Radio]]:
+        cx, cy = cell
+        grid = self._grid
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                lst = grid.get((cx + dx, cy + dy))
+                if lst:
+                    yield lst
+
+    def _topology_changed(self) -> None:
+        self._flush_all()
+        self._gen += 1
+
+    def _flush(self, c: _SenderCache) -> None:
+        k = c.pending
+        for r in c.far_loss:
+            r.counters.dropped_loss += k
+        for r in c.far_dist:
+            r.counters.dropped_distance += k
+        c.pending = 0
+
+    def _flush_all(self) -> None:
+        for c in self._caches.values():
+            if c.pending:
+                self._flush(c)

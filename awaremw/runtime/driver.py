@@ -1,0 +1,266 @@
+"""The asyncio driver of one MoteCore on a radio medium, in emulated real time.
+
+A :class:`MoteRunner` is the thin adapter between a sans-IO core
+(:mod:`awaremw.protocol.core`) and the :class:`~awaremw.radio.zenoh_medium.ZenohMedium`:
+
+* it calls ``core.start(now)`` when the mote boots, ``core.handle_timer(now)``
+  when the core's deadline passes, ``core.receive`` for every frame the medium
+  delivers and ``core.link_result`` for every unicast outcome;
+* after every call it drains the core: frames go to the mote's radio, events go
+  to the ``on_event(node_id, event, now)`` hook (``MalformedFrame`` events are
+  also counted in the mote's counters), and its ONE loop timer is re-armed at
+  ``core.next_deadline()`` (converted to loop time by the
+  :class:`~awaremw.runtime.clock.EmulatedClock`), or cancelled;
+* it records timer lag -- how late (in wall milliseconds) a timer ran compared
+  with the deadline the core asked for -- into a shared :class:`LagStats`.
+
+Every call happens on the event loop's thread; nothing here blocks.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
+from awaremw.radio.counters import MoteCounters
+from awaremw.radio.zenoh_medium import Radio, ZenohMedium
+from awaremw.runtime.clock import EmulatedClock
+from awaremw.world.mobility import Mobility
+
+EventHook = Callable[[int, object, float], None]
+
+_MAX_FIRINGS_AT_ONE_TIME = 10_000
+
+
+@dataclass(frozen=True, slots=True)
+class MoteUp:
+    """Event (through ``on_event``): the mote booted and is on the air."""
+
+
+@dataclass(frozen=True, slots=True)
+class MoteDown:
+    """Event (through ``on_event``): the mote was switched off."""
+
+    reason: str  # "killed", "battery" or "stopped"
+
+
+class LagStats:
+    """Timer lag samples in wall milliseconds (late > 0), shared by a process's runners."""
+
+    __slots__ = ("samples",)
+
+    def __init__(self) -> None:
+        self.samples: list[float] = []
+
+    def add(self, lag_ms: float) -> None:
+        self.samples.append(lag_ms)
+
+    def clear(self) -> None:
+        self.samples.clear()
+
+    def percentile(self, q: float) -> float:
+        """The ``q``-th percentile (0..100), nearest rank; NaN without samples."""
+        return percentile(self.samples, q)
+
+
+def percentile(samples: list[float], q: float) -> float:
+    if not samples:
+        return math.nan
+    s = sorted(samples)
+    k = min(len(s) - 1, max(0, math.ceil(q / 100.0 * len(s)) - 1))
+    return s[k]
+
+
+class MoteRunner:
+    """Drives one core on a medium. Create, then :meth:`start` (or :meth:`start_at`)."""
+
+    __slots__ = (
+        "_armed",
+        "_fire_count",
+        "_fire_t",
+        "_handle",
+        "_tx_power",
+        "alive",
+        "battery_mj",
+        "clock",
+        "core",
+        "lag",
+        "loop",
+        "medium",
+        "mobility",
+        "node_id",
+        "on_event",
+        "radio",
+    )
+
+    def __init__(
+        self,
+        core: MoteCore,
+        medium: ZenohMedium,
+        mobility: Mobility,
+        *,
+        tx_power_dbm: float | None = None,
+        battery_mj: float | None = None,
+        on_event: EventHook | None = None,
+        lag: LagStats | None = None,
+    ) -> None:
+        self.core = core
+        self.node_id: int = core.node_id
+        self.medium = medium
+        self.clock: EmulatedClock = medium.clock
+        self.loop = medium.loop
+        self.mobility = mobility
+        self._tx_power = tx_power_dbm
+        self.battery_mj = battery_mj
+        self.on_event = on_event
+        self.lag = lag
+        self.radio: Radio | None = None
+        self.alive = False
+        self._armed: float | None = None
+        self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
+        self._fire_t = -math.inf
+        self._fire_count = 0
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def attach(self) -> None:
+        """Put the mote's radio on the medium without booting the core yet (a
+        launcher attaches every mote, primes the medium's caches, then boots)."""
+        if self.radio is None:
+            self.radio = self.medium.attach(
+                self, self.mobility, tx_power_dbm=self._tx_power, battery_mj=self.battery_mj
+            )
+
+    def start(self) -> None:
+        """Boot now: on the air, ``core.start(now)``."""
+        if self.alive:
+            raise RuntimeError(f"mote {self.node_id} already started")
+        if self.radio is not None and not self.radio.alive:
+            raise RuntimeError(f"mote {self.node_id}: a runner is single-use; make a new one")
+        self.attach()
+        self.alive = True
+        now = self.clock.now()
+        self._emit(MoteUp(), now)
+        self.core.start(now)
+        self._after(now)
+
+    def start_at(self, t: float) -> None:
+        """Boot at emulated time ``t`` (now if it has passed)."""
+        now = self.clock.now()
+        if t <= now:
+            self.start()
+            return
+        self._handle = self.loop.call_at(self.clock.to_monotonic(t), self._boot)
+
+    def _boot(self) -> None:
+        self._handle = None
+        self.start()
+
+    def stop(self, reason: str = "killed") -> None:
+        """Switch the mote off (idempotent): timer cancelled, radio detached."""
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+        self._armed = None
+        if not self.alive:
+            return
+        self.alive = False
+        self.medium.detach(self.node_id)
+        self._emit(MoteDown(reason), self.clock.now())
+
+    @property
+    def counters(self) -> MoteCounters | None:
+        return None if self.radio is None else self.radio.counters
+
+    def run_on(self, fn: Callable[[MoteCore, float], object]) -> None:
+        """Run ``fn(core, now)`` now (on the loop's thread), then drain and re-arm.
+
+        The gateway uses it to inject definitions into its mote's core.
+        """
+        if not self.alive:
+            raise RuntimeError(f"mote {self.node_id} is not running")
+        now = self.clock.now()
+        fn(self.core, now)
+        self._after(now)
+
+    # ------------------------------------------------------------------ RadioSink
+
+    def radio_receive(self, frame: bytes, rssi_dbm: float, now: float) -> None:
+        if not self.alive:
+            return
+        self.core.receive(frame, rssi_dbm, now)
+        self._after(now)
+
+    def radio_link_result(self, tx: Transmission, acked: bool, now: float) -> None:
+        if not self.alive:
+            return
+        self.core.link_result(tx, acked, now)
+        self._after(now)
+
+    def radio_down(self, reason: str, now: float) -> None:
+        """The medium switched the mote off (battery spent)."""
+        if not self.alive:
+            return
+        self.alive = False
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+        self._armed = None
+        self._emit(MoteDown(reason), now)
+
+    # ------------------------------------------------------------------ the one timer
+
+    def _after(self, now: float) -> None:
+        """Collect what the core wants after any call into it; re-arm the timer."""
+        core = self.core
+        txs = core.drain()
+        if txs and self.radio is not None:
+            self.radio.send(txs)
+        evs = core.events()
+        if evs:
+            for e in evs:
+                self._emit(e, now)
+        if not self.alive:
+            return
+        dl = core.next_deadline()
+        if dl == self._armed and self._handle is not None:
+            return
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+        self._armed = dl
+        if dl is not None:
+            self._handle = self.loop.call_at(self.clock.to_monotonic(dl), self._fire)
+
+    def _fire(self) -> None:
+        self._handle = None
+        dl = self._armed
+        self._armed = None
+        if not self.alive or dl is None:
+            return
+        clock = self.clock
+        now = clock.now()
+        if self.lag is not None:
+            self.lag.add((now - dl) / clock.speed * 1000.0)
+        # The loop may wake a hair early (clock resolution): never hand the core a
+        # "now" before the deadline it asked for.
+        if now < dl:
+            now = dl
+        if now == self._fire_t:
+            self._fire_count += 1
+            if self._fire_count > _MAX_FIRINGS_AT_ONE_TIME:
+                raise RuntimeError(f"mote {self.node_id}: core keeps its deadline at {now}")
+        else:
+            self._fire_t, self._fire_count = now, 0
+        self.core.handle_timer(now)
+        self._after(now)
+
+    def _emit(self, event: object, now: float) -> None:
+        if type(event) is MalformedFrame and self.radio is not None:
+            self.radio.counters.malformed += 1
+        hook = self.on_event
+        if hook is not None:
+            hook(self.node_id, event, now)
