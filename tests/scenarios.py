@@ -197,13 +197,12 @@ class Scenario:
         return out
 
     def leaders(self, gtype: int) -> dict[int, int]:
-        """group id -> leader, for live leaders (a duplicate id shows as a clash)."""
-        out: dict[int, int] = {}
-        for n, m in self.memberships(gtype).items():
-            if m.is_leader:
-                assert m.group_id not in out, f"two leaders of group {m.group_id}"
-                out[m.group_id] = n
-        return out
+        """group id -> leader, for live leaders (see leader_nodes for id clashes)."""
+        return {m.group_id: n for n, m in self.memberships(gtype).items() if m.is_leader}
+
+    def leader_nodes(self, gtype: int) -> list[int]:
+        """Every live leader of the type (two with one id after a duplicated handover)."""
+        return [n for n, m in self.memberships(gtype).items() if m.is_leader]
 
     def qualifying(self, pred: Callable[[int], bool]) -> set[int]:
         return {n for n in self.alive() if pred(n)}

@@ -11,14 +11,18 @@ from __future__ import annotations
 import math
 import random
 from collections.abc import Callable
+from dataclasses import replace
 
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
-from scenarios import Point, Scenario, in_disc, indicator, moving_disc
+from scenarios import LOSSLESS, Point, Scenario, ScriptedApp, in_disc, indicator, moving_disc
 
-from awaremw.protocol.attributes import TEMPERATURE
+from awaremw.protocol.attributes import TEMPERATURE, rssi_attribute
 from awaremw.protocol.frames import ANY_GROUP_ID, AggId, ChannelDef, Condition, GroupTypeDef, Op
 from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected, Role
+from awaremw.protocol.mote import AwareMote
+from awaremw.radio.model import PRESETS, RadioPreset
+from awaremw.world.mobility import Path
 
 HOT = GroupTypeDef((Condition(TEMPERATURE, Op.GT, 50.0),))
 Region = Callable[[Point, float], bool]
@@ -70,7 +74,7 @@ def topologies(
 
 
 @settings(
-    max_examples=12,
+    max_examples=30,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
     phases=[Phase.explicit, Phase.reuse, Phase.generate],  # shrinking a run costs minutes
@@ -126,7 +130,8 @@ def test_region_moving_across_the_grid_keeps_its_id_and_members_follow() -> None
         assert always <= members <= ever, (t, sorted(always - members), sorted(members - ever))
         handing = [n for n in sc.alive() if sc.motes[n].groups.role(1) is Role.HANDING_OVER]
         # One leader, or for a few ms one Handover in flight and none yet.
-        assert len(sc.leaders(1)) == 1 or (not sc.leaders(1) and len(handing) == 1), t
+        leaders = sc.leader_nodes(1)
+        assert len(leaders) == 1 or (not leaders and len(handing) == 1), t
     assert len(ids) == 1  # one id from start to end: handover, never re-creation
     causes = [e.cause for _, _, e in sc.of_type(LeaderElected)]
     assert causes.count(ElectionCause.HANDOVER) >= 5
@@ -221,3 +226,46 @@ def test_killing_30_percent_leaves_every_connected_group_working() -> None:
         (gid,) = {sc.motes[n].groups.membership(1).group_id for n in comp}  # type: ignore[union-attr]
         counts = [r.count for r in recs if r.group_id == gid]
         assert counts and counts[-1] == len(comp), (gid, counts, len(comp))
+
+
+# --------------------------------------------------------------------------- a robot, by RSSI
+
+
+def _robot_run(seed: int, preset: RadioPreset) -> tuple[Scenario, list[int]]:
+    """The paper's experiment: a group of the motes that hear the robot's mote
+    above -88 dBm (hysteresis 2 dB), the robot crossing a 12 x 5 grid at 1 m/s."""
+    sc = Scenario(seed=seed, preset=preset)
+    sc.grid(12, 5)
+    path = Path(((-5.0, 24.0), (140.0, 24.0)), speed_mps=1.0, start_s=10.0)
+    robot = AwareMote(500, None, replace(sc.config, hello_period=0.5), random.Random(seed))
+    sc.motes[500] = robot
+    sc.apps[500] = ScriptedApp(path, {})
+    sc.net.add(robot, path)
+    sc.run_until(1.0)
+    near = GroupTypeDef((Condition(rssi_attribute(500), Op.GT, -88.0),), hysteresis=2.0)
+    sc.define_group(1, near)
+    leaders_per_second = []
+    for k in range(20, 160):
+        sc.run_until(float(k))
+        leaders_per_second.append(len(sc.leader_nodes(1)))
+    return sc, leaders_per_second
+
+
+def test_group_follows_a_robot_by_rssi_keeping_its_id() -> None:
+    sc, leaders = _robot_run(4, LOSSLESS)
+    assert all(n == 1 for n in leaders)
+    elected = [e for _, _, e in sc.of_type(LeaderElected)]
+    assert len({e.group_id for e in elected}) == 1
+    assert sum(e.cause is ElectionCause.HANDOVER for e in elected) >= 8
+    # At the end the group is around the robot (x = 140 m): the last column.
+    assert all(sc.position(n)[0] >= 108 for n in sc.memberships(1))
+
+
+def test_robot_tracking_on_the_realistic_radio() -> None:
+    """With shadowing and fading, a 4-6 mote group on weak links sometimes misses
+    beacons for a leader timeout (a split by the paper's rules: new id); measured on
+    seeds 1..10: 90-100 % of the seconds with exactly one leader, 1-3 ids per run."""
+    for seed in (1, 2, 3):
+        sc, leaders = _robot_run(seed, PRESETS["cc2420"])
+        assert sum(n == 1 for n in leaders) >= 0.85 * len(leaders), seed
+        assert len({e.group_id for _, _, e in sc.of_type(LeaderElected)}) <= 4, seed

@@ -551,6 +551,20 @@ def test_handover_tries_next_candidate_on_link_failure_and_refusal() -> None:
     assert h.g.stats.handovers_failed == 3
 
 
+def test_any_member_heard_forwarding_is_a_candidate_good_links_first() -> None:
+    h = H()
+    b = h.lead()
+    h.hear(beacon(src=21, gid=b.group_id, leader=10, seq=b.seq, hops=1), rssi=-93.0)
+    h.hear(beacon(src=22, gid=b.group_id, leader=10, seq=b.seq, hops=2), rssi=-75.0)
+    h.temp = 20.0
+    h.advance(h.now + h.cfg.check_period)
+    (ho,) = h.sent()
+    assert isinstance(ho, Handover) and ho.dst == 22  # a neighbour, over a good link
+    h.link(ho, acked=False)
+    (ho2,) = h.sent()
+    assert isinstance(ho2, Handover) and ho2.dst == 21
+
+
 def test_leader_without_known_member_reports_gone() -> None:
     h = H()
     h.lead()

@@ -218,7 +218,8 @@ class _TypeState:
     forwarded: bool = True  # the current seq was re-broadcast (our hop count is public)
     upstream: dict[int, _Up] = field(default_factory=dict)
     failed: dict[int, float] = field(default_factory=dict)  # neighbour -> last failed unicast
-    children: dict[int, tuple[float, int]] = field(default_factory=dict)  # n -> (t, readings)
+    # Member neighbours of a leader: handover candidates. n -> (t, readings, link RSSI)
+    children: dict[int, tuple[float, int, float]] = field(default_factory=dict)
     candidates: list[int] = field(default_factory=list)
     handover_to: int | None = None
     handed: tuple[int, int] | None = None  # (group id, seq) of our last Handover
@@ -343,7 +344,7 @@ class Groups(Component):
         st = self._types.get(group_type)
         if st is None or st.role is not Role.LEADER:
             return
-        st.children[node] = (now, count)
+        st.children[node] = (now, count, self._link_rssi(node, -math.inf))
 
     def upstream(self, group_type: int, now: float) -> list[int]:
         """The parent, then the other neighbours that forwarded the current beacon
@@ -651,10 +652,12 @@ class Groups(Component):
             return
         me = self.ctx.node_id
         if f.leader == me:
-            # A member re-broadcasting our own beacon: a one-hop child, a handover candidate.
-            if st.role is Role.LEADER and f.group_id == st.gid and f.hops == 1:
+            # A member re-broadcasting our own beacon, heard directly: a member
+            # neighbour (whatever its hops), hence a handover candidate.
+            if st.role is Role.LEADER and f.group_id == st.gid:
                 old = st.children.get(f.src)
-                st.children[f.src] = (now, 0 if old is None else old[1])
+                count = 0 if old is None else old[1]
+                st.children[f.src] = (now, count, self._link_rssi(f.src, rssi))
             return
         self._note_nearby(st, f, rssi, now)
         role = st.role
@@ -717,10 +720,11 @@ class Groups(Component):
     def _start_handover(self, st: _TypeState, now: float) -> None:
         fresh_for = 1.5 * self.ctx.config.beacon_period
         ttl = self._timeout()
+        floor = self.ctx.config.group_link_rssi_floor
         ranked = sorted(
             (
-                (now - t <= fresh_for, count, t, n)
-                for n, (t, count) in st.children.items()
+                (now - t <= fresh_for, count, rssi >= floor, t, n)
+                for n, (t, count, rssi) in st.children.items()
                 if now - t <= ttl
             ),
             reverse=True,
