@@ -99,3 +99,33 @@ def test_partial_state_survives_the_wire_as_float32() -> None:
     g = decode(encode(f))
     assert isinstance(g, Partial) and g.count == 3
     assert g.state[0] == pytest.approx(s[0], rel=1e-6)
+
+
+def test_aggregation_bench_smoke() -> None:
+    """The bench's documented keys on a small grid (the figures come from the CLI)."""
+    import argparse
+
+    from awaremw.bench import aggregation as bench
+
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args(
+        ["--side", "8", "--radius", "18", "--warmup", "40", "--epochs", "5", "--seed", "2"]
+    )
+    out = bench.run(args)
+    for key in (
+        "lower_bound_ratio",
+        "no_aggregation_ratio",
+        "measured_per_epoch",
+        "lower_bound_per_epoch",
+        "no_aggregation_per_epoch",
+        "by_frame_per_epoch",
+        "members",
+        "leader_hops",
+        "records",
+        "completeness",
+        "meets_targets",
+    ):
+        assert key in out
+    assert out["members"] == out["members_expected"] > 0 and out["leaders"] == 1
+    assert out["records"] == 5 and out["by_frame_per_epoch"]["Partial"] >= out["members"] - 1
