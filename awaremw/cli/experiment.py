@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -40,6 +41,9 @@ def register(sub: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    if getattr(args, "verbose", 0) < 2:
+        # The embedded broker logs every refused protocol probe at WARNING.
+        logging.getLogger("amqtt").setLevel(logging.ERROR)
     from awaremw.experiments.scenario import load_scenario
     from awaremw.runtime.deployment import DeploymentError
 

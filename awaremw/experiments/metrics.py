@@ -70,7 +70,11 @@ class Arrival:
 class Recorder:
     """Collects a run's events into queryable timelines."""
 
-    def __init__(self) -> None:
+    def __init__(self, record_sources: Iterable[str] = ("root", "mqtt")) -> None:
+        # Where a record counts as arrived: "root" (Delivered at a gateway mote)
+        # and/or "mqtt" (an MQTT subscriber). Others are kept in by_source only.
+        self.record_sources = frozenset(record_sources)
+        self.by_source: dict[str, dict[RecordKey, float]] = {}
         self.timeline: dict[tuple[int, int], list[State]] = {}  # (node, type) -> states
         self._times: dict[tuple[int, int], list[float]] = {}
         self.elections: list[Election] = []
@@ -118,7 +122,9 @@ class Recorder:
         """A record reached the IP side (MQTT subscriber or a root's Delivered event)."""
         if via == "mqtt":
             self.mqtt_messages += 1
-        self.arrivals.setdefault(_key(record), Arrival(t, record, via))
+        self.by_source.setdefault(via, {}).setdefault(_key(record), t)
+        if via in self.record_sources:
+            self.arrivals.setdefault(_key(record), Arrival(t, record, via))
 
     def on_rssi(self, node: int, t: float, dbm: float | None) -> None:
         """A sample of what ``node`` believes the robot's RSSI is (for Fig. 9)."""

@@ -1,12 +1,271 @@
-"""Run a scenario in real time: the fleet over Zenoh, the gateway, MQTT.
+"""Run a scenario in real time: fleets over Zenoh, the gateway, MQTT.
 
-Placeholder until the fleet runtime lands; see :func:`run_realtime`.
+The product's main mode, as a robot would meet it. In one process (so that
+the experiment can also observe the motes' events for the metrics):
+
+* three Zenoh sessions on loopback, multicast scouting off, explicit
+  endpoints: the **field** (the sensing motes; listens on a free port), the
+  **robot** (its mote) and the **gateway** (its mote); the latter two connect
+  to the field, so every frame between the robot, the field and the gateway
+  travels over Zenoh;
+* the gateway service on the gateway mote (:func:`attach_to_fleet`), bridged
+  to an MQTT broker: the embedded one (amqtt) unless a URL is given;
+* the robot's client (:class:`~awaremw.experiments.client.RobotClient`),
+  which at ``define_at_s`` publishes the scenario's group and channel
+  definitions over MQTT and collects the records it receives.
+
+All fleets share one time origin and speed factor. Records count as arrived
+when the MQTT subscriber receives them (at the fleet's emulated time of that
+moment), not when the gateway mote does.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+from awaremw.experiments.client import GroupSeen, Received, RobotClient
+from awaremw.experiments.metrics import Recorder
 from awaremw.experiments.scenario import Scenario
 from awaremw.experiments.virtual import RunResult
+from awaremw.gateway.mqtt import MqttSettings
+from awaremw.nodes import app_of, build_core
+from awaremw.protocol.attributes import rssi_attribute
+from awaremw.protocol.core import MoteCore
+from awaremw.protocol.mote import AwareMote
+from awaremw.runtime.deployment import Deployment, NodeSpec
+from awaremw.runtime.zenoh_session import free_tcp_endpoint
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LiveState:
+    """What a view may show while a real-time run goes on (updated in place)."""
+
+    records: list[Received] = field(default_factory=list)
+    groups: dict[tuple[int, int], GroupSeen] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+
+
+Tick = Callable[[float, "RealtimeRun"], None]
+
+
+class RealtimeRun:
+    """Set up, run and tear down one real-time run of a scenario."""
+
+    def __init__(
+        self,
+        sc: Scenario,
+        *,
+        speed: float = 1.0,
+        mqtt: str | None = None,
+        recorder: Recorder | None = None,
+        sample_dt: float = 0.5,
+        on_tick: Tick | None = None,
+        on_record: Callable[[Received], None] | None = None,
+        on_event: Callable[[int, object, float], None] | None = None,
+        prefix: str = "aware",
+    ) -> None:
+        if not speed > 0:
+            raise ValueError(f"speed must be > 0, got {speed}")
+        self.sc = sc
+        self.speed = speed
+        self.mqtt_url = mqtt
+        self.recorder = recorder or Recorder(record_sources=("mqtt",))
+        self.sample_dt = sample_dt
+        self.on_tick = on_tick
+        self.on_record = on_record
+        self.on_event = on_event
+        self.prefix = prefix
+        self.live = LiveState()
+        self.fleets: list[object] = []
+        self.client: RobotClient | None = None
+        self.broker_url: str | None = None
+
+    # ------------------------------------------------------------------ helpers
+
+    def _factory(self) -> Callable[[NodeSpec, Deployment], MoteCore]:
+        world = self.sc.world
+
+        def build(spec: NodeSpec, dep: Deployment) -> MoteCore:
+            return build_core(spec, dep, world)
+
+        return build
+
+    def now(self) -> float:
+        from awaremw.runtime.fleet import Fleet
+
+        f = self.fleets[0]
+        assert isinstance(f, Fleet)
+        return f.now()
+
+    def cores(self) -> dict[int, MoteCore]:
+        from awaremw.runtime.fleet import Fleet
+
+        out: dict[int, MoteCore] = {}
+        for f in self.fleets:
+            assert isinstance(f, Fleet)
+            out.update(f.cores)
+        return out
+
+    def traffic(self) -> dict[int, tuple[int, int, float]]:
+        from awaremw.runtime.fleet import Fleet
+
+        d = self.sc.deployment
+        out: dict[int, tuple[int, int, float]] = {}
+        for f in self.fleets:
+            assert isinstance(f, Fleet)
+            for n, c in f.counters.items():
+                txp = d.tx_power_of(d.node(n))
+                out[n] = (c.frames_tx, c.frames_rx, c.energy_mj(d.preset, txp))
+        return out
+
+    def _sample(self, now: float) -> None:
+        rob = self.sc.robot
+        if rob is None:
+            return
+        attr = rssi_attribute(rob)
+        cores = self.cores()
+        for n in self.sc.get("rssi_motes", []):
+            core = cores.get(int(n))
+            if isinstance(core, AwareMote):
+                self.recorder.on_rssi(int(n), now, core.ctx.read(attr, now))
+
+    def _got_record(self, r: Received) -> None:
+        now = self.now()
+        self.live.records.append(r)
+        self.recorder.on_record(now, r.record, "mqtt")
+        if self.on_record is not None:
+            self.on_record(r)
+
+    def _got_group(self, g: GroupSeen) -> None:
+        if g.state is None:
+            self.live.groups.pop((g.group_type, g.group_id), None)
+        else:
+            self.live.groups[(g.group_type, g.group_id)] = g
+
+    # ------------------------------------------------------------------ the run
+
+    async def run(self, duration: float | None = None) -> RunResult:
+        from awaremw.gateway.broker import EmbeddedBroker
+        from awaremw.gateway.service import GatewaySettings, attach_to_fleet
+        from awaremw.runtime.fleet import Fleet
+
+        sc = self.sc
+        d = sc.deployment
+        end = sc.duration if duration is None else duration
+        started = time.monotonic()
+        async with contextlib.AsyncExitStack() as stack:
+            url = self.mqtt_url
+            if url is None:
+                broker = await stack.enter_async_context(EmbeddedBroker())
+                url = broker.url
+            self.broker_url = url
+            gw_mqtt = MqttSettings.from_url(url, client_id=f"awaremw-gw-{id(self):x}",
+                                            prefix=self.prefix)  # fmt: skip
+            endpoint = free_tcp_endpoint()
+            factory = self._factory()
+            groups: tuple[tuple[str, Callable[[NodeSpec], bool], list[str], list[str]], ...] = (
+                ("field", lambda s: s.kind not in ("robot", "gateway"), [endpoint], []),
+                ("robot", lambda s: s.kind == "robot", [], [endpoint]),
+                ("gateway", lambda s: s.kind == "gateway", [], [endpoint]),
+            )
+            fleets: list[Fleet] = []
+            for name, flt, listen, connect in groups:
+                if not any(flt(s) for s in d.nodes):
+                    continue
+                f = Fleet(d, factory, speed=self.speed, listen=listen, connect=connect,
+                          node_filter=flt, name=name, autostart=False, control=False)  # fmt: skip
+                await stack.enter_async_context(f)
+                f.on_event(self.recorder.on_event)
+                if self.on_event is not None:
+                    f.on_event(self.on_event)
+                fleets.append(f)
+            self.fleets = list(fleets)
+            gw_fleet = next(f for f in fleets if f.name == "gateway")
+            svc = attach_to_fleet(gw_fleet, settings=GatewaySettings(prefix=self.prefix),
+                                  mqtt=gw_mqtt, hbn=True)  # fmt: skip
+            await stack.enter_async_context(svc)
+            for f in fleets:
+                for n, r in f.runners.items():
+                    app = app_of(r.core)
+                    if app is not None:
+                        app.energy = _energy_probe(f, d, n)
+            # Let the Zenoh peers find each other before time 0.
+            await asyncio.sleep(0.3)
+            start_wall = time.time() + 0.1
+            for f in fleets:
+                f.start(start_wall)
+            client_settings = replace(gw_mqtt, client_id=f"awaremw-robot-{id(self):x}")
+            self.client = RobotClient(
+                client_settings, sc.group_json, sc.channel_json,
+                on_record=self._got_record, on_group=self._got_group,
+                on_error=self.live.errors.append,
+            )  # fmt: skip
+            tasks = [
+                asyncio.create_task(self._client_task(fleets[0]), name="robot-client"),
+                asyncio.create_task(self._ticker(fleets[0], end), name="ticker"),
+            ]
+            try:
+                await fleets[0].run(end)
+                for f in fleets:
+                    f.raise_errors()
+            finally:
+                if self.client is not None:
+                    self.client.stop()
+                # The client leaves cleanly (disconnect) before the broker stops.
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(tasks[0]), timeout=2.0)
+                for t in tasks:
+                    t.cancel()
+                for t in tasks:
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await t
+            traffic = self.traffic()
+        log.info("real-time run of %s: %.1f s wall", sc.name, time.monotonic() - started)
+        return RunResult(sc, self.recorder, end, traffic, mode="realtime", speed=self.speed)
+
+    async def _client_task(self, fleet: object) -> None:
+        from awaremw.runtime.fleet import Fleet
+
+        assert isinstance(fleet, Fleet) and self.client is not None
+        await fleet.wait_until(self.sc.define_at)
+        try:
+            await self.client.run()
+        except Exception as e:  # the broker went away: the run goes on, report it
+            log.error("robot client stopped: %s", e)
+            self.live.errors.append(f"robot client: {e}")
+
+    async def _ticker(self, fleet: object, end: float) -> None:
+        from awaremw.runtime.fleet import Fleet
+
+        assert isinstance(fleet, Fleet)
+        t = 0.0
+        while t <= end:
+            await fleet.wait_until(t)
+            now = fleet.now()
+            self._sample(now)
+            if self.on_tick is not None:
+                self.on_tick(now, self)
+            t += self.sample_dt
+
+
+def _energy_probe(fleet: object, d: Deployment, node: int) -> Callable[[], float]:
+    from awaremw.runtime.fleet import Fleet
+
+    assert isinstance(fleet, Fleet)
+    txp = d.tx_power_of(d.node(node))
+
+    def probe() -> float:
+        c = fleet.counters.get(node)
+        return 0.0 if c is None else c.energy_mj(d.preset, txp) / 1000.0
+
+    return probe
 
 
 def run_realtime(
@@ -16,4 +275,20 @@ def run_realtime(
     mqtt: str | None = None,
     plain: bool = True,
 ) -> RunResult:
-    raise NotImplementedError("the real-time experiment needs the fleet runtime; use --virtual")
+    """Blocking helper for the CLI: one real-time run with plain progress logs."""
+    from awaremw.view.live import PlainLog, describe
+
+    view = PlainLog(every=10.0)
+
+    def tick(now: float, run: RealtimeRun) -> None:
+        from awaremw.view.snapshot import snapshot_of
+
+        view.update(snapshot_of(sc, run.recorder, now, run.live, run.traffic()))
+
+    def event(node: int, ev: object, t: float) -> None:
+        line = describe(node, ev, t)
+        if line is not None and not plain:
+            view.log(t, line)
+
+    rt = RealtimeRun(sc, speed=speed, mqtt=mqtt, on_tick=tick, on_event=event)
+    return asyncio.run(rt.run(duration))

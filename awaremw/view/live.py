@@ -57,7 +57,8 @@ def describe(node: int, event: object, t: float) -> str | None:
             f"mote {event.node} yielded group {event.group_id} to heavier group {event.successor}"
         )
     if type(event).__name__ == "MoteDown":
-        return f"mote {node} is down ({getattr(event, 'reason', '?')})"
+        reason = getattr(event, "reason", "?")
+        return None if reason == "stopped" else f"mote {node} is down ({reason})"
     return None
 
 
