@@ -510,3 +510,29 @@ def test_period_changed_on_line_takes_effect_within_one_dissemination_round() ->
     # And no record of the old period after the round plus an old period.
     old = [t for t, r in recs if r.epoch * 4.0 < change + 4.0 and r.epoch < 20]
     assert all(t <= spread + 4.0 for t in old)
+
+
+def test_two_group_types_at_once_with_a_channel_on_any_type() -> None:
+    hot_zone = in_disc(30, 30, 22)
+    wet_zone = in_disc(60, 60, 30)  # overlaps the hot one: some motes are in both groups
+    sc = Scenario(seed=12)
+    sc.grid(
+        8,
+        8,
+        {
+            T: lambda p, t: 80.0 if hot_zone(p) else 20.0,
+            HUMIDITY: lambda p, t: 90.0 if wet_zone(p) else 30.0,
+        },
+    )
+    sc.run_until(1.0)
+    sc.define_group(1, HOT)
+    sc.define_group(2, GroupTypeDef((Condition(HUMIDITY, Op.GE, 85.0),)))
+    sc.define_channel(7, chan(AggId.COUNT, gtype=ANY_GROUP_TYPE, attr=T))
+    sc.run_until(40.0)
+    hot = {n for n in sc.motes if hot_zone(sc.position(n))}
+    wet = {n for n in sc.motes if wet_zone(sc.position(n))}
+    assert hot & wet
+    assert set(sc.memberships(1)) == hot and set(sc.memberships(2)) == wet
+    last = {r.group_type: r for _, r in sc.records(since=30.0)}
+    assert last[1].count == len(hot) and last[2].count == len(wet)
+    assert last[1].group_id == sc.motes[min(hot)].groups.membership(1).group_id  # type: ignore[union-attr]
