@@ -51,17 +51,7 @@ from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
-from awaremw.radio.model import (
-    _GOLDEN,
-    _M64,
-    _NORMAL,
-    _SHIFT,
-    _U32,
-    RadioModel,
-    cell_of,
-    packet_hash,
-    packet_key,
-)
+from awaremw.radio.model import RadioModel, cell_of, packet_key
 from awaremw.runtime.clock import EmulatedClock
 from awaremw.world.mobility import Mobility, Static
 
@@ -110,7 +100,6 @@ class Radio:
 
     __slots__ = (
         "alive",
-        "backoff_h",
         "battery",
         "busy",
         "cell",
@@ -162,7 +151,6 @@ class Radio:
         self.cur: tuple[Transmission, int, int] | None = None  # (tx, seq, attempt)
         self.handle: asyncio.TimerHandle | None = None  # tx end or ACK wait
         self.seq = 0
-        self.backoff_h = medium.model.backoff_link_hash(self.node_id)
         self.last_useq: dict[int, int] = {}
         self.pub: zenoh.Publisher | None = None
         self.pub_cell: Cell | None = None
@@ -245,10 +233,6 @@ class ZenohMedium:
         self._frozen = False
         self._mobility_handle: asyncio.TimerHandle | None = None
         p = self.preset
-        self._sens = p.sensitivity_dbm
-        self._noise = p.noise_floor_dbm
-        self._one_snr = model._one_snr_db
-        self._sigma_f = p.fading_sigma_db
         self._overhead = p.phy_overhead_bytes
         self.on_malformed: Callable[[str, str], None] | None = None  # (key, reason)
         # Optional per-link delivery counts {(src, dst): frames}, for tests and
@@ -516,24 +500,12 @@ class ZenohMedium:
         if c.near or c.far_loss or c.far_dist:
             heard = True
             c.pending += 1
-            kg = (key * _GOLDEN) & _M64
-            sens = self._sens
-            noise = self._noise
-            one = self._one_snr
-            sf = self._sigma_f
-            prr_bits = self.model.prr_bits
+            decide = self.model.decide  # the model's own decision, never a copy of it
             for r, mean, lh in c.near:
                 if not r.alive:
                     continue
-                # Inlined RadioModel.decide(lh, mean, bits, key): the hot path.
-                z = ((lh ^ kg) + _GOLDEN) & _M64
-                z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _M64
-                z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _M64
-                z ^= z >> 31
-                rssi = mean - sf * _NORMAL[z >> _SHIFT]
-                if rssi < sens or (
-                    rssi - noise < one and (z & 0xFFFFFFFF) * _U32 >= prr_bits(rssi, bits)
-                ):
+                ok, rssi = decide(lh, mean, bits, key)
+                if not ok:
                     r.counters.dropped_loss += 1
                     continue
                 rc = r.counters
@@ -712,8 +684,7 @@ class ZenohMedium:
         self._schedule_attempt(r, len(tx.frame), seq, 0)
 
     def _schedule_attempt(self, r: Radio, n: int, seq: int, attempt: int) -> None:
-        h = packet_hash(r.backoff_h, packet_key(seq, attempt))
-        backoff = (h & 0xFFFFFFFF) * _U32 * self.preset.mac_backoff_s
+        backoff = self.model.backoff_s(r.node_id, seq, attempt)
         when = self.clock.to_monotonic(self.clock.now() + backoff + self.preset.airtime_s(n))
         r.handle = self.loop.call_at(when, self._tx_end, r)
 

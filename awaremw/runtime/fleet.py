@@ -588,11 +588,13 @@ class Fleet:
             "area": list(dep.area),
             "nodes": [dict(entry)],
         }
-        kinds: list[str] | None = None
+        # Known node kinds, plus whatever kinds this deployment already runs
+        # (a custom core factory may use its own).
+        kinds = {s.kind for s in dep.nodes}
         with contextlib.suppress(ImportError):
             from awaremw.nodes import kind_names
 
-            kinds = kind_names()
+            kinds.update(kind_names())
         spec = parse_deployment(doc, None, kinds).nodes[0]
         return spec
 
