@@ -306,3 +306,58 @@ class Collector:
                 f"timed out after {timeout} s; {len(self.messages)} messages, last: "
                 f"{self.messages[-5:]!r}"
             ) from None
+
+
+class MosquittoSub:
+    """A ``mosquitto_sub -v`` process; ``lines`` are ``(topic, payload)`` as they arrive."""
+
+    def __init__(self, m: Mosquitto, user: str, topic: str, *extra: str) -> None:
+        self.args = sub_args(m, user, topic, *extra)
+        self.lines: list[tuple[str, str]] = []
+        self._changed = asyncio.Event()
+        self._proc: asyncio.subprocess.Process | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> MosquittoSub:
+        self._proc = await asyncio.create_subprocess_exec(
+            *self.args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+        )
+        self._task = asyncio.create_task(self._read())
+        return self
+
+    async def _read(self) -> None:
+        assert self._proc is not None and self._proc.stdout is not None
+        async for raw in self._proc.stdout:
+            topic, _, payload = raw.decode().rstrip("\n").partition(" ")
+            self.lines.append((topic, payload))
+            self._changed.set()
+        self._changed.set()
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._proc is not None and self._proc.returncode is None:
+            self._proc.terminate()
+            await self._proc.wait()
+        if self._task is not None:
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+
+    async def wait_for(
+        self, pred: Callable[[list[tuple[str, str]]], bool], timeout: float = 20.0
+    ) -> list[tuple[str, str]]:
+        async def loop() -> None:
+            while not pred(self.lines):
+                self._changed.clear()
+                if self._task is not None and self._task.done():
+                    err = b""
+                    if self._proc is not None and self._proc.stderr is not None:
+                        err = await self._proc.stderr.read()
+                    raise AssertionError(f"mosquitto_sub ended: {err.decode()}")
+                await self._changed.wait()
+
+        try:
+            await asyncio.wait_for(loop(), timeout)
+        except TimeoutError:
+            raise AssertionError(
+                f"timed out after {timeout} s; {len(self.lines)} lines, last: {self.lines[-5:]!r}"
+            ) from None
+        return self.lines

@@ -181,6 +181,9 @@ def test_records_published_once_with_contract_fields() -> None:
     }
     assert b.on_payload(r, 100.5) == []  # delivered twice (two roots): published once
     assert b.stats.duplicate_records == 1
+    # Same epoch number, other content: a new period counts epochs anew.
+    [p2] = b.on_payload(DataRecord(3, 1, 513, 42, 0, 20.0, 4, 17), 101.0)
+    assert json.loads(p2.payload)["value"] == 20.0
 
 
 def test_group_state_retained_then_cleared_when_gone_or_unheard() -> None:

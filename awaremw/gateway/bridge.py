@@ -160,7 +160,7 @@ class GatewayBridge:
     dedupe_window: int = 4096
     groups: dict[tuple[int, int], GroupState] = field(default_factory=dict)
     stats: BridgeStats = field(default_factory=BridgeStats)
-    _recent: OrderedDict[tuple[int, int, int, int], None] = field(default_factory=OrderedDict)
+    _recent: OrderedDict[DataRecord, None] = field(default_factory=OrderedDict)
 
     # ----------------------------------------------------------------- IP -> WSN
 
@@ -238,12 +238,13 @@ class GatewayBridge:
         return self.on_report(payload, now)
 
     def on_record(self, r: DataRecord, now: float) -> list[Publish]:
-        key = (r.channel, r.group_type, r.group_id, r.epoch)
-        if key in self._recent:
-            # Several gateway roots, or a link-layer retry whose ACK was lost.
+        # A copy of a record (several gateway roots, or a link-layer retry whose
+        # ACK was lost) is equal field by field. The epoch alone is not a key:
+        # after a period change the epochs are counted in the new period.
+        if r in self._recent:
             self.stats.duplicate_records += 1
             return []
-        self._recent[key] = None
+        self._recent[r] = None
         if len(self._recent) > self.dedupe_window:
             self._recent.popitem(last=False)
         self.stats.records += 1

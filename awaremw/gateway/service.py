@@ -36,6 +36,9 @@ from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.frames import DataRecord, GroupReport
+from awaremw.protocol.mote import AwareMote
+from awaremw.runtime.driver import MoteUp
+from awaremw.runtime.fleet import Fleet
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +128,7 @@ class GatewayService:
         self.injected = 0
         self.inject_failures = 0
         self.handled = asyncio.Event()  # set after every payload handled (for waiters)
+        self.delivered = asyncio.Event()  # set after every record or report from the WSN
 
     # ----------------------------------------------------------------- lifecycle
 
@@ -209,25 +213,36 @@ class GatewayService:
         ]
 
     def _inject_all(self, inj: Inject) -> None:
-        assert self._inject is not None
         for node in self.roots:
-            try:
-                self._inject(node, inj)
-                self.injected += 1
-            except Exception:  # a mote refusing what the bridge accepted is our bug
-                self.inject_failures += 1
-                log.exception("injecting %s into mote %d failed", inj, node)
+            self._inject_one(node, inj)
+
+    def _inject_one(self, node: int, inj: Inject) -> None:
+        assert self._inject is not None
+        try:
+            self._inject(node, inj)
+            self.injected += 1
+        except Exception:  # a mote refusing what the bridge accepted is our bug
+            self.inject_failures += 1
+            log.exception("injecting %s into mote %d failed", inj, node)
 
     # ----------------------------------------------------------------- WSN -> IP
 
     def on_event(self, node_id: int, event: object, now: float) -> None:
         """Hook for the runtime: every event of a gateway mote's core."""
+        if node_id not in self.roots:
+            return
+        if isinstance(event, MoteUp) and self._inject is not None:
+            # A gateway mote (re)booted with an empty memory: give it the state.
+            for inj in self.bridge.startup():
+                self._inject_one(node_id, inj)
+            return
         payload = getattr(event, "payload", None)
-        if node_id not in self.roots or not isinstance(payload, DataRecord | GroupReport):
+        if not isinstance(payload, DataRecord | GroupReport):
             return
         t = getattr(event, "t", now)
         for p in self.bridge.on_payload(payload, float(t)):
             self.publish(p)
+        self.delivered.set()
         if isinstance(payload, GroupReport):
             self._refresh_hbn()
 
@@ -282,3 +297,48 @@ class GatewayService:
 
 def _fields(s: MqttSettings) -> dict[str, Any]:
     return {f: getattr(s, f) for f in s.__slots__}
+
+
+def attach_to_fleet(
+    fleet: Fleet,
+    *,
+    settings: GatewaySettings | None = None,
+    mqtt: MqttSettings | None = None,
+    hbn: bool = True,
+) -> GatewayService:
+    """A :class:`GatewayService` on the gateway motes (collection roots) ``fleet`` runs.
+
+    Call after entering the fleet (its cores exist); then ``async with`` the
+    service. Items are injected with ``fleet.run_on``; a root that is not on
+    the air yet gets the whole state when it boots (``MoteUp``).
+    """
+    cores = {i: r.core for i, r in fleet.runners.items()}
+    roots = sorted(i for i, c in cores.items() if isinstance(c, AwareMote) and c.config.is_root)
+    if not roots:
+        raise ValueError(f"deployment {fleet.deployment.name!r} has no gateway mote here")
+    core = cores[roots[0]]
+    assert isinstance(core, AwareMote)
+    svc = GatewayService(
+        roots,
+        config=core.config,
+        settings=settings,
+        mqtt=mqtt,
+        zenoh_session=fleet.session if hbn else None,
+        known_nodes=fleet.deployment.ids,
+        speed=fleet.speed,
+    )
+
+    def inject(node: int, inj: Inject) -> None:
+        if not fleet.alive(node):
+            return  # not booted yet: MoteUp brings the whole state
+        fleet.run_on(node, lambda c, now: _inject_core(c, inj, now))
+
+    svc.bind(inject, fleet.now)
+    fleet.on_event(svc.on_event)
+    return svc
+
+
+def _inject_core(core: object, inj: Inject, now: float) -> None:
+    if not isinstance(core, AwareMote):
+        raise TypeError(f"gateway mote core is a {type(core).__name__}, not an AwareMote")
+    core.inject(inj.kind, inj.item_id, inj.version, inj.body, now)

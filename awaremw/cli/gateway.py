@@ -1,0 +1,230 @@
+"""``awaremw gateway DEPLOYMENT``: run the gateway motes and bridge them to MQTT and Zenoh.
+
+::
+
+    awaremw gateway romeo4r --connect tcp/127.0.0.1:7447 --mqtt mqtt://gateway:pw@broker:1883
+    awaremw gateway romeo4r                      # embedded broker on a free port, printed
+
+The gateway runs the deployment's gateway motes (collection roots) in this
+process, joined to the emulation through ``--connect`` (a router or a fleet
+that listens), and serves the MQTT contract and the Zenoh HBN API (see
+docs/gateway.md). Emulated time is taken from a running fleet when one
+answers on its control key (so record times and epochs agree), else it
+starts at 0 now.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import signal
+import sys
+import time
+from pathlib import Path
+
+from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
+
+log = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "gateway",
+        help="run the gateway motes and the MQTT / Zenoh bridge",
+        description="Run the deployment's gateway motes and bridge them to MQTT (an "
+        "embedded broker when --mqtt is not given) and to the Zenoh HBN API.",
+    )
+    p.add_argument("deployment", metavar="DEPLOYMENT", help="deployment name or .toml path")
+    p.add_argument(
+        "--mqtt",
+        default=None,
+        metavar="URL",
+        help="broker mqtt[s]://[user:pass@]host:port (default: embedded broker)",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh endpoint of the emulation (repeatable)",
+    )
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to listen on (repeatable)",
+    )
+    p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
+    p.add_argument(
+        "--state-dir",
+        default=None,
+        metavar="DIR",
+        help="keep versions in DIR/gateway.sqlite (survive restarts)",
+    )
+    p.add_argument("--speed", type=float, default=1.0, help="emulation speed factor")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S emulated seconds (default: run until interrupted)",
+    )
+    p.add_argument(
+        "--start-wall",
+        type=float,
+        default=None,
+        metavar="UNIX_TIME",
+        help="the emulation's time origin (default: ask a running fleet, else now)",
+    )
+    p.add_argument("--radio-prefix", default=None, help="Zenoh prefix of the emulated radio")
+    p.add_argument("--client-id", default="awaremw-gateway", help="MQTT client id")
+    p.add_argument("--ca-file", default=None, help="CA bundle for mqtts://")
+    p.add_argument("--tls-insecure", action="store_true", help="do not verify the broker's name")
+    p.add_argument(
+        "--buffer",
+        type=int,
+        default=10_000,
+        metavar="N",
+        help="records kept while the broker is away (default 10000)",
+    )
+    p.add_argument("--no-hbn", action="store_true", help="no Zenoh HBN API")
+    p.add_argument(
+        "--define-initial",
+        action="store_true",
+        help="apply the deployment's [[groups]] and [[channels]] at start",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        mqtt = (
+            None
+            if args.mqtt is None
+            else MqttSettings.from_url(
+                args.mqtt,
+                client_id=args.client_id,
+                ca_file=args.ca_file,
+                tls_insecure=args.tls_insecure,
+                buffer_size=args.buffer,
+            )
+        )
+    except BadMqttUrl as e:
+        print(f"awaremw gateway: {e}", file=sys.stderr)
+        return 2
+    if args.speed <= 0 or args.buffer < 1:
+        print("awaremw gateway: --speed must be > 0 and --buffer >= 1", file=sys.stderr)
+        return 2
+    try:
+        return asyncio.run(_main(args, mqtt))
+    except KeyboardInterrupt:
+        return 130
+
+
+async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
+    from awaremw.gateway.broker import EmbeddedBroker
+    from awaremw.gateway.service import GatewaySettings, attach_to_fleet, deployment_definitions
+    from awaremw.nodes import kind_names
+    from awaremw.radio.zenoh_medium import DEFAULT_PREFIX
+    from awaremw.runtime.deployment import DeploymentError, load
+    from awaremw.runtime.fleet import Fleet
+
+    try:
+        dep = load(args.deployment, kind_names())
+    except (DeploymentError, OSError) as e:
+        print(f"awaremw gateway: {e}", file=sys.stderr)
+        return 2
+    if not any(s.kind == "gateway" for s in dep.nodes):
+        print(f"awaremw gateway: {dep.name} has no mote of kind 'gateway'", file=sys.stderr)
+        return 2
+    radio_prefix = args.radio_prefix or DEFAULT_PREFIX
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError):
+            loop.add_signal_handler(sig, stop.set)
+
+    async with contextlib.AsyncExitStack() as stack:
+        if mqtt is None:
+            broker = await stack.enter_async_context(EmbeddedBroker())
+            print(f"embedded MQTT broker: {broker.url}", flush=True)
+            mqtt = MqttSettings.from_url(
+                broker.url, client_id=args.client_id, buffer_size=args.buffer
+            )
+        fleet = Fleet(
+            dep,
+            speed=args.speed,
+            prefix=radio_prefix,
+            connect=args.connect,
+            listen=args.listen,
+            node_filter=lambda s: s.kind == "gateway",
+            name="gateway",
+            autostart=False,
+        )
+        await stack.enter_async_context(fleet)
+        start_wall = args.start_wall
+        if start_wall is None and args.connect:
+            start_wall = await _fleet_start_wall(fleet, radio_prefix, args.speed)
+        fleet.start(start_wall)
+        settings = GatewaySettings(
+            prefix=args.prefix,
+            state_dir=None if args.state_dir is None else Path(args.state_dir),
+        )
+        svc = attach_to_fleet(fleet, settings=settings, mqtt=mqtt, hbn=not args.no_hbn)
+        await stack.enter_async_context(svc)
+        if args.define_initial:
+            for out in svc.define_initial(deployment_definitions(dep.groups, dep.channels)):
+                if out.error is not None:
+                    print(
+                        f"awaremw gateway: deployment definition refused: {out.error.topic}: "
+                        f"{out.error.error}",
+                        file=sys.stderr,
+                    )
+        print(
+            f"awaremw gateway: motes {','.join(map(str, svc.roots))} of {dep.name}; "
+            f"MQTT {mqtt.url} prefix {args.prefix!r}; Zenoh HBN "
+            f"{'off' if args.no_hbn else args.prefix + '/hbn/**'}",
+            flush=True,
+        )
+        waiters = [asyncio.create_task(stop.wait()), asyncio.create_task(fleet.run(args.duration))]
+        done, pending = await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+        for t in pending:
+            t.cancel()
+        for t in done:
+            if (exc := t.exception()) is not None:
+                raise exc
+    return 0
+
+
+async def _fleet_start_wall(fleet: object, radio_prefix: str, speed: float) -> float | None:
+    """Ask running fleets for their emulated time; the time origin it implies, or None."""
+    from awaremw.runtime.fleet import Fleet
+
+    assert isinstance(fleet, Fleet)
+    session = fleet.session
+    request = json.dumps({"op": "list"}).encode()
+
+    def ask() -> float | None:
+        for _ in range(6):  # routes may take a moment after connecting
+            t_sent = time.time()
+            for reply in session.get(f"{radio_prefix}/ctl/fleet/**", payload=request, timeout=0.5):
+                if reply.ok is None:
+                    continue
+                try:
+                    doc = json.loads(reply.ok.payload.to_bytes())
+                except ValueError:
+                    continue
+                t = doc.get("t")
+                if doc.get("fleet") != fleet.name and isinstance(t, int | float):
+                    t_recv = time.time()
+                    return (t_sent + t_recv) / 2 - float(t) / speed
+        return None
+
+    start = await asyncio.to_thread(ask)
+    if start is None:
+        log.warning("no fleet answered on %s/ctl/fleet: emulated time starts now", radio_prefix)
+    return start
