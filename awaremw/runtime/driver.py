@@ -94,6 +94,7 @@ class MoteRunner:
         "node_id",
         "on_event",
         "radio",
+        "stopped",
     )
 
     def __init__(
@@ -119,6 +120,7 @@ class MoteRunner:
         self.lag = lag
         self.radio: Radio | None = None
         self.alive = False
+        self.stopped = False  # switched off for good (killed, battery, stopped)
         self._armed: float | None = None
         self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
         self._fire_t = -math.inf
@@ -138,7 +140,7 @@ class MoteRunner:
         """Boot now: on the air, ``core.start(now)``."""
         if self.alive:
             raise RuntimeError(f"mote {self.node_id} already started")
-        if self.radio is not None and not self.radio.alive:
+        if self.stopped:
             raise RuntimeError(f"mote {self.node_id}: a runner is single-use; make a new one")
         self.attach()
         self.alive = True
@@ -160,15 +162,18 @@ class MoteRunner:
         self.start()
 
     def stop(self, reason: str = "killed") -> None:
-        """Switch the mote off (idempotent): timer cancelled, radio detached."""
+        """Switch the mote off (idempotent): timer cancelled, radio detached.
+        A mote waiting to boot never boots."""
+        self.stopped = True
         if self._handle is not None:
             self._handle.cancel()
             self._handle = None
         self._armed = None
+        if self.radio is not None and self.radio.alive:
+            self.medium.detach(self.node_id)  # attached, maybe not booted yet
         if not self.alive:
             return
         self.alive = False
-        self.medium.detach(self.node_id)
         self._emit(MoteDown(reason), self.clock.now())
 
     @property
@@ -205,6 +210,7 @@ class MoteRunner:
         if not self.alive:
             return
         self.alive = False
+        self.stopped = True
         if self._handle is not None:
             self._handle.cancel()
             self._handle = None

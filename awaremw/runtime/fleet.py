@@ -131,7 +131,7 @@ def stripes(deployment: Deployment, n: int) -> list[XStripe]:
     cuts: list[float] = []
     for k in range(1, n):
         x = xs[min(len(xs) - 1, (k * len(xs)) // n)]
-        if not cuts or x > cuts[-1]:
+        if x > (cuts[-1] if cuts else xs[0]):  # no empty stripe in front
             cuts.append(x)
     bounds = [-math.inf, *cuts, math.inf]
     out = [XStripe(bounds[i], bounds[i + 1]) for i in range(len(bounds) - 1)]
@@ -447,10 +447,8 @@ class Fleet:
         that id is on the air here already.
         """
         old = self.runners.get(spec.id)
-        if old is not None and (old.alive or (old.radio is None and not self.started)):
+        if old is not None and not old.stopped:
             raise ValueError(f"node {spec.id} is already running in fleet {self.name}")
-        if old is not None:
-            old.stop("replaced")  # a pending boot
         self.deployment.preset.check_tx_power(self.deployment.tx_power_of(spec))
         r = self._make_runner(spec)
         if self.started:
@@ -460,9 +458,9 @@ class Fleet:
     def kill(self, node_id: int, reason: str = "killed") -> bool:
         """Switch a mote off; False if it is not running here."""
         r = self.runners.get(node_id)
-        if r is None or not (r.alive or r.radio is None):
+        if r is None or r.stopped:
             return False
-        r.stop(reason)
+        r.stop(reason)  # on the air, or still waiting to boot
         return True
 
     def run_on(self, node_id: int, fn: Callable[[MoteCore, float], object]) -> None:
