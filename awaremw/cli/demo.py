@@ -33,6 +33,12 @@ def register(sub: Any) -> None:
     p.add_argument("--duration", type=float, default=None, help="emulated seconds to run")
     p.add_argument("--speed", type=float, default=1.0, help="emulated seconds per wall second")
     p.add_argument("--mqtt", default=None, help="broker mqtt[s]://[user:pass@]host:port")
+    p.add_argument(
+        "--robot-mqtt",
+        default=None,
+        metavar="URL",
+        help="the robot client's own broker account (default: the --mqtt URL)",
+    )
     p.add_argument("--plain", action="store_true", help="log lines instead of the live view")
     p.set_defaults(func=main)
 
@@ -53,22 +59,30 @@ def main(args: argparse.Namespace) -> int:
     if not args.speed > 0 or (args.duration is not None and not args.duration > 0):
         print("awaremw demo: --speed and --duration must be > 0", file=sys.stderr)
         return 2
-    if args.mqtt is not None:
-        try:
-            MqttSettings.from_url(args.mqtt)
-        except BadMqttUrl as e:
-            print(f"awaremw demo: {e}", file=sys.stderr)
-            return 2
+    for url in (args.mqtt, args.robot_mqtt):
+        if url is not None:
+            try:
+                MqttSettings.from_url(url)
+            except BadMqttUrl as e:
+                print(f"awaremw demo: {e}", file=sys.stderr)
+                return 2
     if not sc.deployment.of_kind("gateway"):
         print(f"awaremw demo: {sc.name} has no gateway mote", file=sys.stderr)
         return 2
-    summary = asyncio.run(run_demo(sc, args.duration, args.speed, args.mqtt, args.plain))
+    summary = asyncio.run(
+        run_demo(sc, args.duration, args.speed, args.mqtt, args.plain, args.robot_mqtt)
+    )
     print_summary(summary, plain=args.plain)
     return 0
 
 
 async def run_demo(
-    sc: Any, duration: float | None, speed: float, mqtt: str | None, plain: bool
+    sc: Any,
+    duration: float | None,
+    speed: float,
+    mqtt: str | None,
+    plain: bool,
+    robot_mqtt: str | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the summary figures."""
     from awaremw.experiments import metrics as M
@@ -91,7 +105,10 @@ async def run_demo(
     def record(r: Received) -> None:
         view.log(r.t, "robot got " + record_line(to_line(r)))
 
-    run = RealtimeRun(sc, speed=speed, mqtt=mqtt, on_tick=tick, on_event=event, on_record=record)
+    run = RealtimeRun(
+        sc, speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, on_tick=tick, on_event=event,
+        on_record=record,
+    )  # fmt: skip
     end = sc.duration if duration is None else duration
     view.log(0.0, f"demo {sc.name}: {len(sc.deployment.nodes)} motes, {end:g} s at speed "
                   f"{speed:g} (MQTT {'embedded broker' if mqtt is None else mqtt})")  # fmt: skip

@@ -36,6 +36,12 @@ def register(sub: Any) -> None:
     p.add_argument("--deployment", default=None, help="another deployment file of the same shape")
     p.add_argument("--duration", type=float, default=None, help="emulated seconds to run")
     p.add_argument("--mqtt", default=None, help="broker URL (default: embedded broker)")
+    p.add_argument(
+        "--robot-mqtt",
+        default=None,
+        metavar="URL",
+        help="the robot client's own broker account (default: the --mqtt URL)",
+    )
     p.add_argument("--plain", action="store_true", help="log lines instead of a live view")
     p.set_defaults(func=main)
 
@@ -66,7 +72,12 @@ def main(args: argparse.Namespace) -> int:
         from awaremw.experiments.realtime import run_realtime
 
         result = run_realtime(
-            sc, speed=args.speed, duration=args.duration, mqtt=args.mqtt, plain=args.plain
+            sc,
+            speed=args.speed,
+            duration=args.duration,
+            mqtt=args.mqtt,
+            plain=args.plain,
+            robot_mqtt=args.robot_mqtt,
         )
     metrics = analysis(name)(result, out)
     metrics["wall_s"] = round(time.monotonic() - started, 2)

@@ -64,6 +64,7 @@ class RealtimeRun:
         *,
         speed: float = 1.0,
         mqtt: str | None = None,
+        robot_mqtt: str | None = None,
         recorder: Recorder | None = None,
         sample_dt: float = 0.5,
         on_tick: Tick | None = None,
@@ -76,6 +77,7 @@ class RealtimeRun:
         self.sc = sc
         self.speed = speed
         self.mqtt_url = mqtt
+        self.robot_mqtt_url = robot_mqtt  # the client's own account (default: mqtt's)
         self.recorder = recorder or Recorder(record_sources=("mqtt",))
         self.sample_dt = sample_dt
         self.on_tick = on_tick
@@ -201,7 +203,12 @@ class RealtimeRun:
             start_wall = time.time() + 0.1
             for f in fleets:
                 f.start(start_wall)
-            client_settings = replace(gw_mqtt, client_id=f"awaremw-robot-{id(self):x}")
+            client_settings = (
+                MqttSettings.from_url(self.robot_mqtt_url, prefix=self.prefix)
+                if self.robot_mqtt_url is not None
+                else gw_mqtt
+            )
+            client_settings = replace(client_settings, client_id=f"awaremw-robot-{id(self):x}")
             self.client = RobotClient(
                 client_settings, sc.group_json, sc.channel_json,
                 on_record=self._got_record, on_group=self._got_group,
@@ -274,21 +281,30 @@ def run_realtime(
     duration: float | None = None,
     mqtt: str | None = None,
     plain: bool = True,
+    robot_mqtt: str | None = None,
 ) -> RunResult:
-    """Blocking helper for the CLI: one real-time run with plain progress logs."""
-    from awaremw.view.live import PlainLog, describe
+    """Blocking helper for the CLI: one real-time run, shown live on a terminal
+    (``plain`` False and stdout a TTY) or as status log lines."""
+    import sys
 
-    view = PlainLog(every=10.0)
+    from awaremw.view.live import LiveView, PlainLog, View, describe
+    from awaremw.view.snapshot import snapshot_of
+
+    view: View = LiveView() if not plain and sys.stdout.isatty() else PlainLog(every=10.0)
 
     def tick(now: float, run: RealtimeRun) -> None:
-        from awaremw.view.snapshot import snapshot_of
-
         view.update(snapshot_of(sc, run.recorder, now, run.live, run.traffic()))
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)
-        if line is not None and not plain:
+        if line is not None and not isinstance(view, PlainLog):
             view.log(t, line)
 
-    rt = RealtimeRun(sc, speed=speed, mqtt=mqtt, on_tick=tick, on_event=event)
-    return asyncio.run(rt.run(duration))
+    rt = RealtimeRun(
+        sc, speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, on_tick=tick, on_event=event
+    )
+    view.start()
+    try:
+        return asyncio.run(rt.run(duration))
+    finally:
+        view.stop()

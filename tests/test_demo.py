@@ -1,0 +1,160 @@
+"""The demo and the real-time experiment: fleets over real Zenoh sessions on
+loopback, the gateway, an MQTT broker (embedded amqtt, or Mosquitto), the
+robot's client over MQTT; and the live view's rendering."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mosquitto import Mosquitto, mosquitto_fixture  # noqa: F401
+from rich.console import Console
+
+from awaremw.experiments.scenario import load_scenario
+from awaremw.view.live import PlainLog, describe
+from awaremw.view.render import render
+from awaremw.view.snapshot import GroupLine, MoteDot, RecordLine, Snapshot
+
+pytestmark = pytest.mark.zenoh
+
+# romeo4r at 10x: the robot is sensed from t = 32 s, records follow within seconds.
+FAST = ["--duration", "45", "--speed", "10"]
+
+
+def _cli(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "awaremw", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+def test_demo_plain_runs_the_whole_system() -> None:
+    p = _cli("demo", *FAST, "--plain")
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = p.stdout
+    assert "demo romeo4r: 22 motes" in out
+    assert "leads group" in out  # a group formed around the robot
+    assert "robot got data ch 1 group 1/" in out  # and its data reached the robot over MQTT
+    lines = dict(
+        line.removeprefix("summary ").split(": ", 1)
+        for line in out.splitlines()
+        if line.startswith("summary ")
+    )
+    assert int(lines["records received (MQTT)"]) >= 2
+    assert lines["group ids seen"].isdigit()  # exactly one group id
+    assert float(lines["frames sent per mote"]) > 0
+    assert "Traceback" not in p.stderr
+
+
+def test_demo_refuses_bad_arguments() -> None:
+    p = _cli("demo", "--deployment", "no_such_place", "--plain")
+    assert p.returncode == 2 and "no such deployment" in p.stderr
+    p = _cli("demo", "--mqtt", "http://127.0.0.1:1", "--plain")
+    assert p.returncode == 2 and "mqtt://" in p.stderr
+
+
+async def test_demo_against_mosquitto_with_acl(
+    mosquitto: Mosquitto, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The gateway and the robot use their own accounts on a real Mosquitto."""
+    from awaremw.cli.demo import run_demo
+
+    sc = load_scenario("romeo4r")
+    summary = await run_demo(
+        sc, 42.0, 10.0, mosquitto.url("gateway"), True, robot_mqtt=mosquitto.url("operator")
+    )
+    assert summary["records_received"] >= 2, capsys.readouterr().out[-3000:]
+    assert len(summary["groups"]) == 1
+    assert not summary["errors"]
+
+
+def test_realtime_experiment_cli(tmp_path: Path) -> None:
+    """``awaremw experiment romeo4r`` in real time (fast) writes metrics and figures."""
+    import json
+
+    p = _cli(
+        "experiment",
+        "romeo4r",
+        "--speed",
+        "10",
+        "--duration",
+        "60",
+        "--out",
+        str(tmp_path),
+        timeout=120,
+    )
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["mode"] == "realtime" and m["speed"] == 10.0
+    assert m["first_record_via"] == "mqtt"
+    assert m["distinct_group_ids"] == 1
+    assert m["membership_f1"] >= 0.8  # 10x on a shared 2-core machine: a loose bound
+    assert m["delivery_ratio"] >= 0.8
+    for png in ("romeo4r_snapshots.png", "romeo4r_rssi.png"):
+        assert (tmp_path / png).stat().st_size > 5000
+
+
+# ---------------------------------------------------------------- the view
+
+
+def _snap() -> Snapshot:
+    return Snapshot(
+        12.5,
+        (0, 20, 0, 12),
+        (
+            MoteDot(1, 2, 2, "mica2", 513, True),
+            MoteDot(4, 6, 5, "mica2", 513),
+            MoteDot(17, 15, 9, "mica2"),
+            MoteDot(9, 10, 10, "mica2", alive=False),
+            MoteDot(100, 5, 5.5, "robot"),
+            MoteDot(0, 0, 12, "gateway"),
+        ),
+        (GroupLine(1, 513, 1, 2),),
+        (RecordLine(11.0, 1, 1, 513, "avg", 21.5, 2, 1),),
+        {"records": 3, "frames/mote": 12.25},
+        group_type=1,
+    )
+
+
+def test_render_shows_motes_groups_leaders_robot_and_records() -> None:
+    console = Console(width=140, record=True, file=io.StringIO(), color_system="truecolor")
+    console.print(render(_snap()))
+    text = console.export_text()
+    for needle in ("★1", "●4", "·17", "x9", "▲100", "■0", "t =    12.5 s", "513", "avg 21.50"):
+        assert needle in text, needle
+    # members are drawn in their group's colour, idle motes in grey
+    from awaremw.view.render import GroupStyles, map_text
+
+    t = map_text(_snap(), 60, 20, GroupStyles())
+    style_at = {t.plain[s.start]: str(s.style) for s in t.spans if s.end - s.start == 1}
+    assert style_at["★"] == "bold " + style_at["●"]
+    assert style_at["·"] == "grey62" and style_at["▲"] == "bold red"
+
+
+def test_plain_log_throttles_status_lines() -> None:
+    out = io.StringIO()
+    log = PlainLog(out, every=10.0)
+    for t in (0.0, 4.0, 9.9, 10.0, 15.0, 21.0):
+        log.update(Snapshot(t, (0, 1, 0, 1), ()))
+    log.log(3.0, "hello")
+    lines = out.getvalue().splitlines()
+    assert [line.split("]")[0].strip("[ ") for line in lines] == ["0.0", "10.0", "21.0", "3.0"]
+    assert "status groups [none]" in lines[0]
+
+
+def test_describe_events() -> None:
+    from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected
+
+    assert describe(1, LeaderElected(1, 1, 7, 0, ElectionCause.CREATED, 1.0), 1.0) == (
+        "mote 1 leads group 7 (type 1, created)"
+    )
+    assert describe(1, HandoverSent(1, 1, 7, 4, 2.0), 2.0) == (
+        "mote 1 handed group 7 over to mote 4"
+    )
+    assert describe(1, object(), 0.0) is None
