@@ -105,7 +105,7 @@ async def _subscriber(url: str, topic: str, ready: asyncio.Event, out: _Arrivals
         await c.subscribe(topic, qos=1)
         ready.set()
         async for m in c.messages:
-            now = time.perf_counter()
+            now = time.monotonic()
             payload = m.payload if isinstance(m.payload, bytes) else b""
             with contextlib.suppress(ValueError):
                 doc = json.loads(payload)
@@ -133,7 +133,7 @@ async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[floa
         async with svc:
             assert svc.mqtt is not None
             await asyncio.wait_for(svc.mqtt.connected.wait(), 10)
-            t0 = time.perf_counter()
+            t0 = time.monotonic()
             for i in range(n):
                 rec = DataRecord(1, 1, 1 + i % 16, i, 0, float(i), 1, 1)
                 svc.on_event(0, _Delivered(rec, float(i)), float(i))
@@ -142,7 +142,7 @@ async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[floa
             while len(arrivals.times) < n:
                 arrivals.event.clear()
                 await asyncio.wait_for(arrivals.event.wait(), 30)
-            elapsed = time.perf_counter() - t0
+            elapsed = time.monotonic() - t0
             return n / elapsed, svc.mqtt.stats.protocol
     finally:
         sub.cancel()
@@ -194,9 +194,92 @@ async def end_to_end(
     duration: float,
     period: float,
     speed: float,
+    warmup: float = 10.0,
 ) -> tuple[list[float], list[float]]:
-    """Latencies (sample -> subscriber) and delivery times (record -> subscriber), s."""
-    raise NotImplementedError("the end-to-end run needs awaremw.runtime.fleet (not built yet)")
+    """Latencies (sample -> subscriber) and delivery times (record -> subscriber), s.
+
+    The sensor motes and the gateway mote run in two fleets of this process
+    (two Zenoh sessions on loopback, as in separate processes); the group type
+    is "temperature > -100" (every mote with a thermometer), the channel the
+    average temperature every ``period`` seconds. Records whose epoch starts
+    before ``warmup`` (tree and group forming) are not measured.
+    """
+    from awaremw.gateway.service import attach_to_fleet
+    from awaremw.nodes import kind_names
+    from awaremw.protocol.channels import RecordProduced
+    from awaremw.runtime.deployment import load
+    from awaremw.runtime.fleet import Fleet
+    from awaremw.runtime.zenoh_session import free_tcp_endpoint
+
+    dep = load(deployment, kind_names())
+    ep = free_tcp_endpoint()
+    produced: dict[tuple[int, int, int, int], float] = {}  # -> monotonic time
+    arrivals = _Arrivals({}, asyncio.Event())
+
+    def on_event(node: int, ev: object, now: float) -> None:
+        if isinstance(ev, RecordProduced):
+            r = ev.record
+            produced.setdefault((r.channel, r.group_type, r.group_id, r.epoch), time.monotonic())
+
+    ready = asyncio.Event()
+    sub = asyncio.create_task(_subscriber(sub_url, f"{prefix}/data/#", ready, arrivals))
+    try:
+        await asyncio.wait_for(ready.wait(), 10)
+        sensors = Fleet(
+            dep,
+            speed=speed,
+            listen=[ep],
+            node_filter=lambda s: s.kind != "gateway",
+            name="bench-sensors",
+            control=False,
+        )
+        async with sensors:
+            sensors.on_event(on_event)
+            gw = Fleet(
+                dep,
+                speed=speed,
+                connect=[ep],
+                node_filter=lambda s: s.kind == "gateway",
+                name="bench-gateway",
+                start_wall=sensors.clock.start_wall,
+                control=False,
+            )
+            async with gw:
+                svc = attach_to_fleet(
+                    gw,
+                    settings=GatewaySettings(prefix=prefix),
+                    mqtt=MqttSettings.from_url(
+                        url, client_id="awaremw-bench-e2e", persistent_session=False
+                    ),
+                    hbn=False,
+                )
+                async with svc:
+                    group = {"conditions": [{"attr": "temperature", "op": ">", "value": -100}]}
+                    chan = {"attr": "temperature", "group_type": 1, "period_s": period}
+                    for rel, doc in (("def/group/1", group), ("def/channel/1", chan)):
+                        out = svc.handle(rel, json.dumps(doc).encode(), via="local")
+                        if out.error is not None:
+                            raise RuntimeError(f"bench definition refused: {out.error.error}")
+                    await sensors.run(duration)
+                    sensors.raise_errors()
+                    gw.raise_errors()
+            clock = sensors.clock
+    finally:
+        sub.cancel()
+        with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+            await sub
+    latencies, deliveries = [], []
+    for key, t_arr in arrivals.times.items():
+        # key: "<prefix>/data/<channel>/<type>/<group_id>/<epoch>"
+        *_, ch, gt, gid, ep_s = key.split("/")
+        epoch = int(ep_s)
+        if epoch * period < warmup:
+            continue
+        latencies.append(t_arr - clock.to_monotonic(epoch * period))
+        t_prod = produced.get((int(ch), int(gt), int(gid), epoch))
+        if t_prod is not None:
+            deliveries.append(t_arr - t_prod)
+    return latencies, deliveries
 
 
 def _ms(x: float | None) -> float | None:

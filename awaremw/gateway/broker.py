@@ -30,6 +30,11 @@ class EmbeddedBroker:
         return f"mqtt://{self.host}:{self.port}"
 
     async def start(self) -> None:
+        amqtt_log = logging.getLogger("amqtt")
+        if amqtt_log.level == logging.NOTSET:
+            # amqtt warns about every client it refuses (the gateway's MQTT 5 probe
+            # included) and about harmless protocol quirks: keep its errors only.
+            amqtt_log.setLevel(logging.ERROR)
         config: dict[str, Any] = {
             "listeners": {"default": {"type": "tcp", "bind": f"{self.host}:{self.port}"}},
             # Only what the demo needs: no $SYS publisher, no per-packet logging.

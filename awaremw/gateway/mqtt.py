@@ -235,7 +235,7 @@ class MqttBridge:
             kwargs["clean_start"] = not s.persistent_session
         else:
             kwargs["clean_session"] = not s.persistent_session
-        return aiomqtt.Client(
+        client = aiomqtt.Client(
             s.host,
             s.port,
             username=s.username,
@@ -249,6 +249,9 @@ class MqttBridge:
             tls_insecure=s.tls_insecure if s.tls else None,
             **kwargs,  # type: ignore[arg-type]
         )
+        # aiomqtt warns above 10 pending calls; our in-flight window is the bound.
+        client.pending_calls_threshold = s.max_inflight + 4
+        return client
 
     async def _probe(self) -> aiomqtt.ProtocolVersion:
         """With ``protocol="auto"``: does the broker speak MQTT 5?

@@ -1,0 +1,123 @@
+"""CLI: client verbs against Mosquitto, the gateway verb with its embedded broker, bench."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+import pytest
+from mosquitto import PASSWORDS, Mosquitto, mosquitto_fixture, require  # noqa: F401
+
+from awaremw.bench import bridge as bench_bridge
+from awaremw.cli import main
+from awaremw.cli.client import UsageError, parse_arg, parse_conditions, parse_target
+
+
+def retained(m: Mosquitto, topic: str) -> list[str]:
+    """Retained messages under ``topic`` (mosquitto_sub exits after the retained burst)."""
+    r = subprocess.run(
+        [require("mosquitto_sub"), "-p", str(m.port), "-u", "operator", "-P",
+         PASSWORDS["operator"], "-t", topic, "-v", "--retained-only", "-W", "1"],
+        capture_output=True, timeout=10, check=False,
+    )  # fmt: skip
+    return r.stdout.decode().splitlines()
+
+
+def test_condition_target_and_argument_parsing() -> None:
+    assert parse_conditions(["temperature > 45"]) == [
+        {"attr": "temperature", "op": ">", "value": 45}
+    ]
+    assert parse_conditions(["temperature", ">", "45.5"]) == [
+        {"attr": "temperature", "op": ">", "value": 45.5}
+    ]
+    assert parse_conditions(["x<3 and rssi:100>=-80"]) == [
+        {"attr": "x", "op": "<", "value": 3},
+        {"attr": "rssi:100", "op": ">=", "value": -80},
+    ]
+    with pytest.raises(UsageError):
+        parse_conditions(["temperature is hot"])
+    assert parse_target("node:7") == {"node": 7}
+    assert parse_target("group:1/*") == {"group_type": 1, "group_id": "*"}
+    assert parse_target("group:1/513") == {"group_type": 1, "group_id": 513}
+    with pytest.raises(UsageError):
+        parse_target("robot:1")
+    assert [parse_arg(a) for a in ("on=true", "n=3", "r=0.5", "c=red")] == [
+        ("on", True),
+        ("n", 3),
+        ("r", 0.5),
+        ("c", "red"),
+    ]
+
+
+@pytest.mark.mosquitto
+def test_client_verbs_publish_the_contract(
+    mosquitto: Mosquitto, capsys: pytest.CaptureFixture[str]
+) -> None:
+    url = ["--mqtt", mosquitto.url("operator")]
+    assert main(["define", "group", "1", "temperature > 45", "--hysteresis", "1", *url]) == 0
+    assert main(["define", "channel", "2", "--attr", "light", "--group-type", "1",
+                 "--period", "2", "--agg", "max", *url]) == 0  # fmt: skip
+    lines = retained(mosquitto, "aware/def/#")
+    docs = {ln.split(" ", 1)[0]: json.loads(ln.split(" ", 1)[1]) for ln in lines}
+    assert docs == {
+        "aware/def/group/1": {
+            "conditions": [{"attr": "temperature", "op": ">", "value": 45}],
+            "hysteresis": 1.0,
+        },
+        "aware/def/channel/2": {
+            "attr": "light",
+            "group_type": 1,
+            "group_id": "*",
+            "period_s": 2.0,
+            "agg": "max",
+        },
+    }
+    assert main(["delete", "channel", "2", *url]) == 0
+    assert [ln.split(" ")[0] for ln in retained(mosquitto, "aware/def/#")] == ["aware/def/group/1"]
+    # `watch` prints what is there (here: the retained definition), as JSON lines.
+    capsys.readouterr()
+    assert main(["watch", "aware/def/#", "--count", "1", "--json", *url]) == 0
+    out = json.loads(capsys.readouterr().out.strip())
+    assert out["topic"] == "aware/def/group/1" and out["retain"] is True
+    # Mistakes are reported locally, before anything is sent.
+    assert main(["define", "group", "1", "temp > 45", *url]) == 2
+    assert "unknown attribute 'temp'" in capsys.readouterr().err
+    assert main(["command", "led", "--target", "robot:1", *url]) == 2
+    assert main(["define", "channel", "1", "--attr", "x", "--period", "0.1", *url]) == 2
+    # A viewer may not define: the broker drops it (nothing new retained).
+    viewer = ["--mqtt", mosquitto.url("viewer")]
+    assert main(["define", "group", "3", "x > 1", *viewer]) == 0
+    assert [ln.split(" ")[0] for ln in retained(mosquitto, "aware/def/#")] == ["aware/def/group/1"]
+
+
+def test_gateway_verb_starts_an_embedded_broker() -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "awaremw", "gateway", "grid_small", "--duration", "2",
+         "--speed", "4"],
+        capture_output=True, timeout=60, check=False,
+    )  # fmt: skip
+    out = r.stdout.decode()
+    assert r.returncode == 0, r.stderr.decode()[-2000:]
+    assert "embedded MQTT broker: mqtt://127.0.0.1:" in out
+    assert "awaremw gateway: motes 0 of grid_small" in out
+
+
+def test_gateway_verb_refuses_bad_input() -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "awaremw", "gateway", "grid_small", "--mqtt", "http://x"],
+        capture_output=True,
+        timeout=60,
+        check=False,
+    )
+    assert r.returncode == 2 and b"scheme must be mqtt:// or mqtts://" in r.stderr
+
+
+def test_bench_bridge_throughput_keys() -> None:
+    p = argparse.ArgumentParser()
+    bench_bridge.add_arguments(p)
+    out = bench_bridge.run(p.parse_args(["--no-fleet", "--records", "300"]))
+    assert out["records_per_s"] > 0 and out["throughput_records"] == 300
+    assert {"latency_p50_ms", "latency_p99_ms", "records_per_s"} <= set(out)
+    assert out["latency_p50_ms"] is None  # no fleet: no end-to-end latency
