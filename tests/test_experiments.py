@@ -135,7 +135,7 @@ def test_scenario_definitions_use_the_gateway_schema() -> None:
     assert sc.robot == 100 and sc.gateway == 0 and 0 not in sc.sensors
     assert {1, 4, 17} <= set(sc.sensors) and len(sc.sensors) == 20
     g = sc.group_def()
-    assert g.conditions[0].attr == attribute_id("rssi:100") and g.hysteresis == 3.0
+    assert g.conditions[0].attr == attribute_id("rssi:100") and g.hysteresis == 2.0
     assert sc.channel_def().period_ms == 2000
 
 

@@ -151,6 +151,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
         "membership_tp_fp_fn": [s.tp, s.fp, s.fn],
         "distinct_group_ids": len(ids),
         "group_ids": sorted(ids),
+        "lasting_group_ids": list(M.lasting_group_ids(rec, gtype, t0, end + settle, 2 * settle)),
         "handovers": M.handover_count(rec, gtype, t0, end + settle),
         "elections": len([e for e in rec.elections if e.group_type == gtype]),
         "merges_yielded": len([y for y in rec.yields if y[2] == gtype]),

@@ -9,9 +9,9 @@ produced by leaders and records delivered.
 The metrics (docs/experiments.md defines each):
 
 * membership precision / recall / F1, micro-averaged over sampling instants:
-  the motes in a group of the type at ``t + settle`` against the motes whose
-  noise-free values meet the condition at ``t`` (``settle``: one leader-beacon
-  period, the time the protocol needs to notice);
+  the motes whose noise-free values meet the condition at ``t`` against the
+  motes in a group of the type, allowing the protocol ``settle`` seconds (one
+  leader-beacon period) to reach that state (:func:`membership_series`);
 * distinct group ids seen over a window; handovers; time to the first record;
   record delivery ratio; frames and radio energy per mote.
 """
@@ -188,6 +188,19 @@ class Recorder:
         return ids
 
 
+def lasting_group_ids(
+    rec: Recorder, gtype: int, t0: float, t1: float, min_s: float, dt: float = 0.5
+) -> dict[int, float]:
+    """Group ids that had members for at least ``min_s`` (sampled every ``dt``) in
+    [t0, t1], with how long: transient groups (a fringe mote that created one
+    and yielded a moment later) are left out."""
+    alive: dict[int, float] = {}
+    for t in instants(t0, t1, dt):
+        for gid in rec.groups_at(gtype, t):
+            alive[gid] = alive.get(gid, 0.0) + dt
+    return {g: s for g, s in sorted(alive.items()) if s >= min_s}
+
+
 def _key(r: DataRecord) -> RecordKey:
     return (r.channel, r.group_type, r.group_id, r.epoch)
 
@@ -218,7 +231,8 @@ class MembershipScore:
 
 @dataclass(frozen=True, slots=True)
 class Instant:
-    """One scored instant: protocol members (at t + settle) and true members (at t)."""
+    """One scored instant: protocol members (within the settling time) and true
+    members at t (see :func:`membership_series`)."""
 
     t: float
     members: frozenset[int]
@@ -238,14 +252,28 @@ def membership_series(
     times: Iterable[float],
     settle: float,
     among: Iterable[int] | None = None,
+    step: float = 0.25,
 ) -> list[Instant]:
+    """Protocol membership against the truth with a tolerance of ``settle`` s.
+
+    At each instant ``t`` a mote counts as a member if the truth says so and it
+    was in a group of the type at some moment of ``[t, t + settle]`` (the
+    protocol reached the true state within the settling time), or if the truth
+    says no and it stayed in a group through the whole of ``[t, t + settle]``
+    (it did not leave in time). Membership is sampled every ``step`` s.
+    """
     pool = None if among is None else frozenset(among)
+    n = max(1, round(settle / step))
     out: list[Instant] = []
     for t in times:
-        got = frozenset(rec.members_at(gtype, t + settle))
+        want = truth.members(defn, t, pool)
+        seen = [frozenset(rec.members_at(gtype, t + settle * k / n)) for k in range(n + 1)]
+        ever = frozenset().union(*seen)
+        always = frozenset.intersection(*seen)
+        got = (want & ever) | (always - want)
         if pool is not None:
             got &= pool
-        out.append(Instant(t, got, truth.members(defn, t, pool)))
+        out.append(Instant(t, got, want))
     return out
 
 

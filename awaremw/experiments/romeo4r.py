@@ -82,6 +82,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
         "membership_tp_fp_fn": [s.tp, s.fp, s.fn],
         "distinct_group_ids": len(ids),
         "group_ids": sorted(ids),
+        "lasting_group_ids": list(M.lasting_group_ids(rec, gtype, t0, t1 + settle, 2 * settle)),
         "handovers": M.handover_count(rec, gtype, t0, t1 + settle),
         "elections": len([e for e in rec.elections if e.group_type == gtype]),
         "robot_entry_s": t0,
