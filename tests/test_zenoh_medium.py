@@ -20,6 +20,7 @@ from awaremw.protocol.core import MalformedFrame, Transmission
 from awaremw.protocol.frames import BROADCAST, FrameError, Hello, decode, encode
 from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
 from awaremw.radio.model import _NORMAL, RadioModel, cell_of, packet_key
+from awaremw.radio.zenoh_medium import Handler
 from awaremw.runtime.deployment import Deployment, NodeSpec, parse_deployment
 from awaremw.runtime.fleet import Fleet
 from awaremw.runtime.router import EmbeddedRouter
@@ -367,12 +368,13 @@ async def test_unicast_inside_one_process_and_duplicates_on_a_lossy_link(router:
 # --------------------------------------------------------------------------- garbage
 
 
+@pytest.mark.parametrize("handler", ["channel", "callback"])
 async def test_garbage_on_a_radio_key_is_counted_malformed_and_changes_nothing_else(
-    router: str,
+    router: str, handler: Handler
 ) -> None:
     # 1 and 2 stand in cell (0, 0); 3 stands three cells away.
     dep = deployment([(1, 5.0, 5.0), (2, 15.0, 5.0), (3, 250.0, 250.0)])
-    async with Fleet(dep, factory({}), connect=[router]) as f:
+    async with Fleet(dep, factory({}), connect=[router], handler=handler) as f:
         other = open_session(SessionSettings(connect=(router,)))
         try:
             await routed(other, f)

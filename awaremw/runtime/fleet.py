@@ -35,14 +35,14 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 
 import zenoh
 
 from awaremw.protocol.core import MoteCore
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import RadioModel
-from awaremw.radio.zenoh_medium import DEFAULT_PREFIX, Handler, ZenohMedium
+from awaremw.radio.zenoh_medium import DEFAULT_HANDLER, DEFAULT_PREFIX, Handler, ZenohMedium
 from awaremw.runtime.clock import EmulatedClock
 from awaremw.runtime.deployment import (
     Deployment,
@@ -117,6 +117,30 @@ class XStripe:
 
     def __call__(self, spec: NodeSpec) -> bool:
         return self.lo <= spec.position[0] < self.hi
+
+
+@dataclass(frozen=True, slots=True)
+class IdModulo:
+    """Node filter: motes with ``id % n == k`` (the worst case for cross-process
+    traffic: neighbours mostly live in other processes; benchmarks only)."""
+
+    k: int
+    n: int
+
+    def __call__(self, spec: NodeSpec) -> bool:
+        return spec.id % self.n == self.k
+
+
+Layout = Literal["stripes", "interleaved"]
+
+
+def partition(
+    deployment: Deployment, n: int, layout: Layout = "stripes"
+) -> list[XStripe | IdModulo]:
+    """The node filters of ``n`` workers."""
+    if layout == "interleaved":
+        return [IdModulo(k, n) for k in range(n)]
+    return list(stripes(deployment, n))
 
 
 def stripes(deployment: Deployment, n: int) -> list[XStripe]:
@@ -219,7 +243,7 @@ class Fleet:
         start_wall: float | None = None,
         autostart: bool = True,
         name: str = "main",
-        handler: Handler = "callback",
+        handler: Handler = DEFAULT_HANDLER,
         control: bool = True,
         collect_lag: bool = True,
         freeze_gc: bool = False,
@@ -621,7 +645,7 @@ class WorkerParams:
 
     name: str
     deployment: Deployment
-    stripe: XStripe
+    stripe: XStripe | IdModulo
     connect: tuple[str, ...]
     listen: tuple[str, ...]
     speed: float
@@ -638,7 +662,7 @@ class WorkerParams:
 class WorkerFilter:
     """A worker's node filter: its stripe, minus the excluded kinds (picklable)."""
 
-    stripe: XStripe
+    stripe: XStripe | IdModulo
     exclude_kinds: frozenset[str] = frozenset()
 
     def __call__(self, spec: NodeSpec) -> bool:
@@ -804,7 +828,7 @@ class FleetLauncher:
         prefix: str = DEFAULT_PREFIX,
         connect: Sequence[str] = (),
         listen: Sequence[str] = (),
-        handler: Handler = "callback",
+        handler: Handler = DEFAULT_HANDLER,
         progress_s: float | None = None,
         on_progress: Callable[[FleetSnapshot], None] | None = None,
         collect_lag: bool = True,
@@ -812,6 +836,7 @@ class FleetLauncher:
         start_delay_s: float = 0.3,
         exclude_kinds: Iterable[str] = (),
         track_links: bool = False,
+        layout: Layout = "stripes",
     ) -> None:
         if processes < 1:
             raise ValueError("processes must be >= 1")
@@ -830,6 +855,7 @@ class FleetLauncher:
         self.start_delay_s = start_delay_s
         self.exclude_kinds = frozenset(exclude_kinds)
         self.track_links = track_links
+        self.layout: Layout = layout
         self.clock = EmulatedClock(speed)
         self.router: EmbeddedRouter | None = None
         self.endpoint = ""
@@ -870,7 +896,7 @@ class FleetLauncher:
             await asyncio.to_thread(self.router.start)
             self.endpoint = listen[0]
         loop = asyncio.get_running_loop()
-        for k, stripe in enumerate(stripes(self.deployment, self.processes)):
+        for k, stripe in enumerate(partition(self.deployment, self.processes, self.layout)):
             params = WorkerParams(
                 name=f"w{k}",
                 deployment=self.deployment,
