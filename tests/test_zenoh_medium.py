@@ -264,7 +264,8 @@ async def test_loss_rate_matches_the_prr_curve(router: str) -> None:
     try:
         tx = core(a, 1)
         await wait_for(lambda: a.counters[1].frames_tx >= n_sent, timeout=30)
-        a.medium.freeze()
+        a.medium.freeze()  # no new frame; the one on the air still lands
+        await wait_for(lambda: not a.medium.radios[1].busy)
         sent = a.counters[1].frames_tx
         await wait_for(
             lambda: sum(b.counters[2].as_dict()[k] for k in ("frames_rx", "dropped_loss")) >= sent
