@@ -410,7 +410,7 @@ async def test_subscriptions_are_per_column_not_per_mote(router: str) -> None:
     # two beside it); a moving mote adds the columns it enters.
     nodes = [(i, 5.0 + (i % 5) * 8.0, 5.0 + (i // 5) * 50.0) for i in range(30)]
     dep = deployment(nodes)
-    async with Fleet(dep, factory({}), connect=[router], control=False) as f:
+    async with Fleet(dep, factory({99: 0.05}), connect=[router], control=False) as f:
         assert f.medium.stats.subscriptions == 3
         assert f.medium.columns == frozenset({-1, 0, 1})
         spec = f.parse_node(
@@ -420,3 +420,7 @@ async def test_subscriptions_are_per_column_not_per_mote(router: str) -> None:
         await wait_for(lambda: 5 in f.medium.columns, timeout=5)
         x, _ = f.positions()[99]
         assert x > 5 * f.model.cell_size_m
+        # Its frames now go out on its new cell's key.
+        radio = f.medium.radios[99]
+        await wait_for(lambda: radio.pub_cell is not None and radio.pub_cell[0] >= 5)
+        assert f.medium.stats.subscriptions == len(f.medium.columns) >= 7

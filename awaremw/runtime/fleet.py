@@ -408,8 +408,11 @@ class Fleet:
             self._medium.close()
         if self._own_session and self._session is not None:
             await asyncio.to_thread(close_quietly, self._session)
-        if self._loop is not None:
-            self._loop.set_exception_handler(self._old_handler)
+        loop = self._loop
+        if loop is not None and loop.get_exception_handler() == self._loop_exception:
+            loop.set_exception_handler(self._old_handler)
+        # else another fleet chained its handler on top of ours: ours stays in the
+        # chain but, closed, only forwards.
 
     async def run(self, duration: float | None = None) -> None:
         """Run until emulated time ``duration`` (forever if None).
@@ -438,7 +441,7 @@ class Fleet:
 
     def _loop_exception(self, loop: asyncio.AbstractEventLoop, ctx: dict[str, Any]) -> None:
         exc = ctx.get("exception")
-        if isinstance(exc, Exception):
+        if isinstance(exc, Exception) and not self._closed:
             # A core or hook raised in a loop callback: our bug. Stop and report.
             self._errors.append(exc)
             self._failed.set()
