@@ -248,7 +248,12 @@ class Collector:
             # Reconnects (polling every 50 ms) so that it survives a broker restart.
             while True:
                 client = aiomqtt.Client(
-                    s.host, s.port, username=s.username, password=s.password, protocol=proto
+                    s.host,
+                    s.port,
+                    username=s.username,
+                    password=s.password,
+                    protocol=proto,
+                    identifier=f"collector-{id(self):x}",  # never "" (amqtt shares that session)
                 )
                 try:
                     async with client:
@@ -257,6 +262,8 @@ class Collector:
                         ready.set()
                         self._changed.set()
                         async for m in client.messages:
+                            if not m.topic.matches(self.topic):
+                                continue  # amqtt: retained messages of others' filters
                             payload = m.payload if isinstance(m.payload, bytes) else b""
                             self.messages.append((m.topic.value, payload, bool(m.retain)))
                             self._changed.set()

@@ -45,6 +45,7 @@ from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
 from awaremw.nodes import app_of, build_core, kind_names, world_of
 from awaremw.protocol.attributes import TEMPERATURE
+from awaremw.protocol.commands import CommandExecuted
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.dissemination import ItemAdopted
 from awaremw.protocol.frames import ItemKind
@@ -72,12 +73,24 @@ class Emulation:
     endpoint: str
     samples: list[tuple[int, float, float]] = field(default_factory=list)  # (node, t, degC)
     adopted: dict[tuple[ItemKind, int, int], dict[int, float]] = field(default_factory=dict)
+    commands: list[tuple[int, CommandExecuted]] = field(default_factory=list)
     _news: asyncio.Event = field(default_factory=asyncio.Event)
+
+    async def wait(self, cond: Callable[[], bool], timeout: float = 30.0) -> None:
+        async def loop() -> None:
+            while not cond():
+                self._news.clear()
+                await self._news.wait()
+
+        await asyncio.wait_for(loop(), timeout)
 
     def now(self) -> float:
         return self.sensors.now()
 
     def on_event(self, node: int, ev: object, now: float) -> None:
+        if isinstance(ev, CommandExecuted):
+            self.commands.append((node, ev))
+            self._news.set()
         if isinstance(ev, ItemAdopted):
             self.adopted.setdefault((ev.kind, ev.item_id, ev.version), {})[node] = now
             self._news.set()
@@ -449,3 +462,10 @@ async def test_embedded_broker_define_and_receive() -> None:
             )
             recs = [{**json.loads(p), "channel": 1} for _, p, _ in sub.messages]
             assert check_against_samples(recs, emu.samples, 1.0) >= 1
+            # A command through the same broker: the node kind's handler runs on mote 7 only.
+            cmd = {"target": {"node": 7}, "args": {"color": "red", "state": "on"}}
+            await client_publish(s, "cmd/led", json.dumps(cmd).encode(), retain=False)
+            await emu.wait(lambda: any(n == 7 for n, _ in emu.commands))
+            assert [n for n, c in emu.commands] == [7]
+            app = app_of(emu.sensors.runners[7].core)
+            assert app is not None and app.leds["red"] is True

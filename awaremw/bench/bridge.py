@@ -101,11 +101,14 @@ async def _subscriber(url: str, topic: str, ready: asyncio.Event, out: _Arrivals
         username=s.username,
         password=s.password,
         protocol=aiomqtt.ProtocolVersion.V311,
+        identifier=f"awaremw-bench-sub-{id(out):x}",
     ) as c:
         await c.subscribe(topic, qos=1)
         ready.set()
         async for m in c.messages:
             now = time.monotonic()
+            if not m.topic.matches(topic):
+                continue  # amqtt 0.12 also sends retained messages of others' filters
             payload = m.payload if isinstance(m.payload, bytes) else b""
             with contextlib.suppress(ValueError):
                 doc = json.loads(payload)

@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import json
 import re
+import secrets
 import sys
 import time
 from typing import Any
@@ -195,6 +196,9 @@ def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
         import ssl
 
         ctx = ssl.create_default_context(cafile=s.ca_file)
+    # A random id, never the empty one: amqtt gives every client that sends an
+    # empty id the same session, subscriptions included.
+    client_id = client_id or f"awaremw-cli-{secrets.token_hex(4)}"
     # 3.1.1: every broker speaks it, and the client needs nothing from MQTT 5.
     return aiomqtt.Client(
         s.host,
@@ -228,6 +232,8 @@ async def publish(
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(wait):
                 async for m in client.messages:
+                    if not m.topic.matches(s.topic("errors")):
+                        continue
                     with contextlib.suppress(ValueError, TypeError):
                         err = json.loads(bytes(m.payload))
                         if isinstance(err, dict) and err.get("topic") == topic:
@@ -338,6 +344,8 @@ async def watch(
                 None if deadline is None else asyncio.get_running_loop().time() + duration
             ):
                 async for m in client.messages:
+                    if not m.topic.matches(topic):
+                        continue  # amqtt 0.12 also sends retained messages of others' filters
                     raw = m.payload if isinstance(m.payload, bytes) else b""
                     text = raw.decode("utf-8", errors="replace")
                     if as_json:

@@ -125,6 +125,7 @@ class MqttStats:
     dropped: int = 0  # stream messages dropped because the buffer was full
     resent: int = 0  # in flight when the connection broke: sent again
     received: int = 0
+    ignored: int = 0  # messages on topics the gateway did not subscribe to
     protocol: str = ""
 
     def as_dict(self) -> dict[str, int | str]:
@@ -350,9 +351,16 @@ class MqttBridge:
 
     async def _reader(self, client: aiomqtt.Client) -> None:
         plen = len(self.settings.prefix) + 1
+        inputs = (self.settings.topic("def/"), self.settings.topic("cmd/"))
         async for m in client.messages:
-            self.stats.received += 1
             topic = m.topic.value
+            if not topic.startswith(inputs):
+                # Not ours: amqtt 0.12 sends a connecting client the retained
+                # messages of every subscription in the broker (e.g. a viewer's
+                # aware/groups/#), not only of its own.
+                self.stats.ignored += 1
+                continue
+            self.stats.received += 1
             payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
             try:
                 self.on_message(topic[plen:], payload, bool(m.retain), topic)
