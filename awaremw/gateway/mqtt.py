@@ -30,6 +30,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import ssl
 import time
 from collections import deque
@@ -81,6 +82,7 @@ class MqttSettings:
     persistent_session: bool = True
     drain_timeout_s: float = 2.0  # on stop, how long to try to deliver the backlog
     max_inflight: int = 16  # stream messages awaiting their PUBACK at once
+    stats_interval_s: float = 5.0  # gateway/stats at most this often (and on drops)
 
     @classmethod
     def from_url(cls, url: str, **overrides: object) -> MqttSettings:
@@ -368,11 +370,13 @@ class MqttBridge:
                 log.exception("handling %s failed", topic)
 
     async def _sender(self, client: aiomqtt.Client) -> None:
+        last_stats = -math.inf  # publish the stats at once after (re)connecting
         while True:
             await self._wakeup.wait()
             self._wakeup.clear()
             await self._flush(client)
-            if self.stats.dropped != self._reported_dropped:
+            dropped = self.stats.dropped != self._reported_dropped
+            if dropped:
                 n = self.stats.dropped - self._reported_dropped
                 self._reported_dropped = self.stats.dropped
                 log.warning(
@@ -380,9 +384,12 @@ class MqttBridge:
                     n,
                     self.settings.buffer_size,
                 )
-            await _publish(
-                client, self.settings.topic(STATS_TOPIC), self.stats_json(), qos=0, retain=True
-            )
+            now = time.monotonic()
+            if dropped or now - last_stats >= self.settings.stats_interval_s:
+                last_stats = now
+                await _publish(
+                    client, self.settings.topic(STATS_TOPIC), self.stats_json(), qos=0, retain=True
+                )
 
     async def _flush(self, client: aiomqtt.Client) -> None:
         """Publish dirty retained topics, then the FIFO in order, until both are empty.
