@@ -400,6 +400,29 @@ async def test_gateway_killed_and_restarted(mosquitto: Mosquitto, tmp_path: Path
                 await gw.wait()
 
 
+async def test_gateway_without_its_store_learns_the_versions_in_force() -> None:
+    """Restarted with its store lost, the gateway learns from its mote what the
+    network holds, so a new definition still gets a version the motes accept."""
+    async with sensor_fleet() as emu:
+        async with gateway(emu, None) as svc:
+            svc.handle("def/group/1", GROUP.encode())
+            svc.handle("def/channel/1", channel(1.0).encode())
+            svc.handle("def/channel/1", channel(1.5).encode())
+            await emu.round_done(ItemKind.CHANNEL, 1, 2)
+        async with gateway(emu, None) as svc:
+
+            async def learned() -> None:
+                while svc.bridge.stats.learned < 2:
+                    svc.handled.clear()
+                    await svc.handled.wait()
+
+            await asyncio.wait_for(learned(), 30)
+            assert svc.bridge.definitions()["def/channel/1"]["version"] == 2
+            out = svc.handle("def/channel/1", channel(2.0).encode())
+            assert out.inject is not None and out.inject.version == 3
+            await emu.round_done(ItemKind.CHANNEL, 1, 3)  # every mote took it
+
+
 # --------------------------------------------------------------------------- Zenoh, embedded
 
 

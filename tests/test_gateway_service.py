@@ -21,6 +21,7 @@ from mosquitto import Collector, Mosquitto, mosquitto_fixture, pub  # noqa: F401
 from awaremw.gateway.bridge import Inject
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, deployment_definitions
+from awaremw.protocol.dissemination import ItemAdopted
 from awaremw.protocol.frames import (
     ChannelDef,
     DataRecord,
@@ -269,3 +270,44 @@ def test_deployment_definitions_are_validated_like_mqtt() -> None:
     outs = svc.define_initial(defs)
     assert [o.accepted for o in outs] == [True, True, False]
     assert outs[2].error is not None and outs[2].error.code == "unknown_attribute"
+
+
+def test_versions_in_force_are_learned_from_the_network() -> None:
+    """A gateway that lost its store learns the versions its mote hears."""
+    wsn = FakeWsn()
+    held = {(ItemKind.CHANNEL, 1): ChannelDef(0, 1, 0xFFFF, 4000, 0)}
+    svc = GatewayService([0])
+    svc.bind(wsn.inject, wsn.now, lambda node, kind, i: held.get((kind, i)))
+    svc.on_event(0, ItemAdopted(ItemKind.CHANNEL, 1, 7, False, 3), 5.0)
+    svc.on_event(0, ItemAdopted(ItemKind.CHANNEL, 1, 2, False, 3), 5.0)  # older: ignored
+    svc.on_event(0, ItemAdopted(ItemKind.GROUP_TYPE, 4, 3, True, 3), 5.0)  # a tombstone
+    svc.on_event(0, ItemAdopted(ItemKind.CHANNEL, 2, 9, False, None), 5.0)  # ours: not learned
+    assert svc.bridge.stats.learned == 2
+    assert svc.bridge.definitions() == {
+        "def/channel/1": {"attr": "temperature", "group_type": 1, "group_id": "*",
+                          "period_s": 4.0, "agg": "avg", "version": 7},
+    }  # fmt: skip
+    # The same body again: nothing new. Another one: version 8, which the motes accept.
+    same = json.dumps({"attr": "temperature", "group_type": 1, "period_s": 4})
+    assert svc.handle("def/channel/1", same.encode()).inject is None
+    out = svc.handle("def/channel/1", CHANNEL.encode())
+    assert out.inject is not None and out.inject.version == 8
+    out = svc.handle("def/group/4", GROUP.encode())
+    assert out.inject is not None and out.inject.version == 4
+
+
+def test_a_definition_the_network_ignored_is_reasserted_above_its_version() -> None:
+    """Restarted without its store, the gateway numbers from 1; when its mote hears
+    that the network holds version 5 of something else, its own newer definition
+    goes out again as version 6."""
+    wsn = FakeWsn()
+    net_body = ChannelDef(0, 1, 0xFFFF, 4000, 0)
+    svc = GatewayService([0])
+    svc.bind(wsn.inject, wsn.now, lambda node, kind, i: net_body)
+    out = svc.handle("def/channel/1", CHANNEL.encode())
+    assert out.inject is not None and out.inject.version == 1  # the motes ignore it
+    svc.on_event(0, ItemAdopted(ItemKind.CHANNEL, 1, 5, False, 3), 5.0)
+    last = wsn.injected[-1][1]
+    assert (last.version, last.body) == (6, ChannelDef(0, 1, 0xFFFF, 2000, 0))
+    assert svc.bridge.stats.reasserted == 1
+    assert svc.bridge.definitions()["def/channel/1"]["version"] == 6

@@ -131,6 +131,8 @@ class BridgeStats:
     group_reports: int = 0
     groups_gone: int = 0
     groups_expired: int = 0
+    learned: int = 0  # item versions learned from the network
+    reasserted: int = 0  # our newer definitions re-sent above the network's version
 
     def as_dict(self) -> dict[str, int]:
         return {k: getattr(self, k) for k in self.__slots__}
@@ -161,6 +163,7 @@ class GatewayBridge:
     groups: dict[tuple[int, int], GroupState] = field(default_factory=dict)
     stats: BridgeStats = field(default_factory=BridgeStats)
     _recent: OrderedDict[DataRecord, None] = field(default_factory=OrderedDict)
+    _defined_here: set[tuple[ItemKind, int]] = field(default_factory=set)
 
     # ----------------------------------------------------------------- IP -> WSN
 
@@ -213,6 +216,7 @@ class GatewayBridge:
             slot = self.store.command_slot(c.name, self.command_slots)
             item = self.store.bump(ItemKind.COMMAND, slot, c.body, {"name": c.name, **c.json})
             self.stats.accepted += 1
+            self._defined_here.add((ItemKind.COMMAND, slot))
             log.info("command %s -> slot %d version %d", c.name, slot, item.version)
             return Outcome(inject=Inject(item.kind, item.item_id, item.version, item.body))
         raise UnknownTopic(
@@ -225,9 +229,43 @@ class GatewayBridge:
             self.stats.unchanged += 1
             return Outcome()
         self.stats.accepted += 1
+        self._defined_here.add((kind, item_id))
         what = "deleted" if body is None else "defined"
         log.info("%s %d %s, version %d", kind.name.lower(), item_id, what, item.version)
         return Outcome(inject=Inject(item.kind, item.item_id, item.version, item.body))
+
+    def learn(
+        self, kind: ItemKind, item_id: int, version: int, body: ItemBody | None
+    ) -> Inject | None:
+        """A gateway mote adopted ``version`` of an item from the network.
+
+        A gateway that lost its store (or shares the network with another)
+        learns the versions in force this way. If the item was (re)defined
+        through this gateway since it started and the network holds another
+        body under a version at least as high (so it ignored ours), our
+        definition is the newer intent: it is stored again above the network's
+        version and returned, to be injected. Otherwise the network's state is
+        taken over and None returned.
+        """
+        cur = self.store.get(kind, item_id)
+        if cur is not None and (
+            cur.version > version or (cur.version == version and cur.body == body)
+        ):
+            return None  # the store is ahead, or agrees
+        if cur is not None and (kind, item_id) in self._defined_here and cur.body != body:
+            item = self.store.bump_to(kind, item_id, version + 1, cur.body, cur.json)
+            self.stats.reasserted += 1
+            log.info(
+                "%s %d: the network holds version %d; ours is re-sent as version %d",
+                kind.name.lower(), item_id, version, item.version,
+            )  # fmt: skip
+            return Inject(item.kind, item.item_id, item.version, item.body)
+        if self.store.learn(kind, item_id, version, body) is not None:
+            self.stats.learned += 1
+            log.info(
+                "learned %s %d version %d from the network", kind.name.lower(), item_id, version
+            )
+        return None
 
     # ----------------------------------------------------------------- WSN -> IP
 

@@ -35,7 +35,8 @@ from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSett
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.frames import DataRecord, GroupReport
+from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.frames import DataRecord, GroupReport, ItemBody, ItemKind
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.driver import MoteUp
 from awaremw.runtime.fleet import Fleet
@@ -43,6 +44,7 @@ from awaremw.runtime.fleet import Fleet
 log = logging.getLogger(__name__)
 
 InjectFn = Callable[[int, Inject], None]
+BodyFn = Callable[[int, ItemKind, int], ItemBody | None]
 ClockFn = Callable[[], float]
 STORE_FILE = "gateway.sqlite"
 
@@ -123,18 +125,21 @@ class GatewayService:
         self._session = zenoh_session
         self.hbn: HbnApi | None = None
         self._inject: InjectFn | None = None
+        self._body_of: BodyFn | None = None
         self._now: ClockFn | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self.injected = 0
         self.inject_failures = 0
-        self.handled = asyncio.Event()  # set after every payload handled (for waiters)
+        self.handled = asyncio.Event()  # set after every payload handled or version learned
         self.delivered = asyncio.Event()  # set after every record or report from the WSN
 
     # ----------------------------------------------------------------- lifecycle
 
-    def bind(self, inject: InjectFn, now: ClockFn) -> None:
-        """Connect to the sensor network (the runtime's injection and clock)."""
-        self._inject, self._now = inject, now
+    def bind(self, inject: InjectFn, now: ClockFn, body_of: BodyFn | None = None) -> None:
+        """Connect to the sensor network: the runtime's injection and clock, and
+        optionally a way to read the body a gateway mote holds for an item (to
+        learn versions in force from the network)."""
+        self._inject, self._now, self._body_of = inject, now, body_of
 
     async def start(self) -> None:
         """Re-inject the stored state, then open the transports."""
@@ -236,6 +241,10 @@ class GatewayService:
             for inj in self.bridge.startup():
                 self._inject_one(node_id, inj)
             return
+        if isinstance(event, ItemAdopted):
+            if event.source is not None:  # heard from the radio, not injected by us
+                self._learn(node_id, event)
+            return
         payload = getattr(event, "payload", None)
         if not isinstance(payload, DataRecord | GroupReport):
             return
@@ -245,6 +254,20 @@ class GatewayService:
         self.delivered.set()
         if isinstance(payload, GroupReport):
             self._refresh_hbn()
+
+    def _learn(self, node_id: int, ev: ItemAdopted) -> None:
+        body: ItemBody | None = None
+        if not ev.deleted:
+            if self._body_of is None:
+                return  # cannot tell what the network holds: leave the store as it is
+            body = self._body_of(node_id, ev.kind, ev.item_id)
+            if body is None:
+                return
+        inj = self.bridge.learn(ev.kind, ev.item_id, ev.version, body)
+        if inj is not None:
+            self._inject_all(inj)
+        self._refresh_hbn()
+        self.handled.set()
 
     def publish(self, p: Publish) -> None:
         if self.mqtt is not None:
@@ -333,7 +356,14 @@ def attach_to_fleet(
             return  # not booted yet: MoteUp brings the whole state
         fleet.run_on(node, lambda c, now: _inject_core(c, inj, now))
 
-    svc.bind(inject, fleet.now)
+    def body_of(node: int, kind: ItemKind, item_id: int) -> ItemBody | None:
+        core = fleet.runners[node].core
+        if not isinstance(core, AwareMote):
+            return None
+        item = core.dissemination.items.get((kind, item_id))
+        return None if item is None else item.body
+
+    svc.bind(inject, fleet.now, body_of)
     fleet.on_event(svc.on_event)
     return svc
 

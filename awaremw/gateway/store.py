@@ -24,6 +24,7 @@ from typing import Any
 
 import msgpack
 
+from awaremw.gateway.schema import definition_json
 from awaremw.protocol.frames import (
     ChannelDef,
     CommandDef,
@@ -167,6 +168,39 @@ class VersionStore:
         return self._write(
             kind, item_id, 1 if row is None else row[0] + 1, body_hash(kind, body), body, js
         )
+
+    def bump_to(
+        self,
+        kind: ItemKind,
+        item_id: int,
+        version: int,
+        body: ItemBody | None,
+        js: dict[str, Any] | None,
+    ) -> StoredItem:
+        """Store ``body`` under ``version`` (which must be above the current one)."""
+        cur = self.get(kind, item_id)
+        if cur is not None and version <= cur.version:
+            raise ValueError(f"version {version} is not above {cur.version}")
+        return self._write(kind, item_id, version, body_hash(kind, body), body, js)
+
+    def learn(
+        self, kind: ItemKind, item_id: int, version: int, body: ItemBody | None
+    ) -> StoredItem | None:
+        """The network holds ``version`` of an item (heard by a gateway mote).
+
+        If that is newer than what the store knows (the store was lost, or
+        another gateway defined it), take it over, so the next definition gets
+        a version the motes accept. Returns the new state, or None if the store
+        was up to date.
+        """
+        h = body_hash(kind, body)
+        row = self._db.execute(
+            "SELECT version, hash FROM items WHERE kind=? AND item_id=?", (int(kind), item_id)
+        ).fetchone()
+        if row is not None and (row[0] > version or (row[0] == version and row[1] == h)):
+            return None
+        js = None if body is None else definition_json(kind, body)
+        return self._write(kind, item_id, version, h, body, js)
 
     def _write(
         self,
