@@ -194,11 +194,16 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
 
 
 def _labels(sc: Scenario, times: Sequence[float]) -> dict[float, str]:
+    phases = [
+        (float(sc.get(key, [0.0, -1.0])[0]), float(sc.get(key, [0.0, -1.0])[1]), label)
+        for key, label in (("two_fires_s", "two fires"), ("merged_s", "merged"),
+                           ("split_s", "split"))
+    ]  # fmt: skip
     out: dict[float, str] = {}
     for t in times:
-        for key, label in (("two_fires_s", "two fires"), ("merged_s", "merged"),
-                           ("split_s", "split")):  # fmt: skip
-            a, b = sc.get(key, [0.0, -1.0])
+        for k, (a, b, label) in enumerate(phases):
             if a <= t <= b:
                 out[t] = f"({label})"
+            elif k + 1 < len(phases) and b < t < phases[k + 1][0]:
+                out[t] = "(merging)" if k == 0 else "(splitting)"
     return out

@@ -218,11 +218,15 @@ def field_snapshots(
     for k, t in enumerate(times):
         ax = fig.add_subplot(rows, cols, k + 1)
         grid = [[world.value(field, x, y, t) for x in xs] for y in ys]
-        lo = world.ambient_temperature if field == "temperature" else None
-        ax.imshow(
-            grid, origin="lower", extent=(xs[0], xs[-1], ys[0], ys[-1]), cmap="YlOrRd",
-            alpha=0.75, vmin=lo, vmax=None if lo is None else lo + 120.0, aspect="equal",
-        )  # fmt: skip
+        # Filled contours (flat colours) read well and keep the PNG small.
+        flat = [v for row in grid for v in row]
+        lo, hi = min(flat), max(flat)
+        levels = sorted({lo, *[lo + (hi - lo) * k / 8 for k in range(1, 8)], hi + 1e-6})
+        if threshold is not None and lo < threshold < hi:
+            levels = sorted({*levels, threshold})
+        if hi - lo > 1e-6:
+            ax.contourf(xs, ys, grid, levels=levels, cmap="YlOrRd", alpha=0.8)
+        ax.set_aspect("equal")
         if threshold is not None:
             ax.contour(xs, ys, grid, levels=[threshold], colors="#ff4444", linewidths=0.8)
         _draw_motes(
