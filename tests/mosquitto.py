@@ -65,10 +65,14 @@ def free_port() -> int:
 class Mosquitto:
     """One broker process; :meth:`kill` and :meth:`start` again on the same port."""
 
-    def __init__(self, workdir: Path, port: int | None = None) -> None:
+    def __init__(self, workdir: Path, port: int | None = None, *, tls: bool = False) -> None:
         self.binary = require("mosquitto")
         self.workdir = workdir
         self.port = port or free_port()
+        self.tls_port = free_port() if tls else None
+        self.ca_file = workdir / "server.crt"  # self-signed: its own CA
+        if tls:
+            make_cert(workdir)
         self.proc: subprocess.Popen[bytes] | None = None
         self.conf = workdir / "mosquitto.conf"
         self.log = workdir / "mosquitto.log"
@@ -94,6 +98,12 @@ class Mosquitto:
                 continue
             lines.append(line)
         lines.append(f"log_dest file {self.log}")
+        if self.tls_port is not None:
+            lines += [
+                f"listener {self.tls_port} 127.0.0.1",
+                f"certfile {self.workdir / 'server.crt'}",
+                f"keyfile {self.workdir / 'server.key'}",
+            ]
         if os.geteuid() == 0:
             lines.append("user root")  # else mosquitto drops to a user that cannot read tmp
         self.conf.write_text("\n".join(lines) + "\n")
@@ -116,6 +126,10 @@ class Mosquitto:
     def url(self, user: str | None = None) -> str:
         cred = f"{user}:{PASSWORDS[user]}@" if user else ""
         return f"mqtt://{cred}127.0.0.1:{self.port}"
+
+    def tls_url(self, user: str) -> str:
+        assert self.tls_port is not None
+        return f"mqtts://{user}:{PASSWORDS[user]}@127.0.0.1:{self.tls_port}"
 
     def start(self, timeout: float = 10.0) -> None:
         assert self.proc is None or self.proc.poll() is not None
@@ -153,9 +167,33 @@ class Mosquitto:
                 self.kill()
 
 
+def make_cert(workdir: Path) -> None:
+    """A self-signed certificate for 127.0.0.1 (openssl CLI)."""
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("openssl not installed")
+    subprocess.run(
+        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2",
+         "-keyout", str(workdir / "server.key"), "-out", str(workdir / "server.crt"),
+         "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1"],
+        check=True, capture_output=True, timeout=30,
+    )  # fmt: skip
+
+
 @pytest.fixture(name="mosquitto")
 def mosquitto_fixture(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Mosquitto]:
     m = Mosquitto(tmp_path_factory.mktemp("mosquitto"))
+    m.start()
+    try:
+        yield m
+    finally:
+        m.stop()
+
+
+@pytest.fixture(name="mosquitto_tls")
+def mosquitto_tls_fixture(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Mosquitto]:
+    """Mosquitto with a second, TLS listener (``tls_url``, ``ca_file``)."""
+    m = Mosquitto(tmp_path_factory.mktemp("mosquitto"), tls=True)
     m.start()
     try:
         yield m

@@ -8,7 +8,13 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import pytest
-from mosquitto import Collector, Mosquitto, mosquitto_fixture, pub  # noqa: F401
+from mosquitto import (  # noqa: F401
+    Collector,
+    Mosquitto,
+    mosquitto_fixture,
+    mosquitto_tls_fixture,
+    pub,
+)
 
 from awaremw.gateway.bridge import Publish
 from awaremw.gateway.broker import EmbeddedBroker
@@ -200,3 +206,39 @@ async def test_embedded_broker_speaks_311_and_bridges() -> None:
                 # connecting client the retained messages of every filter in the
                 # broker (the viewer's aware/groups/#, and aware/def/# once more).
                 assert {i[:3] for i in inbox.items} == {("def/group/1", GROUP.encode(), True)}
+
+
+async def test_mqtts_with_a_ca_file(mosquitto_tls: Mosquitto) -> None:
+    inbox = Inbox()
+    ca = str(mosquitto_tls.ca_file)
+    settings = MqttSettings.from_url(mosquitto_tls.tls_url("gateway"), ca_file=ca)
+    assert settings.tls and settings.port == mosquitto_tls.tls_port
+    bridge = MqttBridge(settings, inbox)
+    async with Collector(mosquitto_tls.url("viewer"), "aware/data/#") as sub, running(bridge):
+        assert bridge.stats.protocol == "5"  # the probe went through TLS too
+        op = MqttBridge(
+            MqttSettings.from_url(mosquitto_tls.tls_url("operator"), ca_file=ca, client_id="op"),
+            Inbox(),
+        )
+        async with running(op):
+            op.publish(Publish("def/group/1", GROUP.encode(), retain=True))
+            await inbox.wait(1)
+        bridge.publish(Publish("data/1/1/2", b"{}"))
+        await sub.wait_for(lambda ms: len(ms) >= 1)
+    # Without the CA the certificate is refused: the bridge keeps retrying.
+    bad = MqttBridge(
+        MqttSettings.from_url(mosquitto_tls.tls_url("gateway"), reconnect_min_s=0.01), Inbox()
+    )
+    task = asyncio.create_task(bad.run())
+    try:
+
+        async def refused_twice() -> None:
+            while bad.stats.connect_failures < 2:
+                bad.changed.clear()
+                await bad.changed.wait()
+
+        await asyncio.wait_for(refused_twice(), 10)
+        assert bad.stats.connects == 0
+    finally:
+        bad.stop()
+        await asyncio.wait_for(task, 10)

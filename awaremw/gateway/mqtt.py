@@ -152,6 +152,7 @@ class MqttBridge:
         self.connected = asyncio.Event()
         self.disconnected = asyncio.Event()  # set whenever not connected
         self.disconnected.set()
+        self.changed = asyncio.Event()  # set at every connect, failed attempt and disconnect
         self._fifo: deque[_Item] = deque()
         self._retained: dict[str, bytes] = {}  # full topic -> latest payload
         self._dirty: dict[str, bytes] = {}  # retained topics still to (re)publish
@@ -223,6 +224,7 @@ class MqttBridge:
                     self.connected.clear()
                     self.disconnected.set()
                     self.stats.disconnects += 1
+                    self.changed.set()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), backoff)
             backoff = min(backoff * 2, s.reconnect_max_s)
@@ -313,6 +315,7 @@ class MqttBridge:
         self.stats.protocol = "5" if protocol is aiomqtt.ProtocolVersion.V5 else "3.1.1"
         self.connected.set()
         self.disconnected.clear()
+        self.changed.set()
         log.info("connected to %s (MQTT %s)", self.settings.url, self.stats.protocol)
         self._last_error = ""
         # The broker may have lost its retained messages: publish them all again.
@@ -320,6 +323,7 @@ class MqttBridge:
 
     def _note_failure(self, e: Exception) -> None:
         self.stats.connect_failures += 1
+        self.changed.set()
         msg = str(e)
         if msg != self._last_error:  # do not flood the log while the broker is away
             log.warning("MQTT %s: %s; reconnecting", self.settings.url, msg)
