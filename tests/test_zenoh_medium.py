@@ -417,7 +417,7 @@ async def test_subscriptions_are_per_column_not_per_mote(router: str) -> None:
             {"id": 99, "kind": "x", "path": [[5.0, 5.0], [300.0, 5.0]], "speed_mps": 2000.0}
         )
         f.add_mote(spec)
-        await wait_for(lambda: 5 in f.medium.columns, timeout=5)
+        await wait_for(lambda: 6 in f.medium.columns, timeout=5)  # it stands in column 5
         x, _ = f.positions()[99]
         assert x > 5 * f.model.cell_size_m
         # Its frames now go out on its new cell's key.
