@@ -392,8 +392,8 @@ class Fleet:
             gc.collect()
             gc.freeze()
         for r in list(self.runners.values()):
-            spec_boot = self._boot_of.get(r.node_id, 0.0)
-            r.start_at(spec_boot)
+            if not r.stopped:  # killed before the start: never boots
+                r.start_at(self._boot_of.get(r.node_id, 0.0))
 
     async def aclose(self) -> None:
         if self._closed:
