@@ -21,6 +21,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import signal
 import sys
 from typing import Any
@@ -164,17 +165,17 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     def show(s: FleetSnapshot) -> None:
         print(s.line(), flush=True)
 
-    async def wait_end(clock_now: Any) -> None:
-        if args.duration is None:
-            await stop.wait()
-            return
-        while not stop.is_set():
-            left = (args.duration - clock_now()) / args.speed
-            if left <= 0:
-                return
+    async def wait_end(fleet: Fleet) -> None:
+        """Until --duration (emulated), a signal or a failure; progress lines meanwhile."""
+        while not stop.is_set() and not fleet.failed:
+            left = math.inf
+            if args.duration is not None:
+                left = (args.duration - fleet.now()) / args.speed
+                if left <= 0:
+                    return
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), min(left, args.progress))
-            if args.processes == 1 and not stop.is_set() and left > args.progress:
+            if not stop.is_set() and left > args.progress:
                 show(fleet.snapshot())
 
     skip = frozenset(args.without_kind)
@@ -192,10 +193,9 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             )
             await fleet.__aenter__()
         except zenoh.ZError as e:
-            await fleet.aclose()
             raise _StartError(f"cannot open the Zenoh session on {where}: {e}") from None
         try:
-            await wait_end(fleet.now)
+            await wait_end(fleet)
             fleet.raise_errors()
             show(fleet.snapshot())
         finally:

@@ -332,9 +332,13 @@ class Fleet:
     # ------------------------------------------------------------------ lifecycle
 
     async def __aenter__(self) -> Fleet:
-        await self.setup()
-        if self._autostart:
-            self.start(self._start_wall)
+        try:
+            await self.setup()
+            if self._autostart:
+                self.start(self._start_wall)
+        except BaseException:
+            await self.aclose()  # no half-open session or stray loop handler
+            raise
         return self
 
     async def __aexit__(
@@ -433,6 +437,11 @@ class Fleet:
                 return
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._failed.wait(), timeout=left)
+
+    @property
+    def failed(self) -> bool:
+        """True once a core or hook raised inside the loop (see :meth:`raise_errors`)."""
+        return self._failed.is_set()
 
     def raise_errors(self) -> None:
         if self._errors:
