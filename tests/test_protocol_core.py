@@ -27,7 +27,7 @@ def test_attribute_names_round_trip() -> None:
 
 @pytest.mark.parametrize("bad", ["temp", "rssi:", "rssi:x", "rssi:40000", ""])
 def test_unknown_attribute_is_a_specific_error(bad: str) -> None:
-    with pytest.raises(UnknownAttribute, match="rssi|unknown attribute"):
+    with pytest.raises(UnknownAttribute, match=r"rssi|unknown attribute"):
         attribute_id(bad)
 
 

@@ -65,6 +65,25 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="KIND",
         help="do not run motes of this kind here (e.g. gateway, run by awaremw gateway)",
     )
+    p.add_argument(
+        "--part",
+        default=None,
+        metavar="K/N",
+        help="run only stripe K of N along x (fleets on several hosts share one deployment)",
+    )
+    p.add_argument(
+        "--start-at",
+        type=float,
+        default=None,
+        metavar="UNIX_TIME",
+        help="shared wall-clock start of emulated time (fleets on several hosts)",
+    )
+    p.add_argument(
+        "--links-json",
+        default=None,
+        metavar="PATH",
+        help="at the end, write the frames delivered per (src, dst) link as JSON",
+    )
     p.set_defaults(func=run_fleet)
 
     c = subparsers.add_parser(
@@ -134,6 +153,14 @@ def run_fleet(args: argparse.Namespace) -> int:
         print(f"awaremw fleet: {e}", file=sys.stderr)
         return 2
     try:
+        args.part_filter = _part_filter(args.part, dep)
+    except ValueError as e:
+        print(f"awaremw fleet: --part {args.part}: {e}", file=sys.stderr)
+        return 2
+    if args.part_filter is not None and args.processes != 1:
+        print("awaremw fleet: --part and --processes do not combine", file=sys.stderr)
+        return 2
+    try:
         return asyncio.run(_run_fleet(args, dep))
     except _StartError as e:
         print(f"awaremw fleet: {e}", file=sys.stderr)
@@ -142,6 +169,21 @@ def run_fleet(args: argparse.Namespace) -> int:
 
 class _StartError(Exception):
     pass
+
+
+def _part_filter(part: str | None, dep: Any) -> Any:
+    """The node filter of ``--part K/N``: stripe K (1-based) of N along x."""
+    if part is None:
+        return None
+    from awaremw.runtime.fleet import stripes
+
+    k_s, sep, n_s = part.partition("/")
+    if not sep or not k_s.isdigit() or not n_s.isdigit():
+        raise ValueError("expected K/N with whole numbers, e.g. 1/2")
+    k, n = int(k_s), int(n_s)
+    if not 1 <= k <= n:
+        raise ValueError(f"K must be in 1..N, got {k}/{n}")
+    return stripes(dep, n)[k - 1]
 
 
 async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
@@ -189,7 +231,9 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
                 connect=args.connect,
                 listen=listen,
                 freeze_gc=True,
-                node_filter=(lambda s: s.kind not in skip) if skip else None,
+                node_filter=_combine(args.part_filter, skip),
+                start_wall=args.start_at,
+                track_links=args.links_json is not None,
             )
             await fleet.__aenter__()
         except zenoh.ZError as e:
@@ -198,6 +242,10 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             await wait_end(fleet)
             fleet.raise_errors()
             show(fleet.snapshot())
+            if args.links_json is not None:
+                links = fleet.medium.links or {}
+                with open(args.links_json, "w", encoding="utf-8") as f:
+                    json.dump([[s, d, n] for (s, d), n in sorted(links.items())], f)
         finally:
             await fleet.aclose()
         return 0
@@ -246,6 +294,16 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             print(f"awaremw fleet: worker {r.name}: {r.error}", file=sys.stderr)
             code = 1
     return code
+
+
+def _combine(part: Any, skip: frozenset[str]) -> Any:
+    if part is None and not skip:
+        return None
+
+    def keep(spec: Any) -> bool:
+        return spec.kind not in skip and (part is None or bool(part(spec)))
+
+    return keep
 
 
 # --------------------------------------------------------------------------- fleet-ctl
