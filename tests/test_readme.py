@@ -1,0 +1,144 @@
+"""The README's robot client works as printed, against a real fleet and gateway.
+
+The Python block under "A robot client in Python" is extracted from README.md
+and run unchanged (only the broker's port is passed to ``main``), as a user
+would: ``awaremw fleet romeo4r`` and ``awaremw gateway romeo4r`` (embedded
+MQTT broker) are real processes talking over Zenoh on loopback.
+"""
+
+from __future__ import annotations
+
+import ast
+import queue
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.slow
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def readme_robot_client() -> str:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text.split("## A robot client in Python", 1)[1]
+    m = re.search(r"```python\n(.*?)```", section, re.S)
+    assert m, "README has no python block in 'A robot client in Python'"
+    return m.group(1)
+
+
+class Lines:
+    """Lines of a child's stdout, read on a thread, awaited with a timeout."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self.q: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        assert proc.stdout is not None
+        out = proc.stdout
+        threading.Thread(target=lambda: [self.q.put(ln) for ln in out], daemon=True).start()
+
+    def wait_for(self, pattern: str, timeout: float) -> re.Match[str]:
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self.q.get(timeout=left)
+            except queue.Empty:
+                break
+            self.seen.append(line)
+            if m := re.search(pattern, line):
+                return m
+        raise AssertionError(
+            f"no line matching {pattern!r} in {timeout} s; got:\n" + "".join(self.seen)
+        )
+
+
+@pytest.fixture
+def procs() -> Iterator[list[subprocess.Popen[str]]]:
+    started: list[subprocess.Popen[str]] = []
+    yield started
+    for p in started:
+        if p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_readme_robot_client_gets_data(procs: list[subprocess.Popen[str]], tmp_path: Path) -> None:
+    zenoh_ep = f"tcp/127.0.0.1:{_free_port()}"
+    start_at = time.time() + 3.0
+
+    def spawn(*args: str) -> subprocess.Popen[str]:
+        p = subprocess.Popen(
+            [sys.executable, "-m", "awaremw", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            cwd=ROOT,
+        )
+        procs.append(p)
+        return p
+
+    spawn(
+        "fleet",
+        "romeo4r",
+        "--without-kind",
+        "gateway",
+        "--plain",
+        "--speed",
+        "4",
+        "--listen",
+        zenoh_ep,
+        "--start-at",
+        f"{start_at:.3f}",
+        "--progress",
+        "30",
+    )
+    gw = Lines(
+        spawn(
+            "gateway",
+            "romeo4r",
+            "--connect",
+            zenoh_ep,
+            "--speed",
+            "4",
+            "--state-dir",
+            str(tmp_path / "state"),
+        )
+    )
+    m = gw.wait_for(r"embedded MQTT broker: mqtt://([\d.]+):(\d+)", timeout=30)
+    host, port = m.group(1), int(m.group(2))
+
+    script = tmp_path / "robot.py"
+    script.write_text(
+        readme_robot_client().replace("asyncio.run(main())", f"asyncio.run(main({host!r}, {port}))")
+    )
+    client = subprocess.Popen(
+        [sys.executable, "-u", str(script)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    procs.append(client)
+    robot = Lines(client)
+    # The robot enters the field at t = 25 s (about 6 s of wall time at x4) and
+    # its group's first record follows within a few channel periods.
+    m = robot.wait_for(r"^aware/data/1/1/(\d+) (\{.*\})$", timeout=90)
+    record = ast.literal_eval(m.group(2))  # the client prints the decoded JSON object
+    assert record["agg"] == "avg" and record["count"] >= 1
+    assert 1 <= int(m.group(1)) <= 0xFFFE
+    assert -20.0 < record["value"] < 60.0  # a temperature in degC
