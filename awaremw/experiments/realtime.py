@@ -297,7 +297,7 @@ def run_realtime(
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)
-        if line is not None and not isinstance(view, PlainLog):
+        if line is not None:
             view.log(t, line)
 
     rt = RealtimeRun(
