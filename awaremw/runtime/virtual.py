@@ -9,28 +9,38 @@ medium applies exactly the rules of the Zenoh medium (``docs/radio.md``,
 ``(seed, src, dst, packet key)``, same link-layer ACK and retries, same
 counters.
 
-Speed (the virtual driver must run 1,000 motes at least 10x faster than real
-time) comes from caching everything that does not change per packet: for a
-static sender, the receivers in its 3x3 cells are split once into those that
-may hear it (with their mean RSSI and link hash), those that never can (mean
-RSSI too low for any fading draw) and those beyond range; the last two are
-counted in bulk (``pending`` broadcasts, folded into the receivers' counters
-when the topology changes or when counters are read). Moving motes are
-evaluated afresh at every frame.
+Who hears whom (cells, cached receiver lists of static senders, bulk-counted
+drops) is :mod:`awaremw.radio.neighbourhood`; the link layer's state and rules
+(sequence numbers, duplicates, ACKs, retries) :mod:`awaremw.radio.linklayer`:
+the same code the Zenoh medium runs. What is this driver's own is the event
+heap and the per-packet loop over a static sender's receivers (the hot path:
+:meth:`RadioModel.decide <awaremw.radio.model.RadioModel.decide>` inlined),
+which is what makes 1,000 motes run at least 10x faster than real time.
+Moving motes are evaluated afresh at every frame.
 """
 
 from __future__ import annotations
 
 import heapq
 import math
-from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
 from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
-from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
+from awaremw.protocol.frames import BROADCAST
 from awaremw.radio.counters import Battery, MoteCounters
+from awaremw.radio.linklayer import (
+    LinkStation,
+    accept_unicast,
+    ack_heard,
+    begin_next,
+    check_node_id,
+    check_transmission,
+    settle,
+    silence,
+    tx_power_of,
+)
 from awaremw.radio.model import (
     _GOLDEN,
     _M64,
@@ -39,10 +49,10 @@ from awaremw.radio.model import (
     _SHIFT,
     _U32,
     RadioModel,
-    cell_of,
     packet_hash,
     packet_key,
 )
+from awaremw.radio.neighbourhood import Neighbourhood, adjacent, deliver, hear
 from awaremw.world.mobility import Mobility, Static
 
 T = TypeVar("T")
@@ -60,43 +70,10 @@ class MoteDown:
     reason: str  # "killed" or "battery"
 
 
-class _Node:
-    """Driver-side state of one mote incarnation."""
+class _Node(LinkStation):
+    """Driver-side state of one mote incarnation: its radio, core and timer."""
 
-    __slots__ = (
-        "alive",
-        "armed",
-        "backoff_h",
-        "battery",
-        "busy",
-        "cell",
-        "core",
-        "counters",
-        "cur",
-        "cur_attempt",
-        "cur_seq",
-        "far_dist",
-        "far_loss",
-        "fire_count",
-        "fire_t",
-        "id",
-        "last_useq",
-        "links",
-        "lists_ok",
-        "mobility",
-        "near",
-        "pending",
-        "pos_t",
-        "queue",
-        "range_m",
-        "seq",
-        "started",
-        "static",
-        "timer_gen",
-        "tx_power",
-        "x",
-        "y",
-    )
+    __slots__ = ("armed", "backoff_h", "core", "fire_count", "fire_t", "started", "timer_gen")
 
     def __init__(
         self,
@@ -107,41 +84,14 @@ class _Node:
         range_m: float,
         battery: Battery | None,
     ) -> None:
-        self.id = core.node_id
+        super().__init__(core.node_id, mobility, tx_power, range_m, counters, battery)
         self.core = core
-        self.counters = counters
-        self.mobility = mobility
-        self.static = isinstance(mobility, Static)
-        self.tx_power = tx_power
-        self.range_m = range_m
-        self.battery = battery
-        self.alive = False  # on the air: between start and death
         self.started = False
-        self.x = 0.0
-        self.y = 0.0
-        self.cell = (0, 0)
-        self.pos_t = -math.inf  # time x, y, cell were computed (moving motes)
-        self.queue: deque[Transmission] = deque()
-        self.busy = False
-        # The frame on the air or awaiting its ACK (None when the radio is idle).
-        self.cur: Transmission | None = None
-        self.cur_seq = 0
-        self.cur_attempt = 0
-        self.seq = 0  # 16-bit link sequence number of the next transmission
         self.backoff_h = 0
         self.timer_gen = 0
         self.armed: float | None = None
         self.fire_t = -1.0
         self.fire_count = 0
-        self.last_useq: dict[int, int] = {}  # src -> last unicast link seq (duplicates)
-        # Static sender caches (see the module docstring).
-        self.lists_ok = False
-        # (receiver, its counters, its core, mean RSSI, fading link hash)
-        self.near: list[tuple[_Node, MoteCounters, MoteCore, float, int]] = []
-        self.far_loss: list[_Node] = []
-        self.far_dist: list[_Node] = []
-        self.pending = 0
-        self.links: dict[int, tuple[_Node, float, float, int] | None] = {}
 
 
 class VirtualNetwork:
@@ -162,8 +112,7 @@ class VirtualNetwork:
         self._nodes: dict[int, _Node] = {}
         self._counters: dict[int, MoteCounters] = {}
         self._cores: dict[int, MoteCore] = {}
-        self._grid: dict[tuple[int, int], list[_Node]] = {}
-        self._moving: list[_Node] = []
+        self._nb: Neighbourhood[_Node] = Neighbourhood(model)
         p = self.preset
         self._sens = p.sensitivity_dbm
         self._noise = p.noise_floor_dbm
@@ -188,7 +137,7 @@ class VirtualNetwork:
     @property
     def counters(self) -> dict[int, MoteCounters]:
         """Per-mote counters, up to date (folds the bulk-counted drops in first)."""
-        self._flush_all()
+        self._nb.flush_all()
         return self._counters
 
     def ids(self) -> list[int]:
@@ -207,14 +156,11 @@ class VirtualNetwork:
         Re-adding the id of a dead mote switches it on again with the new core;
         its counters go on accumulating.
         """
-        nid = core.node_id
-        if not isinstance(nid, int) or not 0 <= nid <= MAX_NODE_ID:
-            raise ValueError(f"node id {nid!r} outside 0..{MAX_NODE_ID}")
+        nid = check_node_id(core.node_id)
         old = self._nodes.get(nid)
         if old is not None and (old.alive or not old.started):
             raise ValueError(f"node {nid} is already in the network")
-        txp = self.preset.tx_power_dbm if tx_power_dbm is None else float(tx_power_dbm)
-        self.preset.check_tx_power(txp)
+        txp = tx_power_of(self.preset, tx_power_dbm)
         t = self._now if start_at is None else float(start_at)
         if t < self._now:
             raise ValueError(f"start_at {t} is in the past (now {self._now})")
@@ -232,18 +178,8 @@ class VirtualNetwork:
         if not node.alive:
             node.started = True  # a mote killed before booting never boots
             return
-        if node.pending:
-            self._flush(node)
-        node.lists_ok = False
-        node.alive = False
-        node.queue.clear()
-        node.busy = False
-        node.cur = None
-        if node.static:
-            self._grid_remove(node)
-        else:
-            self._moving.remove(node)
-        self._touch(node.cell)
+        silence(node)
+        self._nb.remove(node)
         if self.on_event is not None:
             self.on_event(node_id, MoteDown(reason), self._now)
 
@@ -257,24 +193,13 @@ class VirtualNetwork:
     def set_mobility(self, node_id: int, mobility: Mobility) -> None:
         """Change how a mote moves from now on (a robot given a new path)."""
         node = self._nodes[node_id]
-        was_in_grid = node.alive and node.static
-        old_cell = node.cell
-        if node.pending:
-            self._flush(node)  # its bulk counts belong to its old lists
-        node.lists_ok = False
-        if was_in_grid:
-            self._grid_remove(node)
-        elif node.alive:
-            self._moving.remove(node)
+        if node.alive:
+            self._nb.remove(node)  # drops the cached lists and links it is part of
         node.mobility = mobility
         node.static = isinstance(mobility, Static)
         node.pos_t = -math.inf
-        for n in self._nodes.values():  # cached unicast links may involve this mote
-            n.links.clear()
         if node.alive:
-            self._place(node)
-            self._touch(old_cell)
-            self._touch(node.cell)
+            self._nb.add(node, self._now)
 
     def energy_mj(self, node_id: int) -> float:
         n = self._nodes[node_id]
@@ -293,7 +218,7 @@ class VirtualNetwork:
         if not node.alive:
             raise ValueError(f"node {src} is not on the air")
         tx = Transmission(frame, dest, 0)
-        self._check_tx(node, tx)
+        check_transmission(node, tx, self._mtu)
         node.queue.append(tx)
         if not node.busy:
             self._start_next(node)
@@ -353,7 +278,7 @@ class VirtualNetwork:
     ) -> None:
         if txs:
             for tx in txs:
-                self._check_tx(node, tx)
+                check_transmission(node, tx, self._mtu)
             node.queue.extend(txs)
             if not node.busy and node.alive:
                 self._start_next(node)
@@ -363,28 +288,19 @@ class VirtualNetwork:
                 if type(e) is MalformedFrame:
                     node.counters.malformed += 1
                 if hook is not None:
-                    hook(node.id, e, self._now)
+                    hook(node.node_id, e, self._now)
         if dl != node.armed:
             node.armed = dl
             node.timer_gen += 1
             if dl is not None and node.alive:
                 self._push(dl if dl > self._now else self._now, _TIMER, node, node.timer_gen)
 
-    def _check_tx(self, node: _Node, tx: Transmission) -> None:
-        # A core that sends an oversize frame or to itself has a bug: raise.
-        if len(tx.frame) > self._mtu:
-            raise ValueError(f"node {node.id}: frame of {len(tx.frame)} bytes > MTU")
-        d = tx.dest
-        if d != BROADCAST and (not 0 <= d <= MAX_NODE_ID or d == node.id):
-            raise ValueError(f"node {node.id}: bad destination {d}")
-
     def _start(self, node: _Node) -> None:
         if node.started:  # killed before it booted
             return
         node.started = True
         node.alive = True
-        self._place(node)
-        self._touch(node.cell)
+        self._nb.add(node, self._now)
         node.core.start(self._now)
         self._after(node)
 
@@ -395,7 +311,7 @@ class VirtualNetwork:
         if node.fire_t == now:
             node.fire_count += 1
             if node.fire_count > _MAX_FIRINGS_AT_ONE_TIME:
-                raise RuntimeError(f"node {node.id}: core keeps its deadline at {now}")
+                raise RuntimeError(f"node {node.node_id}: core keeps its deadline at {now}")
         else:
             node.fire_t, node.fire_count = now, 0
         node.armed = None
@@ -405,14 +321,8 @@ class VirtualNetwork:
     def _start_next(self, node: _Node) -> None:
         if not node.queue:
             return
-        tx = node.queue.popleft()
-        seq = node.seq
-        node.seq = (seq + 1) & 0xFFFF
-        node.busy = True
-        node.cur = tx
-        node.cur_seq = seq
-        node.cur_attempt = 0
-        self._schedule_attempt(node, len(tx.frame), seq, 0)
+        tx = begin_next(node)
+        self._schedule_attempt(node, len(tx.frame), node.cur_seq, 0)
 
     def _schedule_attempt(self, node: _Node, n: int, seq: int, attempt: int) -> None:
         h = packet_hash(node.backoff_h, (seq << 8) | (attempt << 1))  # packet_key(seq, attempt)
@@ -437,7 +347,7 @@ class VirtualNetwork:
         c.frames_tx += 1
         c.bytes_tx += n
         if self.on_transmit is not None:
-            self.on_transmit(s.id, tx, self._now)
+            self.on_transmit(s.node_id, tx, self._now)
         if tx.dest == BROADCAST:
             s.busy = False
             s.cur = None
@@ -454,10 +364,10 @@ class VirtualNetwork:
         bits = 8 * (n + self._overhead)
         kg = (key * _GOLDEN) & _M64
         now = self._now
+        nb = self._nb
         if s.static:
-            if not s.lists_ok:
-                self._build_lists(s)
-            s.pending += 1
+            c = nb.sender(s.node_id, s.x, s.y, s.tx_power)
+            c.pending += 1  # one more broadcast for the far_* receivers (counted in bulk)
             sens = self._sens
             noise = self._noise
             one = self._one_snr
@@ -467,7 +377,7 @@ class VirtualNetwork:
             mask = _M64
             mul = _MUL
             shift = _SHIFT
-            for r, rc, core, mean, lh in s.near:
+            for r, rc, mean, lh in c.near:
                 # Inlined RadioModel.decide(lh, mean, bits, key), the hot path.
                 # packet_hash is z ^ (z >> 31): its top 12 bits (the normal
                 # deviate) are z's, so the xorshift is only needed for the
@@ -488,6 +398,7 @@ class VirtualNetwork:
                     continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
+                core = r.core
                 core.receive(frame, rssi, now)
                 # Inlined _after(r): usually nothing to send, no event, same deadline.
                 txs = core.drain()
@@ -497,47 +408,31 @@ class VirtualNetwork:
                     self._handle(r, txs, evs, dl)
                 if r.battery is not None:
                     self._check_battery(r)
-            if self._moving:
-                for r in list(self._moving):
-                    self._hear(s, s.x, s.y, s.cell, r, frame, n, bits, key)
+            if nb.moving:
+                for r in list(nb.moving):
+                    self._hear(s, r, frame, n, bits, key)
         else:
-            self._locate(s)
-            for r in self._candidates(s):
-                self._hear(s, s.x, s.y, s.cell, r, frame, n, bits, key)
+            nb.locate(s, now)
+            candidates = [r for lst in nb.cells_around(s.cell) for r in lst]
+            candidates.extend(nb.moving)  # filtered by cell in _hear
+            for r in candidates:
+                self._hear(s, r, frame, n, bits, key)
 
-    def _hear(
-        self,
-        s: _Node,
-        sx: float,
-        sy: float,
-        scell: tuple[int, int],
-        r: _Node,
-        frame: bytes,
-        n: int,
-        bits: int,
-        key: int,
-    ) -> None:
+    def _hear(self, s: _Node, r: _Node, frame: bytes, n: int, bits: int, key: int) -> None:
         """One receiver of a broadcast, evaluated from scratch (moving motes)."""
         if r is s or not r.alive:
             return
-        self._locate(r)
-        if abs(r.cell[0] - scell[0]) > 1 or abs(r.cell[1] - scell[1]) > 1:
+        now = self._now
+        self._nb.locate(r, now)
+        if not adjacent(r.cell, s.cell):
             return  # not subscribed to the sender's cell: hears nothing, counts nothing
-        d = math.hypot(r.x - sx, r.y - sy)
-        if d > s.range_m:
-            r.counters.dropped_distance += 1
-            return
-        m = self.model
-        ok, rssi = m.decide(
-            m.fading_link_hash(s.id, r.id), m.mean_rssi(s.id, r.id, d, s.tx_power), bits, key
+        d = math.hypot(r.x - s.x, r.y - s.y)
+        rssi = hear(
+            self.model, r.counters, s.node_id, r.node_id, d, s.tx_power, s.range_m, n, bits, key
         )
-        if not ok:
-            r.counters.dropped_loss += 1
+        if rssi is None:
             return
-        rc = r.counters
-        rc.frames_rx += 1
-        rc.bytes_rx += n
-        r.core.receive(frame, rssi, self._now)
+        r.core.receive(frame, rssi, now)
         self._after(r)
         self._check_battery(r)
 
@@ -545,47 +440,28 @@ class VirtualNetwork:
         now = self._now
         p = self.preset
         m = self.model
-        key = packet_key(seq, a)
         r = self._nodes.get(tx.dest)
-        delivered = False
-        rssi = 0.0
-        link = None
+        acked = False
         if r is not None and r.alive:
-            link = self._link(s, r)
+            link = self._nb.link(s, r, now)  # None: r does not listen to s's cell
             if link is not None:
                 _, d, mean, lh = link
+                rc = r.counters
                 if d > s.range_m:
-                    r.counters.dropped_distance += 1
+                    rc.dropped_distance += 1
+                    rssi = None
                 else:
-                    ok, rssi = m.decide(lh, mean, 8 * (n + p.phy_overhead_bytes), key)
-                    if ok:
-                        delivered = True
-                    else:
-                        r.counters.dropped_loss += 1
-        acked = False
-        if delivered and r is not None and link is not None:
-            rc = r.counters
-            rc.frames_rx += 1
-            rc.bytes_rx += n
-            if r.last_useq.get(s.id) == seq:
-                rc.duplicates += 1  # a retry of a frame already received: ACK, do not deliver
-            else:
-                r.last_useq[s.id] = seq
-                r.core.receive(frame, rssi, now)
-                self._after(r)
-            if r.alive:
-                # The hardware ACK, on the reverse link at the receiver's power.
-                rc.acks_tx += 1
-                d = link[1]
-                if d <= r.range_m:
-                    back = m.mean_rssi(r.id, s.id, d, r.tx_power)
-                    acked, _ = m.decide(
-                        m.fading_link_hash(r.id, s.id),
-                        back,
-                        8 * p.ack_bytes,
-                        packet_key(seq, a, ack=True),
-                    )
-                self._check_battery(r)
+                    bits = 8 * (n + self._overhead)
+                    rssi = deliver(m, rc, mean, lh, n, bits, packet_key(seq, a))
+                if rssi is not None:
+                    if accept_unicast(r, s.node_id, seq):
+                        r.core.receive(frame, rssi, now)
+                        self._after(r)
+                    if r.alive:
+                        # The hardware ACK, on the reverse link at the receiver's power.
+                        rc.acks_tx += 1
+                        acked = ack_heard(m, r.node_id, r.tx_power, s.node_id, d, seq, a)
+                        self._check_battery(r)
         if acked:
             self._push(now + p.ack_turnaround_s + p.ack_airtime_s, _UC_DONE, s, True)
         else:
@@ -595,21 +471,9 @@ class VirtualNetwork:
         tx = s.cur
         if tx is None or not s.alive:
             return
-        seq = s.cur_seq
-        attempt = s.cur_attempt
-        c = s.counters
-        if not acked and attempt < self.preset.max_retries:
-            c.retries += 1
-            s.cur_attempt = attempt + 1
-            self._schedule_attempt(s, len(tx.frame), seq, attempt + 1)
+        if settle(s, acked, self.preset.max_retries):
+            self._schedule_attempt(s, len(tx.frame), s.cur_seq, s.cur_attempt)
             return
-        if acked:
-            c.acks_rx += 1
-            c.unicast_ok += 1
-        else:
-            c.unicast_failed += 1
-        s.busy = False
-        s.cur = None
         s.core.link_result(tx, acked, self._now)
         self._after(s)
         if acked:
@@ -620,109 +484,4 @@ class VirtualNetwork:
     def _check_battery(self, node: _Node) -> None:
         b = node.battery
         if b is not None and node.alive and b.is_dead(node.counters, self.preset, node.tx_power):
-            self.kill(node.id, "battery")
-
-    # ------------------------------------------------------------------ geometry
-
-    def _locate(self, node: _Node) -> None:
-        """Refresh a moving mote's position and cell for the current time."""
-        if node.static or node.pos_t == self._now:
-            return
-        node.x, node.y = node.mobility.position(self._now)
-        node.cell = cell_of(node.x, node.y, self.cell_size)
-        node.pos_t = self._now
-
-    def _place(self, node: _Node) -> None:
-        """Put a mote that came on the air (or changed mobility) in the grid or moving list."""
-        node.x, node.y = node.mobility.position(self._now)
-        node.cell = cell_of(node.x, node.y, self.cell_size)
-        node.pos_t = self._now
-        if node.static:
-            self._grid.setdefault(node.cell, []).append(node)
-        else:
-            self._moving.append(node)
-
-    def _grid_remove(self, node: _Node) -> None:
-        self._grid[node.cell].remove(node)
-
-    def _cells_around(self, cell: tuple[int, int]) -> Iterable[list[_Node]]:
-        cx, cy = cell
-        grid = self._grid
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                lst = grid.get((cx + dx, cy + dy))
-                if lst:
-                    yield lst
-
-    def _candidates(self, s: _Node) -> list[_Node]:
-        """Every mote that may hear a moving sender: static ones in its 3x3 cells
-        and all moving ones (filtered by cell in _hear)."""
-        out = [r for lst in self._cells_around(s.cell) for r in lst]
-        out.extend(self._moving)
-        return out
-
-    def _touch(self, cell: tuple[int, int]) -> None:
-        """The motes around ``cell`` changed: fold the bulk counts, rebuild lazily."""
-        for lst in self._cells_around(cell):
-            for s in lst:
-                if s.pending:
-                    self._flush(s)
-                s.lists_ok = False
-                s.links.clear()
-
-    def _flush(self, s: _Node) -> None:
-        k = s.pending
-        for r in s.far_loss:
-            r.counters.dropped_loss += k
-        for r in s.far_dist:
-            r.counters.dropped_distance += k
-        s.pending = 0
-
-    def _flush_all(self) -> None:
-        for s in self._nodes.values():
-            if s.pending:
-                self._flush(s)
-
-    def _build_lists(self, s: _Node) -> None:
-        m = self.model
-        near: list[tuple[_Node, MoteCounters, MoteCore, float, int]] = []
-        far_loss: list[_Node] = []
-        far_dist: list[_Node] = []
-        for lst in self._cells_around(s.cell):
-            for r in lst:
-                if r is s:
-                    continue
-                d = math.hypot(r.x - s.x, r.y - s.y)
-                if d > s.range_m:
-                    far_dist.append(r)
-                    continue
-                mean = m.mean_rssi(s.id, r.id, d, s.tx_power)
-                if m.never_delivers(mean):
-                    far_loss.append(r)
-                else:
-                    near.append((r, r.counters, r.core, mean, m.fading_link_hash(s.id, r.id)))
-        if s.pending:
-            self._flush(s)
-        s.near, s.far_loss, s.far_dist = near, far_loss, far_dist
-        s.lists_ok = True
-
-    def _link(self, s: _Node, r: _Node) -> tuple[_Node, float, float, int] | None:
-        """(r, distance, mean RSSI, link hash) if ``r`` listens to ``s``'s cell, else None.
-        Cached for pairs of static motes."""
-        both_static = s.static and r.static
-        if both_static:
-            links = s.links
-            if r.id in links:
-                hit = links[r.id]
-                if hit is None or hit[0] is r:
-                    return hit
-        self._locate(s)
-        self._locate(r)
-        out: tuple[_Node, float, float, int] | None = None
-        if abs(r.cell[0] - s.cell[0]) <= 1 and abs(r.cell[1] - s.cell[1]) <= 1:
-            d = math.hypot(r.x - s.x, r.y - s.y)
-            m = self.model
-            out = (r, d, m.mean_rssi(s.id, r.id, d, s.tx_power), m.fading_link_hash(s.id, r.id))
-        if both_static:
-            s.links[r.id] = out
-        return out
+            self.kill(node.node_id, "battery")

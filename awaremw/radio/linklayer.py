@@ -1,0 +1,132 @@
+"""One mote's link layer, as both media run it (``docs/radio.md`` rules 2, 6, 7, 9).
+
+The Zenoh medium (:mod:`awaremw.radio.zenoh_medium`) and the virtual-clock
+driver (:mod:`awaremw.runtime.virtual`) schedule differently (asyncio timers
+vs. an event heap) but keep the same per-mote state, :class:`LinkStation`,
+and change it through these functions only: taking the next frame and its
+link sequence number, the receiver's duplicate filter and ACK decision, the
+sender's retry-or-settle decision after an attempt, and switching off.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+from awaremw.protocol.core import Transmission
+from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
+from awaremw.radio.counters import Battery, MoteCounters
+from awaremw.radio.model import RadioModel, RadioPreset, packet_key
+from awaremw.radio.neighbourhood import Station
+from awaremw.world.mobility import Mobility
+
+
+class LinkStation(Station):
+    """A mote's radio: where it is (:class:`Station`) and its link-layer state."""
+
+    __slots__ = ("battery", "busy", "cur", "cur_attempt", "cur_seq", "last_useq", "queue", "seq")
+
+    def __init__(
+        self,
+        node_id: int,
+        mobility: Mobility,
+        tx_power: float,
+        range_m: float,
+        counters: MoteCounters,
+        battery: Battery | None,
+    ) -> None:
+        super().__init__(node_id, mobility, tx_power, range_m, counters)
+        self.battery = battery
+        self.queue: deque[Transmission] = deque()  # drained from the core, not yet on the air
+        self.busy = False
+        # The frame on the air or awaiting its ACK (None when the radio is idle),
+        # its link sequence number and attempt (0 = first transmission).
+        self.cur: Transmission | None = None
+        self.cur_seq = 0
+        self.cur_attempt = 0
+        self.seq = 0  # 16-bit link sequence number of the next frame
+        self.last_useq: dict[int, int] = {}  # src -> seq of the last unicast delivered
+
+
+def check_node_id(nid: object) -> int:
+    """A mote id the frames can carry, else ValueError (a local bug)."""
+    if not isinstance(nid, int) or not 0 <= nid <= MAX_NODE_ID:
+        raise ValueError(f"node id {nid!r} outside 0..{MAX_NODE_ID}")
+    return nid
+
+
+def tx_power_of(preset: RadioPreset, tx_power_dbm: float | None) -> float:
+    """The TX power a mote uses (the preset's default if None), checked against the chip."""
+    txp = preset.tx_power_dbm if tx_power_dbm is None else float(tx_power_dbm)
+    preset.check_tx_power(txp)
+    return txp
+
+
+def check_transmission(st: LinkStation, tx: Transmission, mtu: int) -> None:
+    """Rule 2: a core that sends an oversize frame, or to itself, has a bug: raise."""
+    if len(tx.frame) > mtu:
+        raise ValueError(f"node {st.node_id}: frame of {len(tx.frame)} bytes > MTU")
+    d = tx.dest
+    if d != BROADCAST and (not 0 <= d <= MAX_NODE_ID or d == st.node_id):
+        raise ValueError(f"node {st.node_id}: bad destination {d}")
+
+
+def begin_next(st: LinkStation) -> Transmission:
+    """Rule 2: the next queued frame goes on the air with the next link sequence
+    number, attempt 0 (the caller schedules the attempt; the queue is not empty)."""
+    tx = st.queue.popleft()
+    seq = st.seq
+    st.seq = (seq + 1) & 0xFFFF
+    st.busy = True
+    st.cur = tx
+    st.cur_seq = seq
+    st.cur_attempt = 0
+    return tx
+
+
+def accept_unicast(st: LinkStation, src: int, seq: int) -> bool:
+    """Rule 6, duplicate filter: False (and ``duplicates += 1``) if ``(src, seq)`` is
+    the last unicast delivered from ``src`` (our ACK was lost and it retried)."""
+    if st.last_useq.get(src) == seq:
+        st.counters.duplicates += 1
+        return False
+    st.last_useq[src] = seq
+    return True
+
+
+def ack_heard(
+    model: RadioModel, acker: int, acker_txp: float, dst: int, d: float, seq: int, attempt: int
+) -> bool:
+    """Rule 6, the ACK of attempt ``(seq, attempt)`` on the reverse link: does
+    ``dst`` hear the ACK that ``acker`` sends at its own power from distance ``d``?"""
+    if d > model.max_range_m(acker_txp):
+        return False
+    ok, _ = model.ack_reception(acker, dst, d, acker_txp, packet_key(seq, attempt, ack=True))
+    return ok
+
+
+def settle(st: LinkStation, acked: bool, max_retries: int) -> bool:
+    """Rule 7 after a unicast attempt. True: retry (``retries += 1``, same ``seq``,
+    next attempt; the caller schedules it). False: the frame is done
+    (``acks_rx`` and ``unicast_ok``, or ``unicast_failed``) and the radio idle;
+    the caller reports the outcome to the core (read ``st.cur`` before)."""
+    c = st.counters
+    if not acked and st.cur_attempt < max_retries:
+        c.retries += 1
+        st.cur_attempt += 1
+        return True
+    if acked:
+        c.acks_rx += 1
+        c.unicast_ok += 1
+    else:
+        c.unicast_failed += 1
+    st.busy = False
+    st.cur = None
+    return False
+
+
+def silence(st: LinkStation) -> None:
+    """Rules 1 and 9: off the air; queued frames and the frame on the air are lost."""
+    st.alive = False
+    st.queue.clear()
+    st.busy = False
+    st.cur = None
