@@ -4,9 +4,12 @@ One :class:`ZenohMedium` per process. It owns the process's radio
 subscriptions and a :class:`Radio` per local mote (its link layer: transmit
 queue, MAC backoff, airtime, sequence numbers, ACK wait and retries, duplicate
 filter, counters, battery). The rules are those of the virtual-clock driver
-(``docs/radio.md``, "Medium semantics"; :mod:`awaremw.runtime.virtual`), so a
-run over Zenoh and a virtual run of the same deployment count the same things
-the same way. ``docs/runtime.md`` describes the Zenoh side.
+(``docs/radio.md``, "Medium semantics"; :mod:`awaremw.runtime.virtual`), and
+the code that applies them is shared with it: who hears whom, cached receiver
+lists and bulk-counted drops in :mod:`awaremw.radio.neighbourhood`, the link
+layer's state and rules in :mod:`awaremw.radio.linklayer`. So a run over
+Zenoh and a virtual run of the same deployment count the same things the same
+way. ``docs/runtime.md`` describes the Zenoh side.
 
 Key expressions: a frame from ``src`` standing in cell ``(cx, cy)`` (cells of
 side ``model.cell_size_m`` >= the radio's maximum range) is published on
@@ -58,12 +61,24 @@ from typing import Any, Literal, Protocol
 import zenoh
 
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
+from awaremw.protocol.frames import BROADCAST
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
+from awaremw.radio.linklayer import (
+    LinkStation,
+    accept_unicast,
+    ack_heard,
+    begin_next,
+    check_node_id,
+    check_transmission,
+    settle,
+    silence,
+    tx_power_of,
+)
 from awaremw.radio.model import RadioModel, cell_of, packet_key
+from awaremw.radio.neighbourhood import Cell, Neighbourhood, adjacent, hear
 from awaremw.runtime.clock import EmulatedClock
-from awaremw.world.mobility import Mobility, Static
+from awaremw.world.mobility import Mobility
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +87,6 @@ Handler = Literal["callback", "channel"]
 # the polled channel costs ~20 % less CPU than a callback that takes the GIL on
 # Zenoh's thread for every sample, and gives a lower timer-lag p99.
 DEFAULT_HANDLER: Handler = "channel"
-Cell = tuple[int, int]
 
 DEFAULT_PREFIX = "aware"
 DEFAULT_ACK_WAIT_FLOOR_S = 0.05  # wall seconds; see the module docstring
@@ -110,33 +124,10 @@ class MediumStats:
         return asdict(self)
 
 
-class Radio:
+class Radio(LinkStation):
     """The link layer of one local mote. Created by :meth:`ZenohMedium.attach`."""
 
-    __slots__ = (
-        "alive",
-        "battery",
-        "busy",
-        "cell",
-        "counters",
-        "cur",
-        "handle",
-        "last_useq",
-        "medium",
-        "mobility",
-        "node_id",
-        "pos_t",
-        "pub",
-        "pub_cell",
-        "queue",
-        "range_m",
-        "seq",
-        "sink",
-        "static",
-        "tx_power",
-        "x",
-        "y",
-    )
+    __slots__ = ("handle", "medium", "pub", "pub_cell", "sink")
 
     def __init__(
         self,
@@ -148,25 +139,11 @@ class Radio:
         battery: Battery | None,
         counters: MoteCounters,
     ) -> None:
+        super().__init__(sink.node_id, mobility, tx_power, range_m, counters, battery)
         self.medium = medium
         self.sink = sink
-        self.node_id = sink.node_id
-        self.mobility = mobility
-        self.static = isinstance(mobility, Static)
-        self.tx_power = tx_power
-        self.range_m = range_m
-        self.battery = battery
-        self.counters = counters
         self.alive = True
-        self.x, self.y = 0.0, 0.0
-        self.cell: Cell = (0, 0)
-        self.pos_t = -math.inf
-        self.queue: deque[Transmission] = deque()
-        self.busy = False
-        self.cur: tuple[Transmission, int, int] | None = None  # (tx, seq, attempt)
         self.handle: asyncio.TimerHandle | None = None  # tx end or ACK wait
-        self.seq = 0
-        self.last_useq: dict[int, int] = {}
         self.pub: zenoh.Publisher | None = None
         self.pub_cell: Cell | None = None
 
@@ -175,32 +152,20 @@ class Radio:
         if not self.alive:
             return
         m = self.medium
+        mtu = m.preset.mtu
         for tx in txs:
-            m._check_tx(self, tx)
+            check_transmission(self, tx, mtu)
             self.queue.append(tx)
         if not self.busy and self.queue:
             m._start_next(self)
 
     def position(self) -> tuple[float, float]:
         """Where the mote is now (refreshes a moving mote's cell)."""
-        self.medium._locate(self, self.medium.clock.now())
+        self.medium._nb.locate(self, self.medium.clock.now())
         return self.x, self.y
 
     def energy_mj(self) -> float:
         return self.counters.energy_mj(self.medium.model.preset, self.tx_power)
-
-
-class _SenderCache:
-    """Receivers of one static sender among this process's static motes."""
-
-    __slots__ = ("far_dist", "far_loss", "gen", "near", "pending", "txp", "x", "y")
-
-    def __init__(self, x: float, y: float, txp: float, gen: int) -> None:
-        self.x, self.y, self.txp, self.gen = x, y, txp, gen
-        self.near: list[tuple[Radio, float, int]] = []  # (receiver, mean rssi, link hash)
-        self.far_loss: list[Radio] = []  # in range, but no fading draw can deliver
-        self.far_dist: list[Radio] = []  # in the 3x3 cells, beyond range
-        self.pending = 0  # frames not yet folded into far_* counters
 
 
 class ZenohMedium:
@@ -233,13 +198,11 @@ class ZenohMedium:
         self.stats = MediumStats()
         self.radios: dict[int, Radio] = {}
         self._counters: dict[int, MoteCounters] = {}
-        self._grid: dict[Cell, list[Radio]] = {}  # static local motes by cell
-        self._moving: list[Radio] = []
+        # Local motes on the air, by cell; receiver caches of every sender heard.
+        self._nb: Neighbourhood[Radio] = Neighbourhood(model, on_cell=self._ensure_columns)
         self._columns: set[int] = set()
         self._subs: list[zenoh.Subscriber[Any]] = []
         self._chans: list[zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]]] = []
-        self._caches: dict[int, _SenderCache] = {}
-        self._gen = 0  # topology generation: bumps invalidate every _SenderCache
         self._inbox: deque[tuple[bytes, str]] = deque()
         self._wakeup = False
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -300,25 +263,16 @@ class ZenohMedium:
         battery_mj: float | None = None,
     ) -> Radio:
         """Put a mote on the air. Re-attaching a dead mote's id keeps its counters."""
-        nid = sink.node_id
-        if not isinstance(nid, int) or not 0 <= nid <= MAX_NODE_ID:
-            raise ValueError(f"node id {nid!r} outside 0..{MAX_NODE_ID}")
+        nid = check_node_id(sink.node_id)
         if nid in self.radios:
             raise ValueError(f"node {nid} is already on this medium")
-        txp = self.preset.tx_power_dbm if tx_power_dbm is None else float(tx_power_dbm)
-        self.preset.check_tx_power(txp)
+        txp = tx_power_of(self.preset, tx_power_dbm)
         counters = self._counters.setdefault(nid, MoteCounters())
         battery = None if battery_mj is None else Battery(battery_mj)
         r = Radio(self, sink, mobility, txp, self.model.max_range_m(txp), battery, counters)
         self.radios[nid] = r
-        r.x, r.y = mobility.position(self.clock.now())
-        r.cell = cell_of(r.x, r.y, self.cell_size)
-        r.pos_t = self.clock.now()
-        if r.static:
-            self._grid.setdefault(r.cell, []).append(r)
-            self._topology_changed()
-        else:
-            self._moving.append(r)
+        self._nb.add(r, self.clock.now())
+        if not r.static:
             self._ensure_mobility_tick()
         self._ensure_columns(r.cell)
         self._ensure_publisher(r)  # declared now rather than at the first frame (slow-ish)
@@ -330,24 +284,20 @@ class ZenohMedium:
         if r is None:
             return
         self._silence(r)
-        if r.static:
-            self._grid[r.cell].remove(r)
-            self._topology_changed()
-        else:
-            self._moving.remove(r)
+        self._nb.remove(r)
 
     def prime(self, senders: Iterable[tuple[int, float, float, float]]) -> int:
         """Precompute receiver lists for static senders ``(id, x, y, tx_power)``
         (local ones and known remote ones), so the first frames do not pay for
         them. Returns how many lists were built."""
         n = 0
+        nb = self._nb
         for src, x, y, txp in senders:
-            c = self._caches.get(src)
-            if c is None or c.gen != self._gen or c.x != x or c.y != y or c.txp != txp:
-                cell = cell_of(x, y, self.cell_size)
-                if any(True for _ in self._cells_around(cell)):
-                    self._build_cache(src, x, y, txp)
-                    n += 1
+            if not nb.cached(src, x, y, txp) and nb.any_static_around(
+                cell_of(x, y, self.cell_size)
+            ):
+                nb.sender(src, x, y, txp)
+                n += 1
         return n
 
     def prime_local(self) -> int:
@@ -359,7 +309,7 @@ class ZenohMedium:
     @property
     def counters(self) -> dict[int, MoteCounters]:
         """Per-mote counters (every mote ever attached here), bulk drops folded in."""
-        self._flush_all()
+        self._nb.flush_all()
         return self._counters
 
     def positions(self) -> dict[int, tuple[float, float]]:
@@ -492,18 +442,8 @@ class ZenohMedium:
         except ValueError:
             return
         now = self.clock.now()
-        for r in self._listeners((cx, cy), now):
+        for r in self._nb.listeners((cx, cy), now):
             r.counters.malformed += 1
-
-    def _listeners(self, cell: Cell, now: float) -> list[Radio]:
-        """Local motes whose 3x3 neighbourhood contains ``cell``."""
-        cx, cy = cell
-        out = [r for lst in self._cells_around(cell) for r in lst]
-        for r in self._moving:
-            self._locate(r, now)
-            if abs(r.cell[0] - cx) <= 1 and abs(r.cell[1] - cy) <= 1:
-                out.append(r)
-        return out
 
     def _hear_broadcast(
         self, src: int, sx: float, sy: float, txp: float, seq: int, frame: bytes, now: float
@@ -511,23 +451,21 @@ class ZenohMedium:
         n = len(frame)
         bits = 8 * (n + self._overhead)
         key = packet_key(seq, 0)
-        c = self._caches.get(src)
-        if c is None or c.gen != self._gen or c.x != sx or c.y != sy or c.txp != txp:
-            c = self._build_cache(src, sx, sy, txp)
+        nb = self._nb
+        c = nb.sender(src, sx, sy, txp)
         links = self.links
         heard = False
         if c.near or c.far_loss or c.far_dist:
             heard = True
-            c.pending += 1
+            c.pending += 1  # one more broadcast for the far_* receivers (counted in bulk)
             decide = self.model.decide  # the model's own decision, never a copy of it
-            for r, mean, lh in c.near:
+            for r, rc, mean, lh in c.near:
                 if not r.alive:
                     continue
                 ok, rssi = decide(lh, mean, bits, key)
                 if not ok:
-                    r.counters.dropped_loss += 1
+                    rc.dropped_loss += 1
                     continue
-                rc = r.counters
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 if links is not None:
@@ -536,63 +474,28 @@ class ZenohMedium:
                 r.sink.radio_receive(frame, rssi, now)
                 if r.battery is not None:
                     self._check_battery(r, now)
-        if self._moving:
+        if nb.moving:
+            m = self.model
             scell = cell_of(sx, sy, self.cell_size)
-            rng = self.model.max_range_m(txp)
-            for r in list(self._moving):
+            rng = m.max_range_m(txp)
+            for r in list(nb.moving):
                 if r.node_id == src or not r.alive:
                     continue
-                self._locate(r, now)
-                if abs(r.cell[0] - scell[0]) > 1 or abs(r.cell[1] - scell[1]) > 1:
+                nb.locate(r, now)
+                if not adjacent(r.cell, scell):
                     continue
                 heard = True
                 d = math.hypot(r.x - sx, r.y - sy)
-                if d > rng:
-                    r.counters.dropped_distance += 1
+                got = hear(m, r.counters, src, r.node_id, d, txp, rng, n, bits, key)
+                if got is None:
                     continue
-                m = self.model
-                ok, rssi = m.decide(
-                    m.fading_link_hash(src, r.node_id),
-                    m.mean_rssi(src, r.node_id, d, txp),
-                    bits,
-                    key,
-                )
-                if not ok:
-                    r.counters.dropped_loss += 1
-                    continue
-                rc = r.counters
-                rc.frames_rx += 1
-                rc.bytes_rx += n
                 if links is not None:
                     k = (src, r.node_id)
                     links[k] = links.get(k, 0) + 1
-                r.sink.radio_receive(frame, rssi, now)
+                r.sink.radio_receive(frame, got, now)
                 self._check_battery(r, now)
         if not heard:
             self.stats.ignored += 1
-
-    def _build_cache(self, src: int, sx: float, sy: float, txp: float) -> _SenderCache:
-        old = self._caches.get(src)
-        if old is not None and old.pending:
-            self._flush(old)
-        c = _SenderCache(sx, sy, txp, self._gen)
-        m = self.model
-        rng = m.max_range_m(txp)
-        for lst in self._cells_around(cell_of(sx, sy, self.cell_size)):
-            for r in lst:
-                if r.node_id == src:
-                    continue
-                d = math.hypot(r.x - sx, r.y - sy)
-                if d > rng:
-                    c.far_dist.append(r)
-                    continue
-                mean = m.mean_rssi(src, r.node_id, d, txp)
-                if m.never_delivers(mean):
-                    c.far_loss.append(r)
-                else:
-                    c.near.append((r, mean, m.fading_link_hash(src, r.node_id)))
-        self._caches[src] = c
-        return c
 
     def _hear_unicast(
         self,
@@ -610,36 +513,23 @@ class ZenohMedium:
         got the frame (and so sent its auto-ACK)."""
         if not r.alive:
             return False
-        self._locate(r, now)
-        scell = cell_of(sx, sy, self.cell_size)
-        if abs(r.cell[0] - scell[0]) > 1 or abs(r.cell[1] - scell[1]) > 1:
+        self._nb.locate(r, now)
+        if not adjacent(r.cell, cell_of(sx, sy, self.cell_size)):
             self.stats.ignored += 1
             return False  # not listening to the sender's cell: hears nothing, counts nothing
-        d = math.hypot(r.x - sx, r.y - sy)
-        rc = r.counters
-        if d > self.model.max_range_m(txp):
-            rc.dropped_distance += 1
-            return False
         n = len(frame)
         m = self.model
-        ok, rssi = m.decide(
-            m.fading_link_hash(src, r.node_id),
-            m.mean_rssi(src, r.node_id, d, txp),
-            8 * (n + self._overhead),
-            packet_key(seq, attempt),
-        )
-        if not ok:
-            rc.dropped_loss += 1
+        rc = r.counters
+        d = math.hypot(r.x - sx, r.y - sy)
+        bits = 8 * (n + self._overhead)
+        key = packet_key(seq, attempt)
+        rssi = hear(m, rc, src, r.node_id, d, txp, m.max_range_m(txp), n, bits, key)
+        if rssi is None:
             return False
-        rc.frames_rx += 1
-        rc.bytes_rx += n
         if self.links is not None:
             k = (src, r.node_id)
             self.links[k] = self.links.get(k, 0) + 1
-        if r.last_useq.get(src) == seq:
-            rc.duplicates += 1  # a retry of a frame already received: ACK it, do not deliver
-        else:
-            r.last_useq[src] = seq
+        if accept_unicast(r, src, seq):
             r.sink.radio_receive(frame, rssi, now)
         if not r.alive:  # switched off by whoever handled the frame
             return False
@@ -662,11 +552,10 @@ class ZenohMedium:
         if s is None or s.cur is None or not s.alive:
             self.stats.ignored += 1
             return
-        tx, cseq, cattempt = s.cur
-        if tx.dest != acker or cseq != seq or attempt > cattempt:
+        if s.cur.dest != acker or s.cur_seq != seq or attempt > s.cur_attempt:
             self.stats.ignored += 1  # a late ACK of an earlier frame
             return
-        self._locate(s, now)
+        self._nb.locate(s, now)
         if self._ack_heard(acker, ax, ay, atxp, s, seq, attempt):
             if s.handle is not None:
                 s.handle.cancel()
@@ -677,30 +566,15 @@ class ZenohMedium:
         self, acker: int, ax: float, ay: float, atxp: float, s: Radio, seq: int, attempt: int
     ) -> bool:
         d = math.hypot(s.x - ax, s.y - ay)
-        if d > self.model.max_range_m(atxp):
-            return False
-        ok, _ = self.model.ack_reception(acker, s.node_id, d, atxp, packet_key(seq, attempt, True))
-        return ok
+        return ack_heard(self.model, acker, atxp, s.node_id, d, seq, attempt)
 
     # ------------------------------------------------------------------ send side
-
-    def _check_tx(self, r: Radio, tx: Transmission) -> None:
-        # A core that sends an oversize frame or to itself has a bug: raise.
-        if len(tx.frame) > self.preset.mtu:
-            raise ValueError(f"node {r.node_id}: frame of {len(tx.frame)} bytes > MTU")
-        d = tx.dest
-        if d != BROADCAST and (not 0 <= d <= MAX_NODE_ID or d == r.node_id):
-            raise ValueError(f"node {r.node_id}: bad destination {d}")
 
     def _start_next(self, r: Radio) -> None:
         if not r.queue or self._frozen or self._closed:
             return
-        tx = r.queue.popleft()
-        seq = r.seq
-        r.seq = (seq + 1) & 0xFFFF
-        r.busy = True
-        r.cur = (tx, seq, 0)
-        self._schedule_attempt(r, len(tx.frame), seq, 0)
+        tx = begin_next(r)
+        self._schedule_attempt(r, len(tx.frame), r.cur_seq, 0)
 
     def _schedule_attempt(self, r: Radio, n: int, seq: int, attempt: int) -> None:
         backoff = self.model.backoff_s(r.node_id, seq, attempt)
@@ -709,16 +583,18 @@ class ZenohMedium:
 
     def _tx_end(self, r: Radio) -> None:
         r.handle = None
-        if not r.alive or r.cur is None or self._closed:
+        tx = r.cur
+        if not r.alive or tx is None or self._closed:
             return
-        tx, seq, attempt = r.cur
+        seq = r.cur_seq
+        attempt = r.cur_attempt
         frame = tx.frame
         n = len(frame)
         c = r.counters
         c.frames_tx += 1
         c.bytes_tx += n
         now = self.clock.now()
-        self._locate(r, now)
+        self._nb.locate(r, now)
         if tx.dest == BROADCAST:
             self._publish(r, Kind.FRAME, seq, 0, now, BROADCAST, frame)
             r.busy = False
@@ -753,22 +629,12 @@ class ZenohMedium:
 
     def _uc_done(self, r: Radio, acked: bool) -> None:
         r.handle = None
-        if not r.alive or r.cur is None or self._closed:
+        tx = r.cur
+        if not r.alive or tx is None or self._closed:
             return
-        tx, seq, attempt = r.cur
-        c = r.counters
-        if not acked and attempt < self.preset.max_retries and not self._frozen:
-            c.retries += 1
-            r.cur = (tx, seq, attempt + 1)
-            self._schedule_attempt(r, len(tx.frame), seq, attempt + 1)
+        if settle(r, acked, 0 if self._frozen else self.preset.max_retries):
+            self._schedule_attempt(r, len(tx.frame), r.cur_seq, r.cur_attempt)
             return
-        if acked:
-            c.acks_rx += 1
-            c.unicast_ok += 1
-        else:
-            c.unicast_failed += 1
-        r.busy = False
-        r.cur = None
         now = self.clock.now()
         r.sink.radio_link_result(tx, acked, now)
         if acked and not self._check_battery(r, now):
@@ -820,10 +686,7 @@ class ZenohMedium:
         return True
 
     def _silence(self, r: Radio) -> None:
-        r.alive = False
-        r.queue.clear()
-        r.busy = False
-        r.cur = None
+        silence(r)
         if r.handle is not None:
             r.handle.cancel()
             r.handle = None
@@ -835,17 +698,6 @@ class ZenohMedium:
 
     # ------------------------------------------------------------------ geometry
 
-    def _locate(self, r: Radio, now: float) -> None:
-        """Refresh a moving mote's position and cell for ``now``."""
-        if r.static or r.pos_t == now:
-            return
-        r.x, r.y = r.mobility.position(now)
-        r.pos_t = now
-        cell = cell_of(r.x, r.y, self.cell_size)
-        if cell != r.cell:
-            r.cell = cell
-            self._ensure_columns(cell)
-
     def _ensure_mobility_tick(self) -> None:
         # Moving receivers must be subscribed to the columns they move into even
         # if they neither send nor hear anything for a while.
@@ -854,35 +706,10 @@ class ZenohMedium:
 
     def _mobility_tick(self) -> None:
         self._mobility_handle = None
-        if self._closed or not self._moving:
+        if self._closed or not self._nb.moving:
             return
         now = self.clock.now()
-        for r in self._moving:
-            self._locate(r, now)
+        nb = self._nb
+        for r in nb.moving:
+            nb.locate(r, now)
         self._mobility_handle = self.loop.call_later(0.5, self._mobility_tick)
-
-    def _cells_around(self, cell: Cell) -> Iterable[list[Radio]]:
-        cx, cy = cell
-        grid = self._grid
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                lst = grid.get((cx + dx, cy + dy))
-                if lst:
-                    yield lst
-
-    def _topology_changed(self) -> None:
-        self._flush_all()
-        self._gen += 1
-
-    def _flush(self, c: _SenderCache) -> None:
-        k = c.pending
-        for r in c.far_loss:
-            r.counters.dropped_loss += k
-        for r in c.far_dist:
-            r.counters.dropped_distance += k
-        c.pending = 0
-
-    def _flush_all(self) -> None:
-        for c in self._caches.values():
-            if c.pending:
-                self._flush(c)
