@@ -12,18 +12,20 @@ cannot drift apart:
   grid of cells of side ``model.cell_size_m``, moving ones in a list
   (relocated when asked). :meth:`Neighbourhood.listeners` says who listens to
   a cell.
-* :meth:`Neighbourhood.sender` gives, for a static sender at ``(x, y)`` with
-  power ``txp``, a :class:`SenderCache` of the static receivers in its 3x3
-  cells, split once into those that may hear it (``near``: with their mean
-  RSSI and fading link hash, for the per-packet decision), those that never
-  can (``far_loss``: no fading draw lifts the mean RSSI to sensitivity) and
-  those beyond range (``far_dist``). The last two are counted in bulk: the
-  medium bumps ``pending`` per broadcast and :meth:`SenderCache.flush` folds
-  the count into the receivers' counters when the cache is dropped (a mote
-  appeared or vanished within one cell: :meth:`Neighbourhood.touch`) or the
-  counters are read (:meth:`Neighbourhood.flush_all`).
+* :meth:`Neighbourhood.sender` gives, for a sender at ``(x, y)`` with power
+  ``txp``, a :class:`SenderCache` of the static receivers in its 3x3 cells,
+  split once into those that may hear it (``near``: with their mean RSSI and
+  fading link hash, for the per-packet decision), those that never can
+  (``far_loss``: no fading draw lifts the mean RSSI to sensitivity) and those
+  beyond range (``far_dist``). The last two are counted in bulk: the medium
+  bumps ``pending`` per broadcast and :meth:`SenderCache.flush` folds the
+  count into the receivers' counters when the cache is dropped (a static mote
+  appeared or vanished within one cell: :meth:`Neighbourhood.touch`; the
+  sender moved) or the counters are read (:meth:`Neighbourhood.flush_all`).
+  :meth:`Neighbourhood.link` caches unicast links between static motes in the
+  same cache.
 * :func:`hear` is rules 4 and 5 for one receiver evaluated from scratch
-  (moving motes, unicasts).
+  (moving motes, unicasts); :func:`deliver` is rule 5 from a cached link.
 
 The per-packet loop over ``near`` is the hot path of both media and stays in
 each (the virtual driver inlines :meth:`RadioModel.decide
@@ -245,7 +247,10 @@ class Neighbourhood(Generic[S]):
         c = self._caches.pop(src, None)
         if c is not None:
             c.flush()
-            del self._by_cell[c.cell][src]
+            here = self._by_cell[c.cell]
+            del here[src]
+            if not here:
+                del self._by_cell[c.cell]
 
     def touch(self, cell: Cell) -> None:
         """The static motes of ``cell`` changed: drop the caches of the senders
@@ -325,7 +330,5 @@ def hear(
     if d > range_m:
         rc.dropped_distance += 1
         return None
-    return deliver(
-        model, rc, model.mean_rssi(src, dst, d, tx_power), model.fading_link_hash(src, dst),
-        n, bits, key,
-    )
+    mean = model.mean_rssi(src, dst, d, tx_power)
+    return deliver(model, rc, mean, model.fading_link_hash(src, dst), n, bits, key)

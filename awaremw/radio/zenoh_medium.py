@@ -62,19 +62,10 @@ import zenoh
 
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST
+from awaremw.radio import linklayer
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
-from awaremw.radio.linklayer import (
-    LinkStation,
-    accept_unicast,
-    ack_heard,
-    begin_next,
-    check_node_id,
-    check_transmission,
-    settle,
-    silence,
-    tx_power_of,
-)
+from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.model import RadioModel, cell_of, packet_key
 from awaremw.radio.neighbourhood import Cell, Neighbourhood, adjacent, hear
 from awaremw.runtime.clock import EmulatedClock
@@ -154,7 +145,7 @@ class Radio(LinkStation):
         m = self.medium
         mtu = m.preset.mtu
         for tx in txs:
-            check_transmission(self, tx, mtu)
+            linklayer.check_transmission(self, tx, mtu)
             self.queue.append(tx)
         if not self.busy and self.queue:
             m._start_next(self)
@@ -263,10 +254,10 @@ class ZenohMedium:
         battery_mj: float | None = None,
     ) -> Radio:
         """Put a mote on the air. Re-attaching a dead mote's id keeps its counters."""
-        nid = check_node_id(sink.node_id)
+        nid = linklayer.check_node_id(sink.node_id)
         if nid in self.radios:
             raise ValueError(f"node {nid} is already on this medium")
-        txp = tx_power_of(self.preset, tx_power_dbm)
+        txp = linklayer.tx_power_of(self.preset, tx_power_dbm)
         counters = self._counters.setdefault(nid, MoteCounters())
         battery = None if battery_mj is None else Battery(battery_mj)
         r = Radio(self, sink, mobility, txp, self.model.max_range_m(txp), battery, counters)
@@ -469,8 +460,7 @@ class ZenohMedium:
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 if links is not None:
-                    k = (src, r.node_id)
-                    links[k] = links.get(k, 0) + 1
+                    _tally(links, src, r.node_id)
                 r.sink.radio_receive(frame, rssi, now)
                 if r.battery is not None:
                     self._check_battery(r, now)
@@ -490,8 +480,7 @@ class ZenohMedium:
                 if got is None:
                     continue
                 if links is not None:
-                    k = (src, r.node_id)
-                    links[k] = links.get(k, 0) + 1
+                    _tally(links, src, r.node_id)
                 r.sink.radio_receive(frame, got, now)
                 self._check_battery(r, now)
         if not heard:
@@ -527,9 +516,8 @@ class ZenohMedium:
         if rssi is None:
             return False
         if self.links is not None:
-            k = (src, r.node_id)
-            self.links[k] = self.links.get(k, 0) + 1
-        if accept_unicast(r, src, seq):
+            _tally(self.links, src, r.node_id)
+        if linklayer.accept_unicast(r, src, seq):
             r.sink.radio_receive(frame, rssi, now)
         if not r.alive:  # switched off by whoever handled the frame
             return False
@@ -566,14 +554,14 @@ class ZenohMedium:
         self, acker: int, ax: float, ay: float, atxp: float, s: Radio, seq: int, attempt: int
     ) -> bool:
         d = math.hypot(s.x - ax, s.y - ay)
-        return ack_heard(self.model, acker, atxp, s.node_id, d, seq, attempt)
+        return linklayer.ack_heard(self.model, acker, atxp, s.node_id, d, seq, attempt)
 
     # ------------------------------------------------------------------ send side
 
     def _start_next(self, r: Radio) -> None:
         if not r.queue or self._frozen or self._closed:
             return
-        tx = begin_next(r)
+        tx = linklayer.begin_next(r)
         self._schedule_attempt(r, len(tx.frame), r.cur_seq, 0)
 
     def _schedule_attempt(self, r: Radio, n: int, seq: int, attempt: int) -> None:
@@ -632,7 +620,7 @@ class ZenohMedium:
         tx = r.cur
         if not r.alive or tx is None or self._closed:
             return
-        if settle(r, acked, 0 if self._frozen else self.preset.max_retries):
+        if linklayer.settle(r, acked, 0 if self._frozen else self.preset.max_retries):
             self._schedule_attempt(r, len(tx.frame), r.cur_seq, r.cur_attempt)
             return
         now = self.clock.now()
@@ -686,7 +674,7 @@ class ZenohMedium:
         return True
 
     def _silence(self, r: Radio) -> None:
-        silence(r)
+        linklayer.silence(r)
         if r.handle is not None:
             r.handle.cancel()
             r.handle = None
@@ -713,3 +701,9 @@ class ZenohMedium:
         for r in nb.moving:
             nb.locate(r, now)
         self._mobility_handle = self.loop.call_later(0.5, self._mobility_tick)
+
+
+def _tally(links: dict[tuple[int, int], int], src: int, dst: int) -> None:
+    """One more frame delivered on the link ``src -> dst`` (``ZenohMedium.links``)."""
+    k = (src, dst)
+    links[k] = links.get(k, 0) + 1

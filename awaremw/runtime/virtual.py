@@ -29,18 +29,9 @@ from typing import TypeVar
 
 from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
 from awaremw.protocol.frames import BROADCAST
+from awaremw.radio import linklayer
 from awaremw.radio.counters import Battery, MoteCounters
-from awaremw.radio.linklayer import (
-    LinkStation,
-    accept_unicast,
-    ack_heard,
-    begin_next,
-    check_node_id,
-    check_transmission,
-    settle,
-    silence,
-    tx_power_of,
-)
+from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.model import (
     _GOLDEN,
     _M64,
@@ -156,11 +147,11 @@ class VirtualNetwork:
         Re-adding the id of a dead mote switches it on again with the new core;
         its counters go on accumulating.
         """
-        nid = check_node_id(core.node_id)
+        nid = linklayer.check_node_id(core.node_id)
         old = self._nodes.get(nid)
         if old is not None and (old.alive or not old.started):
             raise ValueError(f"node {nid} is already in the network")
-        txp = tx_power_of(self.preset, tx_power_dbm)
+        txp = linklayer.tx_power_of(self.preset, tx_power_dbm)
         t = self._now if start_at is None else float(start_at)
         if t < self._now:
             raise ValueError(f"start_at {t} is in the past (now {self._now})")
@@ -178,7 +169,7 @@ class VirtualNetwork:
         if not node.alive:
             node.started = True  # a mote killed before booting never boots
             return
-        silence(node)
+        linklayer.silence(node)
         self._nb.remove(node)
         if self.on_event is not None:
             self.on_event(node_id, MoteDown(reason), self._now)
@@ -218,7 +209,7 @@ class VirtualNetwork:
         if not node.alive:
             raise ValueError(f"node {src} is not on the air")
         tx = Transmission(frame, dest, 0)
-        check_transmission(node, tx, self._mtu)
+        linklayer.check_transmission(node, tx, self._mtu)
         node.queue.append(tx)
         if not node.busy:
             self._start_next(node)
@@ -278,7 +269,7 @@ class VirtualNetwork:
     ) -> None:
         if txs:
             for tx in txs:
-                check_transmission(node, tx, self._mtu)
+                linklayer.check_transmission(node, tx, self._mtu)
             node.queue.extend(txs)
             if not node.busy and node.alive:
                 self._start_next(node)
@@ -321,7 +312,7 @@ class VirtualNetwork:
     def _start_next(self, node: _Node) -> None:
         if not node.queue:
             return
-        tx = begin_next(node)
+        tx = linklayer.begin_next(node)
         self._schedule_attempt(node, len(tx.frame), node.cur_seq, 0)
 
     def _schedule_attempt(self, node: _Node, n: int, seq: int, attempt: int) -> None:
@@ -454,13 +445,13 @@ class VirtualNetwork:
                     bits = 8 * (n + self._overhead)
                     rssi = deliver(m, rc, mean, lh, n, bits, packet_key(seq, a))
                 if rssi is not None:
-                    if accept_unicast(r, s.node_id, seq):
+                    if linklayer.accept_unicast(r, s.node_id, seq):
                         r.core.receive(frame, rssi, now)
                         self._after(r)
                     if r.alive:
                         # The hardware ACK, on the reverse link at the receiver's power.
                         rc.acks_tx += 1
-                        acked = ack_heard(m, r.node_id, r.tx_power, s.node_id, d, seq, a)
+                        acked = linklayer.ack_heard(m, r.node_id, r.tx_power, s.node_id, d, seq, a)
                         self._check_battery(r)
         if acked:
             self._push(now + p.ack_turnaround_s + p.ack_airtime_s, _UC_DONE, s, True)
@@ -471,7 +462,7 @@ class VirtualNetwork:
         tx = s.cur
         if tx is None or not s.alive:
             return
-        if settle(s, acked, self.preset.max_retries):
+        if linklayer.settle(s, acked, self.preset.max_retries):
             self._schedule_attempt(s, len(tx.frame), s.cur_seq, s.cur_attempt)
             return
         s.core.link_result(tx, acked, self._now)
