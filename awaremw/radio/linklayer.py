@@ -93,6 +93,15 @@ def accept_unicast(st: LinkStation, src: int, seq: int) -> bool:
     return True
 
 
+def send_ack(st: LinkStation) -> bool:
+    """Rule 6: a destination still on the air ACKs every unicast it got, duplicates
+    included (``acks_tx += 1``). False if it was switched off meanwhile."""
+    if not st.alive:
+        return False
+    st.counters.acks_tx += 1
+    return True
+
+
 def ack_heard(
     model: RadioModel, acker: int, acker_txp: float, dst: int, d: float, seq: int, attempt: int
 ) -> bool:
@@ -122,6 +131,13 @@ def settle(st: LinkStation, acked: bool, max_retries: int) -> bool:
     st.busy = False
     st.cur = None
     return False
+
+
+def battery_spent(st: LinkStation, preset: RadioPreset) -> bool:
+    """Rule 9: a mote on the air whose battery budget is spent (checked after each
+    of its transmissions and receptions); the caller switches it off."""
+    b = st.battery
+    return b is not None and st.alive and b.is_dead(st.counters, preset, st.tx_power)
 
 
 def silence(st: LinkStation) -> None:

@@ -519,9 +519,8 @@ class ZenohMedium:
             _tally(self.links, src, r.node_id)
         if linklayer.accept_unicast(r, src, seq):
             r.sink.radio_receive(frame, rssi, now)
-        if not r.alive:  # switched off by whoever handled the frame
+        if not linklayer.send_ack(r):  # switched off by whoever handled the frame
             return False
-        rc.acks_tx += 1  # the hardware auto-ACK, on the reverse link at r's power
         self._check_battery(r, now)
         return True
 
@@ -664,14 +663,11 @@ class ZenohMedium:
 
     def _check_battery(self, r: Radio, now: float) -> bool:
         """False (and the mote is switched off) once its battery is spent."""
-        b = r.battery
-        if b is None or not r.alive:
-            return r.alive
-        if b.is_dead(r.counters, self.preset, r.tx_power):
+        if linklayer.battery_spent(r, self.preset):
             self.detach(r.node_id)
             r.sink.radio_down("battery", now)
             return False
-        return True
+        return r.alive
 
     def _silence(self, r: Radio) -> None:
         linklayer.silence(r)

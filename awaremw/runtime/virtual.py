@@ -448,9 +448,8 @@ class VirtualNetwork:
                     if linklayer.accept_unicast(r, s.node_id, seq):
                         r.core.receive(frame, rssi, now)
                         self._after(r)
-                    if r.alive:
+                    if linklayer.send_ack(r):
                         # The hardware ACK, on the reverse link at the receiver's power.
-                        rc.acks_tx += 1
                         acked = linklayer.ack_heard(m, r.node_id, r.tx_power, s.node_id, d, seq, a)
                         self._check_battery(r)
         if acked:
@@ -473,6 +472,5 @@ class VirtualNetwork:
             self._start_next(s)
 
     def _check_battery(self, node: _Node) -> None:
-        b = node.battery
-        if b is not None and node.alive and b.is_dead(node.counters, self.preset, node.tx_power):
+        if linklayer.battery_spent(node, self.preset):
             self.kill(node.node_id, "battery")
