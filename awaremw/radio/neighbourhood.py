@@ -25,7 +25,7 @@ cannot drift apart:
   :meth:`Neighbourhood.link` caches unicast links between static motes in the
   same cache.
 * :func:`hear` is rules 4 and 5 for one receiver evaluated from scratch
-  (moving motes, unicasts); :func:`deliver` is rule 5 from a cached link.
+  (moving motes, unicasts); :func:`hear_link` the same on a cached link.
 
 The per-packet loop over ``near`` is the hot path of both media and stays in
 each (the virtual driver inlines :meth:`RadioModel.decide
@@ -98,7 +98,11 @@ Link = tuple[S, float, float, int]
 
 
 class SenderCache(Generic[S]):
-    """The static receivers of one static sender at ``(x, y)`` with power ``txp``."""
+    """The static receivers of sender ``src`` standing at ``(x, y)`` with power ``txp``.
+
+    Valid while no static mote appears or vanishes within one cell of it
+    (:meth:`Neighbourhood.touch`) and the sender stays where it is.
+    """
 
     __slots__ = ("cell", "far_dist", "far_loss", "links", "near", "pending", "src", "txp", "x", "y")
 
@@ -127,7 +131,7 @@ class SenderCache(Generic[S]):
 
 
 class Neighbourhood(Generic[S]):
-    """One medium's motes on the air, by cell, and the receiver caches of static senders.
+    """One medium's motes on the air, by cell, and per-sender receiver caches.
 
     ``on_cell`` (optional) is called with the new cell whenever :meth:`locate`
     moves a mote into another cell (the Zenoh medium subscribes to it).
@@ -208,7 +212,8 @@ class Neighbourhood(Generic[S]):
     # ------------------------------------------------------------------ sender caches
 
     def sender(self, src: int, x: float, y: float, txp: float) -> SenderCache[S]:
-        """The receiver cache of static sender ``src`` at ``(x, y)``, built if needed."""
+        """The receiver cache of sender ``src`` at ``(x, y)``, built if needed (a
+        moving sender gets a new one wherever it stands: prefer :func:`hear`)."""
         c = self._caches.get(src)
         if c is not None and c.x == x and c.y == y and c.txp == txp:
             return c
@@ -332,3 +337,15 @@ def hear(
         return None
     mean = model.mean_rssi(src, dst, d, tx_power)
     return deliver(model, rc, mean, model.fading_link_hash(src, dst), n, bits, key)
+
+
+def hear_link(
+    model: RadioModel, link: Link[S], range_m: float, n: int, bits: int, key: int
+) -> float | None:
+    """:func:`hear` on a cached link (:meth:`Neighbourhood.link`) of a sender whose
+    range is ``range_m``."""
+    r, d, mean, link_h = link
+    if d > range_m:
+        r.counters.dropped_distance += 1
+        return None
+    return deliver(model, r.counters, mean, link_h, n, bits, key)

@@ -43,7 +43,7 @@ from awaremw.radio.model import (
     packet_hash,
     packet_key,
 )
-from awaremw.radio.neighbourhood import Neighbourhood, adjacent, deliver, hear
+from awaremw.radio.neighbourhood import Neighbourhood, adjacent, hear, hear_link
 from awaremw.world.mobility import Mobility, Static
 
 T = TypeVar("T")
@@ -436,20 +436,15 @@ class VirtualNetwork:
         if r is not None and r.alive:
             link = self._nb.link(s, r, now)  # None: r does not listen to s's cell
             if link is not None:
-                _, d, mean, lh = link
-                rc = r.counters
-                if d > s.range_m:
-                    rc.dropped_distance += 1
-                    rssi = None
-                else:
-                    bits = 8 * (n + self._overhead)
-                    rssi = deliver(m, rc, mean, lh, n, bits, packet_key(seq, a))
+                bits = 8 * (n + self._overhead)
+                rssi = hear_link(m, link, s.range_m, n, bits, packet_key(seq, a))
                 if rssi is not None:
                     if linklayer.accept_unicast(r, s.node_id, seq):
                         r.core.receive(frame, rssi, now)
                         self._after(r)
                     if linklayer.send_ack(r):
                         # The hardware ACK, on the reverse link at the receiver's power.
+                        d = link[1]
                         acked = linklayer.ack_heard(m, r.node_id, r.tx_power, s.node_id, d, seq, a)
                         self._check_battery(r)
         if acked:
