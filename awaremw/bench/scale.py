@@ -235,13 +235,15 @@ async def search(args: argparse.Namespace) -> dict[str, Any]:
     n = max(2, int(args.motes))
     best: int | None = None
     fail: int | None = None
-    while n <= args.max_motes:
-        if await trial(n):
-            best = n
-            n *= 2
-        else:
+    n = min(n, args.max_motes)
+    while True:
+        if not await trial(n):
             fail = n
             break
+        best = n
+        if n >= args.max_motes:
+            break  # the bound itself passed: the answer is "at least max_motes"
+        n = min(n * 2, args.max_motes)
     if best is not None and fail is not None:
         lo, hi = best, fail
         while hi - lo > max(50, lo // 20):
@@ -262,6 +264,7 @@ async def search(args: argparse.Namespace) -> dict[str, Any]:
     else:
         out = dict(next(t for t in trials if t["motes"] == best and t["meets_target"]))
         out["motes_max"] = best
+    out["search_bounded"] = best is not None and best >= args.max_motes
     out["search"] = summary
     return out
 
