@@ -69,10 +69,12 @@ def main(args: argparse.Namespace) -> int:
     if not sc.deployment.of_kind("gateway"):
         print(f"awaremw demo: {sc.name} has no gateway mote", file=sys.stderr)
         return 2
+    # A live view needs a terminal: piped or redirected output gets log lines.
+    plain = args.plain or not sys.stdout.isatty()
     summary = asyncio.run(
-        run_demo(sc, args.duration, args.speed, args.mqtt, args.plain, args.robot_mqtt)
+        run_demo(sc, args.duration, args.speed, args.mqtt, plain, args.robot_mqtt)
     )
-    print_summary(summary, plain=args.plain)
+    print_summary(summary, plain=plain)
     return 0
 
 
