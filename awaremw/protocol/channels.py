@@ -227,17 +227,30 @@ class Channels(Component):
             t = self.slot_time(cid, e, m.hops) + self.ctx.rng.uniform(0, slot / 2)
             self.timers.set(("send", key), t)
 
-    def _send(self, key: _Key, now: float) -> None:
+    def _claim(self, key: _Key) -> tuple[_Pending, Membership] | None:
+        """The epoch's unsent partial and the membership it is still for, or None.
+
+        A mote that left the group since the epoch started drops its partial
+        (counted): it no longer has a route up that group's tree.
+        """
         p = self._pending.get(key)
         if p is None or p.sent:
-            return
-        cid, gtype, gid, e = key
+            return None
+        _, gtype, gid, _ = key
         m = self.groups.membership(gtype)
         if m is None or m.group_id != gid:
             p.sent = True
             if p.count:
                 self.stats.orphan_dropped += 1
+            return None
+        return p, m
+
+    def _send(self, key: _Key, now: float) -> None:
+        claimed = self._claim(key)
+        if claimed is None:
             return
+        p, m = claimed
+        cid, gtype, gid, e = key
         if m.is_leader:  # took the group over since the epoch started
             self._final(key, now)
             return
@@ -253,16 +266,11 @@ class Channels(Component):
         self.send(frame)
 
     def _final(self, key: _Key, now: float) -> None:
-        p = self._pending.get(key)
-        if p is None or p.sent:
+        claimed = self._claim(key)
+        if claimed is None:
             return
+        p, m = claimed
         cid, gtype, gid, e = key
-        m = self.groups.membership(gtype)
-        if m is None or m.group_id != gid:
-            p.sent = True
-            if p.count:
-                self.stats.orphan_dropped += 1
-            return
         if not m.is_leader:  # handed over or yielded within the group id: pass it up
             self._send(key, now)
             return
