@@ -135,36 +135,10 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
         else:
             # The merged leader is gone: both parts must have new ids.
             new_ok = all(g is not None and g != merged_id for g in last.gids)
-    first = M.first_arrival(rec, t0, channel=sc.channel, gtype=gtype)
-    traffic = M.traffic(result.traffic, sc.sensors)
-    ids = rec.group_ids(gtype, t0, end + settle)
-    metrics: dict[str, Any] = {
-        "scenario": sc.name,
-        "mode": result.mode,
-        "speed": result.speed,
-        "duration_s": result.duration,
-        "settle_s": settle,
-        "membership_precision": s.precision,
-        "membership_recall": s.recall,
-        "membership_f1": s.f1,
-        "membership_instants": s.instants,
-        "membership_tp_fp_fn": [s.tp, s.fp, s.fn],
-        "distinct_group_ids": len(ids),
-        "group_ids": sorted(ids),
-        "lasting_group_ids": list(M.lasting_group_ids(rec, gtype, t0, end + settle, 2 * settle)),
-        "handovers": M.handover_count(rec, gtype, t0, end + settle),
-        "elections": len([e for e in rec.elections if e.group_type == gtype]),
+    metrics = M.run_metrics(result, s, gtype, t0, end, settle)
+    metrics |= {
         "merges_yielded": len([y for y in rec.yields if y[2] == gtype]),
         "first_fire_sensed_s": t0,
-        "first_record_s": None if first is None else first.t - t0,
-        "first_record_via": None if first is None else first.via,
-        "delivery_ratio": M.delivery_ratio(rec, result.duration - 5.0),
-        "records_produced": len(rec.produced),
-        "records_delivered": len(rec.arrivals),
-        "frames_per_mote": traffic.frames_tx,
-        "frames_rx_per_mote": traffic.frames_rx,
-        "energy_mj_per_mote": traffic.energy_mj,
-        "motes_scored": len(sc.sensors),
         "fire_ids_before_merge": list(fire_ids),
         "two_fires_distinct_ids": two_distinct,
         "two_fires_instants_ok": two_frac,

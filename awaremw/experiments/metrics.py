@@ -22,7 +22,7 @@ import bisect
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.collection import Delivered
@@ -36,6 +36,9 @@ from awaremw.protocol.groups import (
     LeaderYielded,
 )
 from awaremw.world.truth import GroundTruth
+
+if TYPE_CHECKING:  # virtual.py imports this module
+    from awaremw.experiments.virtual import RunResult
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
 
@@ -337,6 +340,48 @@ def traffic(per_mote: Mapping[int, tuple[int, int, float]], among: Iterable[int]
         sum(per_mote[i][2] for i in ids) / n,
         {i: per_mote[i] for i in ids},
     )
+
+
+def run_metrics(
+    result: RunResult,
+    s: MembershipScore,
+    gtype: int,
+    t0: float,
+    t_end: float,
+    settle: float,
+) -> dict[str, Any]:
+    """The metrics every scenario reports, over the scored window [t0, t_end]:
+    membership score, group ids, leader changes, first record, delivery, traffic."""
+    sc, rec = result.scenario, result.recorder
+    ids = rec.group_ids(gtype, t0, t_end + settle)
+    first = first_arrival(rec, t0, channel=sc.channel, gtype=gtype)
+    tr = traffic(result.traffic, sc.sensors)
+    return {
+        "scenario": sc.name,
+        "mode": result.mode,
+        "speed": result.speed,
+        "duration_s": result.duration,
+        "settle_s": settle,
+        "membership_precision": s.precision,
+        "membership_recall": s.recall,
+        "membership_f1": s.f1,
+        "membership_instants": s.instants,
+        "membership_tp_fp_fn": [s.tp, s.fp, s.fn],
+        "distinct_group_ids": len(ids),
+        "group_ids": sorted(ids),
+        "lasting_group_ids": list(lasting_group_ids(rec, gtype, t0, t_end + settle, 2 * settle)),
+        "handovers": handover_count(rec, gtype, t0, t_end + settle),
+        "elections": len([e for e in rec.elections if e.group_type == gtype]),
+        "first_record_s": None if first is None else first.t - t0,
+        "first_record_via": None if first is None else first.via,
+        "delivery_ratio": delivery_ratio(rec, result.duration - 5.0),
+        "records_produced": len(rec.produced),
+        "records_delivered": len(rec.arrivals),
+        "frames_per_mote": tr.frames_tx,
+        "frames_rx_per_mote": tr.frames_rx,
+        "energy_mj_per_mote": tr.energy_mj,
+        "motes_scored": len(sc.sensors),
+    }
 
 
 def rounded(d: Mapping[str, Any], digits: int = 4) -> dict[str, Any]:

@@ -63,39 +63,10 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
     series = M.membership_series(rec, truth, defn, gtype, M.instants(t0, t1, SAMPLE_DT), settle,
                                  sensors)  # fmt: skip
     s = M.score(series)
-    ids = rec.group_ids(gtype, t0, t1 + settle)
-    first = M.first_arrival(rec, t0, channel=sc.channel, gtype=gtype)
-    traffic = M.traffic(result.traffic, sensors)
-    produced_in_run = len(rec.produced)
     out.mkdir(parents=True, exist_ok=True)
-    metrics: dict[str, Any] = {
-        "scenario": sc.name,
-        "mode": result.mode,
-        "speed": result.speed,
-        "duration_s": result.duration,
-        "settle_s": settle,
-        "pass_s": [t0, t1],
-        "membership_precision": s.precision,
-        "membership_recall": s.recall,
-        "membership_f1": s.f1,
-        "membership_instants": s.instants,
-        "membership_tp_fp_fn": [s.tp, s.fp, s.fn],
-        "distinct_group_ids": len(ids),
-        "group_ids": sorted(ids),
-        "lasting_group_ids": list(M.lasting_group_ids(rec, gtype, t0, t1 + settle, 2 * settle)),
-        "handovers": M.handover_count(rec, gtype, t0, t1 + settle),
-        "elections": len([e for e in rec.elections if e.group_type == gtype]),
-        "robot_entry_s": t0,
-        "first_record_s": None if first is None else first.t - t0,
-        "first_record_via": None if first is None else first.via,
-        "delivery_ratio": M.delivery_ratio(rec, result.duration - 5.0),
-        "records_produced": produced_in_run,
-        "records_delivered": len(rec.arrivals),
-        "frames_per_mote": traffic.frames_tx,
-        "frames_rx_per_mote": traffic.frames_rx,
-        "energy_mj_per_mote": traffic.energy_mj,
-        "motes_scored": len(sensors),
-    }
+    metrics = M.run_metrics(result, s, gtype, t0, t1, settle)
+    metrics["pass_s"] = [t0, t1]
+    metrics["robot_entry_s"] = t0
     _figures(sc, rec, truth, series, out, settle)
     return M.rounded(metrics)
 
