@@ -8,6 +8,7 @@ from collections.abc import Iterator
 
 import pytest
 import zenoh
+from inbox import Inbox
 
 from awaremw.gateway.bridge import ErrorReport, Publish
 from awaremw.gateway.hbn import HbnApi
@@ -27,24 +28,6 @@ def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
     finally:
         dev.close()  # type: ignore[no-untyped-call]
         gw.close()  # type: ignore[no-untyped-call]
-
-
-class Inbox:
-    def __init__(self) -> None:
-        self.items: list[tuple[str, bytes, bool, str]] = []
-        self.changed = asyncio.Event()
-
-    def __call__(self, rel: str, payload: bytes, retained: bool, key: str) -> None:
-        self.items.append((rel, payload, retained, key))
-        self.changed.set()
-
-    async def wait(self, n: int, timeout: float = 10.0) -> None:
-        async def loop() -> None:
-            while len(self.items) < n:
-                self.changed.clear()
-                await self.changed.wait()
-
-        await asyncio.wait_for(loop(), timeout)
 
 
 class ThreadSafeSamples:

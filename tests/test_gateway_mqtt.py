@@ -8,6 +8,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import pytest
+from inbox import Inbox
 from mosquitto import (  # noqa: F401
     Collector,
     Mosquitto,
@@ -42,26 +43,6 @@ def test_url_parsing() -> None:
     for bad in ("http://h:1", "mqtt://:1", "mqtt://h:99999", "mqtt://h:1/x", "h:1"):
         with pytest.raises(BadMqttUrl):
             MqttSettings.from_url(bad)
-
-
-class Inbox:
-    """What the bridge hands to the gateway, with an event per message."""
-
-    def __init__(self) -> None:
-        self.items: list[tuple[str, bytes, bool, str]] = []
-        self.changed = asyncio.Event()
-
-    def __call__(self, rel: str, payload: bytes, retained: bool, topic: str) -> None:
-        self.items.append((rel, payload, retained, topic))
-        self.changed.set()
-
-    async def wait(self, n: int, timeout: float = 10.0) -> None:
-        async def loop() -> None:
-            while len(self.items) < n:
-                self.changed.clear()
-                await self.changed.wait()
-
-        await asyncio.wait_for(loop(), timeout)
 
 
 @asynccontextmanager
