@@ -212,23 +212,7 @@ def pub(
     version: str = "5",
 ) -> subprocess.CompletedProcess[bytes]:
     """``mosquitto_pub`` as ``user``; ``payload=None`` sends an empty (deleting) message."""
-    args = [
-        require("mosquitto_pub"),
-        "-h",
-        "127.0.0.1",
-        "-p",
-        str(m.port),
-        "-u",
-        user,
-        "-P",
-        PASSWORDS[user],
-        "-t",
-        topic,
-        "-q",
-        str(qos),
-        "-V",
-        version,
-    ]
+    args = [*_client_args(m, "mosquitto_pub", user, topic), "-q", str(qos), "-V", version]
     if retain:
         args.append("-r")
     if payload is None:
@@ -240,20 +224,16 @@ def pub(
     return subprocess.run(args, input=data, capture_output=True, timeout=10, check=False)
 
 
+def _client_args(m: Mosquitto, tool: str, user: str, topic: str) -> list[str]:
+    """A Mosquitto client on the test broker, as ``user``, on ``topic``."""
+    return [require(tool), "-h", "127.0.0.1", "-p", str(m.port), "-u", user,
+            "-P", PASSWORDS[user], "-t", topic]  # fmt: skip
+
+
 def sub_args(m: Mosquitto, user: str, topic: str, *extra: str) -> list[str]:
     """Arguments of a ``mosquitto_sub`` printing ``topic payload`` lines."""
     return [
-        require("mosquitto_sub"),
-        "-h",
-        "127.0.0.1",
-        "-p",
-        str(m.port),
-        "-u",
-        user,
-        "-P",
-        PASSWORDS[user],
-        "-t",
-        topic,
+        *_client_args(m, "mosquitto_sub", user, topic),
         "-v",
         "-q",
         "1",
