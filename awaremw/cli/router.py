@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
 from types import FrameType
 
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
+
+CLOSE_TIMEOUT_S = 5.0
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -51,5 +54,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"awaremw router: cannot start: {e}", file=sys.stderr)
         return 2
     print(f"awaremw router listening on {', '.join(listen)}", flush=True)
-    router.serve_forever(stop)
+    # serve_forever closes the session once ``stop`` is set; on a loaded machine a Zenoh
+    # close can stall, so it runs in a thread and the process leaves after a bounded wait.
+    server = threading.Thread(target=router.serve_forever, args=(stop,), daemon=True)
+    server.start()
+    while not stop.wait(0.5):
+        pass
+    server.join(CLOSE_TIMEOUT_S)
+    if server.is_alive():
+        print(
+            f"awaremw router: session did not close within {CLOSE_TIMEOUT_S:.0f} s; exiting",
+            file=sys.stderr,
+            flush=True,
+        )
+        sys.stdout.flush()
+        os._exit(0)
     return 0
