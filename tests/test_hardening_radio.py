@@ -11,6 +11,7 @@ item at version 0xFFFFFFFF heard by the gateway (version overflow).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 from collections.abc import AsyncIterator
@@ -82,9 +83,11 @@ scalars = st.one_of(
 )
 values = st.recursive(
     scalars,
-    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=3), inner, max_size=3),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=3), inner, max_size=3)
+    ),
     max_leaves=12,
-)  # fmt: skip
+)
 
 
 def _pack(obj: Any) -> bytes:
@@ -174,10 +177,8 @@ def test_envelope_size_and_nesting_limits() -> None:
 @PROPS
 @given(st.binary(max_size=CC2420.mtu))
 def test_frame_decode_of_any_bytes_raises_only_frame_error(data: bytes) -> None:
-    try:
+    with contextlib.suppress(FrameError):
         decode(data)
-    except FrameError:
-        pass
 
 
 @PROPS
@@ -282,9 +283,10 @@ def test_fault_log_counts_per_reason_bounded_and_rate_limited(
     assert len(f.as_dict()) <= MAX_REASONS + 1
 
 
-# --------------------------------------------------------------------------- real Zenoh: regressions
+# ----------------------------------------------------------------- real Zenoh: regressions
 
 SPEED = 4.0
+Fleets = tuple[Deployment, Fleet, Fleet, GatewayService, str]
 
 
 @asynccontextmanager
