@@ -333,6 +333,13 @@ class MoteRunner:
             self.core.handle_timer(now)
         except Exception as e:
             self._fault("handle_timer", e)
+            try:
+                stuck = (nd := self.core.next_deadline()) is not None and nd <= dl
+            except Exception:
+                stuck = True
+            if stuck:  # it would fire again at once, forever: this mote stops
+                self.stop("fault")
+                return
         self._after_guarded(now)
 
     def _emit(self, event: object, now: float) -> None:
