@@ -18,7 +18,6 @@ from awaremw.runtime.deployment import Deployment, NodeSpec, load, parse_deploym
 from awaremw.runtime.driver import MoteDown, MoteUp
 from awaremw.runtime.fleet import (
     Fleet,
-    FleetError,
     FleetLauncher,
     default_core_factory,
     hello_core,
@@ -184,17 +183,25 @@ class Broken(HelloMote):
         raise ZeroDivisionError("core bug")
 
 
-async def test_a_core_bug_stops_the_fleet_with_an_error() -> None:
-    dep = deployment([static(1, 10.0, 10.0)])
+async def test_a_core_bug_is_contained_counted_and_stops_only_that_mote() -> None:
+    """The last guard: a core that raises is a counted fault, not a dead fleet.
+    A timer handler that raises and keeps its deadline stops its own mote."""
+    dep = deployment([static(1, 10.0, 10.0), static(2, 20.0, 10.0)])
+    downs: list[tuple[int, str]] = []
 
     def make(spec: NodeSpec, d: Deployment) -> MoteCore:
         import random
 
-        return Broken(spec.id, 0.1, random.Random(1))
+        cls = Broken if spec.id == 1 else HelloMote
+        return cls(spec.id, 0.1, random.Random(1))
 
     async with Fleet(dep, make, speed=10.0, control=False) as f:
-        with pytest.raises(FleetError, match="core bug"):
-            await f.run(100.0)
+        f.on_event(lambda n, e, t: downs.append((n, e.reason)) if isinstance(e, MoteDown) else None)
+        await f.run(3.0)  # raises FleetError if anything escaped into the loop
+        assert not f.failed
+        assert downs == [(1, "fault")]
+        assert f.medium.faults.get("handle_timer: ZeroDivisionError") == 1
+        assert f.alive(2) and f.counters[2].frames_tx > 0  # the other mote runs on
 
 
 def test_default_core_factory_builds_the_node_kinds() -> None:

@@ -33,7 +33,7 @@ from awaremw.gateway.bridge import GatewayBridge, Inject, Outcome, Publish
 from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSettings
 from awaremw.gateway.schema import Limits
-from awaremw.gateway.store import VersionStore
+from awaremw.gateway.store import VersionStore, unwrap, wire_version
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.dissemination import ItemAdopted
 from awaremw.protocol.frames import DataRecord, GroupReport, ItemBody, ItemKind
@@ -263,7 +263,11 @@ class GatewayService:
             body = self._body_of(node_id, ev.kind, ev.item_id)
             if body is None:
                 return
-        inj = self.bridge.learn(ev.kind, ev.item_id, ev.version, body)
+        # The mote's u32 version, mapped into the store's non-wrapping count, so
+        # that "newer" there is RFC 1982 "newer" on the radio (store.unwrap).
+        cur = self.bridge.store.get(ev.kind, ev.item_id)
+        version = unwrap(ev.version, None if cur is None else cur.version)
+        inj = self.bridge.learn(ev.kind, ev.item_id, version, body)
         if inj is not None:
             self._inject_all(inj)
         self._refresh_hbn()
@@ -371,4 +375,4 @@ def attach_to_fleet(
 def _inject_core(core: object, inj: Inject, now: float) -> None:
     if not isinstance(core, AwareMote):
         raise TypeError(f"gateway mote core is a {type(core).__name__}, not an AwareMote")
-    core.inject(inj.kind, inj.item_id, inj.version, inj.body, now)
+    core.inject(inj.kind, inj.item_id, wire_version(inj.version), inj.body, now)

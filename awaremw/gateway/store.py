@@ -33,7 +33,33 @@ from awaremw.protocol.frames import (
     ItemKind,
 )
 
-MAX_VERSION = 0xFFFFFFFF
+# The store counts versions without wrapping (a 63-bit SQLite integer); the
+# radio carries them modulo 2**32 (``wire_version``) and motes compare them with
+# RFC 1982 serial arithmetic, so the store never runs out: at one definition a
+# millisecond it would take 292 million years. Versions heard from the network
+# are mapped back into this count by :func:`unwrap`.
+MAX_VERSION = (1 << 63) - 1
+_M32 = 0xFFFFFFFF
+_HALF = 1 << 31
+
+
+def wire_version(v: int) -> int:
+    """The u32 version the radio carries for store version ``v``."""
+    return v & _M32
+
+
+def unwrap(wire: int, ref: int | None) -> int:
+    """The store version a u32 ``wire`` version heard from the network stands for,
+    relative to the store's current version ``ref`` of that item: the nearest one
+    in serial order (newer by 1 .. 2**31 - 1 or, exactly 2**31 apart, as the
+    motes order them; otherwise older). With no ``ref``, ``wire`` itself."""
+    if ref is None:
+        return wire
+    d = (wire - ref) & _M32
+    if 0 < d < _HALF or (d == _HALF and wire > (ref & _M32)):
+        return ref + d  # newer
+    return ref - ((ref - wire) & _M32)  # older, or equal (d == 0)
+
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS items (
@@ -89,7 +115,7 @@ class StoredItem:
 
 
 class VersionOverflow(RuntimeError):
-    """An item reached the largest 32-bit version (a local limit, never expected)."""
+    """An item reached the largest store version (2**63 - 1: never expected)."""
 
 
 class VersionStore:

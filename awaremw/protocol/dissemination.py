@@ -5,6 +5,12 @@ body (:class:`GroupTypeDef`, :class:`ChannelDef`, :class:`CommandDef`) or
 ``None``: a deletion is a version too, kept as a tombstone so that an older
 copy still held by a mote that was off cannot come back to life.
 
+Versions compare with RFC 1982 serial-number arithmetic (:func:`newer`): a
+version is newer if it is ahead by less than 2**31 modulo 2**32, so no version
+is ever the last one (``0xFFFFFFFF`` is followed by ``0``) and a foreign item
+at any version can be superseded by the next one (the gateway's rule,
+docs/protocol-dissemination.md, *Versions*).
+
 Each item has its own :class:`~awaremw.protocol.trickle.Trickle` (Drip's
 design). On hearing ``DripItem``:
 
@@ -58,6 +64,22 @@ ItemKey = tuple[ItemKind, int]
 
 _M64 = 0xFFFFFFFFFFFFFFFF
 _M32 = 0xFFFFFFFF
+_HALF = 1 << 31
+
+
+def newer(a: int, b: int) -> bool:
+    """Whether u32 version ``a`` is newer than ``b``: RFC 1982 serial-number
+    arithmetic (``a`` is ahead of ``b`` by 1 .. 2**31 - 1, modulo 2**32), so
+    versions never overflow: ``0`` follows ``0xFFFFFFFF``. The pair RFC 1982
+    leaves undefined (exactly 2**31 apart) is ordered by plain value, so that
+    of two different versions exactly one is newer."""
+    d = (a - b) & _M32
+    return 0 < d < _HALF or (d == _HALF and a > b)
+
+
+def next_version(v: int) -> int:
+    """The version after ``v`` (wraps to 0 after 0xFFFFFFFF; always :func:`newer`)."""
+    return (v + 1) & _M32
 
 
 class Item(NamedTuple):
@@ -177,7 +199,7 @@ class Dissemination(Component):
         frame = DripItem(self.ctx.node_id, BROADCAST, kind, item_id, version, item)
         encode(frame, self.ctx.config.mtu)  # raises FrameTooLarge before we keep it
         cur = self._items.get((frame.kind, item_id))
-        if cur is not None and version <= cur.version:
+        if cur is not None and not newer(version, cur.version):
             return False
         if not self.accepts(frame.kind, item_id):
             raise ItemTableFull(
@@ -222,9 +244,9 @@ class Dissemination(Component):
     def _on_item_frame(self, f: DripItem, now: float) -> None:
         key = (f.kind, f.item_id)
         cur = self._items.get(key)
-        if cur is None or f.version > cur.version:
+        if cur is None or newer(f.version, cur.version):
             self._adopt(f, now, source=f.src)
-        elif f.version < cur.version:
+        elif f.version != cur.version:  # older (serial arithmetic): the sender is behind
             self._trickles[key].reset(now)
             self._arm(key)
         else:

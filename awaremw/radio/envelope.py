@@ -16,7 +16,15 @@ acknowledged link sequence number and ``frame`` is empty). ``t`` is the
 emulated time the transmission started.
 
 :func:`decode_envelope` raises only :class:`MalformedEnvelope` (a remote
-fault: garbage on a radio key), never anything else.
+fault: garbage on a radio key), never anything else. Every field is
+range-checked against :class:`EnvelopeLimits` (built from the radio preset by
+:meth:`EnvelopeLimits.of`): the whole envelope's size is checked before it is
+unpacked, positions must be finite and within ``max_coord_m`` of the origin,
+``tx_power`` within the preset's programmable range, ``seq`` 16 bits,
+``attempt`` within the preset's retries, ``t`` finite and within
+``max_time_s``, the frame at most the MTU. Each refusal names a short
+``reason`` tag (``MalformedEnvelope.reason``, one of :data:`REASONS`) under
+which the medium counts it.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from enum import IntEnum
 import msgpack
 
 from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
+from awaremw.radio.model import RadioPreset
 
 VERSION = 1
 
@@ -37,8 +46,50 @@ class Kind(IntEnum):
     ACK = 1
 
 
+# Sane bounds for the emulator's fields (remote input; see docs/radio.md).
+MAX_COORD_M = 1.0e6  # 1000 km from the origin: far beyond any deployment area
+MAX_TIME_S = 1.0e10  # about 317 years of emulated time
+ENVELOPE_OVERHEAD = 64  # bytes of an envelope around its frame, with room to spare
+
+REASONS = (
+    "size", "msgpack", "shape", "version", "kind", "src", "dest", "position",
+    "tx_power", "seq", "attempt", "time", "frame", "ack",
+)  # fmt: skip
+
+
 class MalformedEnvelope(ValueError):
-    """Bytes on a radio key that are not a valid envelope (a remote fault)."""
+    """Bytes on a radio key that are not a valid envelope (a remote fault).
+
+    ``reason`` is a short tag (one of :data:`REASONS`) for counting."""
+
+    def __init__(self, message: str, reason: str = "shape") -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True, slots=True)
+class EnvelopeLimits:
+    """What a valid envelope may carry (from the radio preset)."""
+
+    min_tx_power: float = -math.inf
+    max_tx_power: float = math.inf
+    mtu: int = 0xFFFF
+    max_attempt: int = 255
+    max_coord_m: float = MAX_COORD_M
+    max_time_s: float = MAX_TIME_S
+
+    @property
+    def max_bytes(self) -> int:
+        return self.mtu + ENVELOPE_OVERHEAD
+
+    @classmethod
+    def of(cls, preset: RadioPreset) -> EnvelopeLimits:
+        return cls(preset.min_tx_power_dbm, preset.max_tx_power_dbm, preset.mtu, preset.max_retries)
+
+
+# Without a preset only the widths and sanity bounds apply (power must still be
+# a plausible radio's: within +-100 dBm, so that no range computation overflows).
+DEFAULT_LIMITS = EnvelopeLimits(-100.0, 100.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,35 +154,52 @@ def _finite(v: object) -> bool:
     return math.isfinite(v)
 
 
-def decode_envelope(data: bytes) -> Envelope:
+def _int_in(v: object, lo: int, hi: int) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
+
+
+def decode_envelope(data: bytes, limits: EnvelopeLimits = DEFAULT_LIMITS) -> Envelope:
     """Validate and unpack. Raises :class:`MalformedEnvelope` on any defect."""
+    if len(data) > limits.max_bytes:
+        raise MalformedEnvelope(f"{len(data)} bytes > {limits.max_bytes}", "size")
     try:
         v = msgpack.unpackb(data, use_list=False, raw=False, strict_map_key=True)
     except Exception as e:  # msgpack raises several unrelated types on garbage
-        raise MalformedEnvelope(f"not msgpack: {type(e).__name__}: {e}") from None
+        raise MalformedEnvelope(f"not msgpack: {type(e).__name__}: {e}", "msgpack") from None
     if not isinstance(v, tuple) or len(v) != 11:
-        raise MalformedEnvelope("not an 11-element envelope array")
+        raise MalformedEnvelope("not an 11-element envelope array", "shape")
     ver, kind, src, x, y, txp, seq, attempt, t, dest, frame = v
-    if ver != VERSION:
-        raise MalformedEnvelope(f"unknown envelope version {ver!r}")
-    if kind not in (0, 1) or isinstance(kind, bool):
-        raise MalformedEnvelope(f"unknown envelope kind {kind!r}")
-    if not isinstance(src, int) or isinstance(src, bool) or not 0 <= src <= MAX_NODE_ID:
-        raise MalformedEnvelope(f"bad sender id {src!r}")
-    if not isinstance(dest, int) or isinstance(dest, bool):
-        raise MalformedEnvelope(f"bad destination {dest!r}")
-    if dest != BROADCAST and not 0 <= dest <= MAX_NODE_ID:
-        raise MalformedEnvelope(f"bad destination {dest!r}")
-    if not (_finite(x) and _finite(y) and _finite(txp) and _finite(t)):
-        raise MalformedEnvelope("position, power or time is not a finite number")
-    if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq <= 0xFFFF:
-        raise MalformedEnvelope(f"bad link sequence number {seq!r}")
-    if not isinstance(attempt, int) or isinstance(attempt, bool) or not 0 <= attempt <= 255:
-        raise MalformedEnvelope(f"bad attempt number {attempt!r}")
-    if not isinstance(frame, bytes):
-        raise MalformedEnvelope("frame is not bytes")
+    if not _int_in(ver, VERSION, VERSION):
+        raise MalformedEnvelope(f"unknown envelope version {_short(ver)}", "version")
+    if not _int_in(kind, 0, 1):
+        raise MalformedEnvelope(f"unknown envelope kind {_short(kind)}", "kind")
+    if not _int_in(src, 0, MAX_NODE_ID):
+        raise MalformedEnvelope(f"bad sender id {_short(src)}", "src")
+    if not (_int_in(dest, 0, MAX_NODE_ID) or _int_in(dest, BROADCAST, BROADCAST)):
+        raise MalformedEnvelope(f"bad destination {_short(dest)}", "dest")
+    lim = limits.max_coord_m
+    if not (_finite(x) and _finite(y) and -lim <= x <= lim and -lim <= y <= lim):
+        raise MalformedEnvelope(f"position ({_short(x)}, {_short(y)}) out of bounds", "position")
+    if not (_finite(txp) and limits.min_tx_power <= txp <= limits.max_tx_power):
+        raise MalformedEnvelope(f"tx power {_short(txp)} dBm out of range", "tx_power")
+    if not _int_in(seq, 0, 0xFFFF):
+        raise MalformedEnvelope(f"bad link sequence number {_short(seq)}", "seq")
+    if not _int_in(attempt, 0, limits.max_attempt):
+        raise MalformedEnvelope(f"bad attempt number {_short(attempt)}", "attempt")
+    if not (_finite(t) and -limits.max_time_s <= t <= limits.max_time_s):
+        raise MalformedEnvelope(f"time {_short(t)} not finite or out of bounds", "time")
+    if not isinstance(frame, bytes) or len(frame) > limits.mtu:
+        raise MalformedEnvelope("frame is not bytes within the MTU", "frame")
     if kind == Kind.ACK and (dest == BROADCAST or frame):
-        raise MalformedEnvelope("an ACK must be addressed to one node and carry no frame")
+        raise MalformedEnvelope("an ACK must be addressed to one node and carry no frame", "ack")
     return Envelope(
         Kind(kind), src, float(x), float(y), float(txp), seq, attempt, float(t), dest, frame
     )
+
+
+def _short(v: object) -> str:
+    """A bounded description of a remote value (never a deep or huge repr)."""
+    if isinstance(v, bool | int | float):
+        r = repr(v)
+        return r if len(r) <= 24 else r[:21] + "..."
+    return type(v).__name__

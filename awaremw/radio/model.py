@@ -283,6 +283,8 @@ def cell_of(x: float, y: float, cell_size_m: float) -> tuple[int, int]:
 # exactly (part of the model's definition, so prr() and reception() agree).
 _PRR_ONE_EPS: Final = 1e-12
 _PRR_CACHE_MAX: Final = 1 << 17
+_RANGE_CACHE_MAX: Final = 64  # distinct tx powers (a mote uses one; presets a handful)
+_LINK_CACHE_MAX: Final = 1 << 18  # links (local receivers x senders heard)
 _OQPSK_COEF: Final[tuple[tuple[float, float], ...]] = tuple(
     ((-1) ** k * math.comb(16, k), 20.0 * (1.0 / k - 1.0)) for k in range(2, 17)
 )
@@ -326,9 +328,11 @@ class RadioModel:
         self.seed = seed
         self.symmetric = symmetric
         self._bn_over_r = preset.noise_bandwidth_hz / preset.bitrate_bps
-        self._shadow: dict[int, float] = {}
-        self._fading_link: dict[int, int] = {}
-        self._range_cache: dict[float, float] = {}
+        # Bounds (entries; each cache is cleared when full, its values are pure
+        # functions, so clearing only costs recomputation):
+        self._shadow: dict[int, float] = {}  # per link: _LINK_CACHE_MAX
+        self._fading_link: dict[int, int] = {}  # per directed link: _LINK_CACHE_MAX
+        self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
         self._prr_cache: dict[int, float] = {}
         self._max_fade = preset.fading_sigma_db * Z_MAX
         self._one_snr_db = self._snr_db_for_prr_one()
@@ -349,6 +353,8 @@ class RadioModel:
         if v is None:
             sigma = self.preset.shadowing_sigma_db
             v = sigma * _NORMAL[link_hash(self.seed, DOMAIN_SHADOW, a, b) >> _SHIFT]
+            if len(self._shadow) >= _LINK_CACHE_MAX:
+                self._shadow.clear()  # keyed by remote sender ids: bounded, recomputable
             self._shadow[k] = v
         return v
 
@@ -358,6 +364,8 @@ class RadioModel:
         h = self._fading_link.get(k)
         if h is None:
             h = link_hash(self.seed, DOMAIN_FADING, src, dst)
+            if len(self._fading_link) >= _LINK_CACHE_MAX:
+                self._fading_link.clear()  # keyed by remote sender ids: bounded, recomputable
             self._fading_link[k] = h
         return h
 
@@ -380,9 +388,12 @@ class RadioModel:
         tx = p.tx_power_dbm if tx_power is None else tx_power
         r = self._range_cache.get(tx)
         if r is None:
+            p.check_tx_power(tx)  # remote powers are checked by the envelope decoder
             sigma = math.hypot(p.shadowing_sigma_db, p.fading_sigma_db)
             budget = tx - p.sensitivity_dbm + 3.0 * sigma - p.pl_d0_db
             r = p.d0_m * 10.0 ** (budget / (10.0 * p.path_loss_exponent))
+            if len(self._range_cache) >= _RANGE_CACHE_MAX:
+                self._range_cache.clear()  # cheap to recompute; senders use few powers
             self._range_cache[tx] = r
         return r
 

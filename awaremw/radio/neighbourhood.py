@@ -46,6 +46,11 @@ from awaremw.world.mobility import Mobility, Static
 Cell = tuple[int, int]
 
 
+# Bound of the sender caches (one per sender id heard, ids chosen by remote
+# senders): beyond it the oldest built is dropped (its bulk counts folded in).
+MAX_SENDER_CACHES = 4096
+
+
 def adjacent(a: Cell, b: Cell) -> bool:
     """True if a mote in cell ``a`` listens to cell ``b`` (its own or one of the 8 around)."""
     return abs(a[0] - b[0]) <= 1 and abs(a[1] - b[1]) <= 1
@@ -145,7 +150,7 @@ class Neighbourhood(Generic[S]):
         self.on_cell = on_cell
         self._grid: dict[Cell, list[S]] = {}  # static motes on the air, by cell
         self.moving: list[S] = []  # moving motes on the air (do not mutate)
-        self._caches: dict[int, SenderCache[S]] = {}  # by sender id
+        self._caches: dict[int, SenderCache[S]] = {}  # by sender id; MAX_SENDER_CACHES
         self._by_cell: dict[Cell, dict[int, SenderCache[S]]] = {}  # the same, by sender cell
 
     # ------------------------------------------------------------------ motes
@@ -225,6 +230,8 @@ class Neighbourhood(Generic[S]):
 
     def _build(self, src: int, x: float, y: float, txp: float) -> SenderCache[S]:
         self.drop(src)
+        if len(self._caches) >= MAX_SENDER_CACHES:
+            self.drop(next(iter(self._caches)))  # the oldest built (ids are remote-chosen)
         m = self.model
         cell = cell_of(x, y, self.cell_size)
         c: SenderCache[S] = SenderCache(src, x, y, txp, cell)

@@ -64,7 +64,14 @@ from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
 from awaremw.radio.counters import Battery, MoteCounters
-from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
+from awaremw.radio.envelope import (
+    EnvelopeLimits,
+    Kind,
+    MalformedEnvelope,
+    decode_envelope,
+    encode_envelope,
+)
+from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.model import RadioModel, cell_of, packet_key
 from awaremw.radio.neighbourhood import Cell, Neighbourhood, adjacent, hear
@@ -194,7 +201,7 @@ class ZenohMedium:
         self._columns: set[int] = set()
         self._subs: list[zenoh.Subscriber[Any]] = []
         self._chans: list[zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]]] = []
-        self._inbox: deque[tuple[bytes, str]] = deque()
+        self._inbox: deque[tuple[bytes, str]] = deque()  # bound: CHANNEL_CAPACITY
         self._wakeup = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._poll: asyncio.TimerHandle | None = None
@@ -205,8 +212,15 @@ class ZenohMedium:
         p = self.preset
         self._overhead = p.phy_overhead_bytes
         self.on_malformed: Callable[[str, str], None] | None = None  # (key, reason)
+        self.limits = EnvelopeLimits.of(self.preset)
+        # Rejected envelopes by reason, and faults contained by the last guards
+        # (an exception out of a Zenoh callback or a mote handler): counted,
+        # logged at most once per reason every 10 s (awaremw.radio.faults).
+        self.rejected = FaultLog("rejected envelope", log, logging.INFO)
+        self.faults = FaultLog("contained fault", log, logging.ERROR)
         # Optional per-link delivery counts {(src, dst): frames}, for tests and
-        # experiments (who heard whom); None = not tracked (the default).
+        # experiments (who heard whom); None = not tracked (the default). Bound:
+        # senders (< 32768 ids) x local motes; only tests turn it on.
         self.links: dict[tuple[int, int], int] | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -348,6 +362,15 @@ class ZenohMedium:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Zenoh thread: copy the data out, wake the loop once per batch. Never
         # touch asyncio objects here except through call_soon_threadsafe.
+        try:
+            self._on_sample_unguarded(sample)
+        except Exception as e:  # last guard: never raise into Zenoh's thread
+            self.faults.count(f"zenoh callback: {type(e).__name__}", str(e), e)
+
+    def _on_sample_unguarded(self, sample: zenoh.Sample) -> None:
+        if len(self._inbox) >= CHANNEL_CAPACITY:
+            self.rejected.count("inbox full", "the loop is not keeping up")
+            return  # bound: CHANNEL_CAPACITY envelopes waiting
         self._inbox.append((sample.payload.to_bytes(), str(sample.key_expr)))
         if not self._wakeup:
             self._wakeup = True
@@ -364,7 +387,7 @@ class ZenohMedium:
         while inbox:
             data, key = inbox.popleft()
             n += 1
-            self._receive_envelope(data, key)
+            self._receive_guarded(data, key)
         st = self.stats
         st.batches += 1
         if n > st.max_batch:
@@ -377,11 +400,15 @@ class ZenohMedium:
         n = 0
         for sub in self._chans:
             while True:
-                s = sub.try_recv()
+                try:
+                    s = sub.try_recv()
+                except zenoh.ZError as e:  # channel closed under us
+                    self.faults.count("zenoh channel", str(e))
+                    break
                 if s is None:
                     break
                 n += 1
-                self._receive_envelope(s.payload.to_bytes(), str(s.key_expr))
+                self._receive_guarded(s.payload.to_bytes(), str(s.key_expr))
         if n:
             st = self.stats
             st.batches += 1
@@ -393,13 +420,21 @@ class ZenohMedium:
 
     # ------------------------------------------------------------------ receive side
 
+    def _receive_guarded(self, data: bytes, key: str) -> None:
+        """The last guard around one envelope: a bug becomes a counted fault."""
+        try:
+            self._receive_envelope(data, key)
+        except Exception as e:
+            self.faults.count(f"receive: {type(e).__name__}", f"on {key[:80]}: {e}", e)
+
     def _receive_envelope(self, data: bytes, key: str) -> None:
         if self._closed:
             return
         self.stats.envelopes_rx += 1
         try:
-            env = decode_envelope(data)
+            env = decode_envelope(data, self.limits)
         except MalformedEnvelope as e:
+            self.rejected.count(e.reason, f"on {key[:80]}: {e}")
             self._malformed(key, str(e))
             return
         now = self.clock.now()

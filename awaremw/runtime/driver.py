@@ -20,15 +20,20 @@ Every call happens on the event loop's thread; nothing here blocks.
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
+from array import array
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
 from awaremw.radio.counters import MoteCounters
+from awaremw.radio.faults import FaultLog
 from awaremw.radio.zenoh_medium import Radio, ZenohMedium
 from awaremw.runtime.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
+
+log = logging.getLogger(__name__)
 
 EventHook = Callable[[int, object, float], None]
 
@@ -44,22 +49,55 @@ class MoteUp:
 class MoteDown:
     """Event (through ``on_event``): the mote was switched off."""
 
-    reason: str  # "killed", "battery" or "stopped"
+    reason: str  # "killed", "battery", "stopped" or "fault" (a contained core bug)
+
+
+LAG_WINDOW = 1 << 16  # samples kept (8 bytes each: 512 KiB per process)
 
 
 class LagStats:
-    """Timer lag samples in wall milliseconds (late > 0), shared by a process's runners."""
+    """Timer lag samples in wall milliseconds (late > 0), shared by a process's runners.
 
-    __slots__ = ("samples",)
+    Bounded: a ring of the latest :data:`LAG_WINDOW` samples (a fleet at speed
+    5 takes a few hundred a second, so the window spans minutes), and a count
+    of every sample ever added, so a reader can take "the samples since my last
+    look" (:meth:`since`) -- exact percentiles over that window.
+    """
 
-    def __init__(self) -> None:
-        self.samples: list[float] = []
+    __slots__ = ("_buf", "_next", "count", "window")
+
+    def __init__(self, window: int = LAG_WINDOW) -> None:
+        if window < 1:
+            raise ValueError("window must be >= 1")
+        self.window = window
+        self._buf = array("d")
+        self._next = 0  # where the next sample goes once the ring is full
+        self.count = 0  # samples ever added (since the last clear)
 
     def add(self, lag_ms: float) -> None:
-        self.samples.append(lag_ms)
+        self.count += 1
+        if len(self._buf) < self.window:
+            self._buf.append(lag_ms)
+            return
+        self._buf[self._next] = lag_ms
+        self._next = (self._next + 1) % self.window
 
     def clear(self) -> None:
-        self.samples.clear()
+        self._buf = array("d")
+        self._next = 0
+        self.count = 0
+
+    @property
+    def samples(self) -> list[float]:
+        """The samples held, oldest first (at most :attr:`window`)."""
+        b = self._buf
+        return list(b[self._next :]) + list(b[: self._next])
+
+    def since(self, mark: int) -> list[float]:
+        """The samples added after the ``count`` was ``mark`` (the latest ones only,
+        if more than the window were added since)."""
+        n = min(self.count - mark, len(self._buf))
+        return self.samples[len(self._buf) - n :] if n > 0 else []
 
     def percentile(self, q: float) -> float:
         """The ``q``-th percentile (0..100), nearest rank; NaN without samples."""
@@ -146,8 +184,11 @@ class MoteRunner:
         self.alive = True
         now = self.clock.now()
         self._emit(MoteUp(), now)
-        self.core.start(now)
-        self._after(now)
+        try:
+            self.core.start(now)
+        except Exception as e:
+            self._fault("start", e)
+        self._after_guarded(now)
 
     def start_at(self, t: float) -> None:
         """Boot at emulated time ``t`` (now if it has passed)."""
@@ -189,21 +230,45 @@ class MoteRunner:
             raise RuntimeError(f"mote {self.node_id} is not running")
         now = self.clock.now()
         fn(self.core, now)
-        self._after(now)
+        self._after_guarded(now)
+
+    # ------------------------------------------------------------------ last guards
+
+    @property
+    def faults(self) -> FaultLog:
+        """Where contained faults are counted (the medium's, one per process)."""
+        return self.medium.faults
+
+    def _fault(self, where: str, e: Exception) -> None:
+        """An exception escaped the core or a hook: our bug, contained (counted and
+        logged, rate-limited) so that one mote's bug does not stop the fleet."""
+        self.faults.count(f"{where}: {type(e).__name__}", f"mote {self.node_id}: {e}", e)
+
+    def _after_guarded(self, now: float) -> None:
+        try:
+            self._after(now)
+        except Exception as e:
+            self._fault("after", e)
 
     # ------------------------------------------------------------------ RadioSink
 
     def radio_receive(self, frame: bytes, rssi_dbm: float, now: float) -> None:
         if not self.alive:
             return
-        self.core.receive(frame, rssi_dbm, now)
-        self._after(now)
+        try:
+            self.core.receive(frame, rssi_dbm, now)
+        except Exception as e:
+            self._fault("receive", e)
+        self._after_guarded(now)
 
     def radio_link_result(self, tx: Transmission, acked: bool, now: float) -> None:
         if not self.alive:
             return
-        self.core.link_result(tx, acked, now)
-        self._after(now)
+        try:
+            self.core.link_result(tx, acked, now)
+        except Exception as e:
+            self._fault("link_result", e)
+        self._after_guarded(now)
 
     def radio_down(self, reason: str, now: float) -> None:
         """The medium switched the mote off (battery spent)."""
@@ -258,15 +323,31 @@ class MoteRunner:
         if now == self._fire_t:
             self._fire_count += 1
             if self._fire_count > _MAX_FIRINGS_AT_ONE_TIME:
-                raise RuntimeError(f"mote {self.node_id}: core keeps its deadline at {now}")
+                # A core bug that would spin the loop: contained, the mote stops.
+                self._fault("handle_timer", RuntimeError(f"core keeps its deadline at {now}"))
+                self.stop("fault")
+                return
         else:
             self._fire_t, self._fire_count = now, 0
-        self.core.handle_timer(now)
-        self._after(now)
+        try:
+            self.core.handle_timer(now)
+        except Exception as e:
+            self._fault("handle_timer", e)
+            try:
+                stuck = (nd := self.core.next_deadline()) is not None and nd <= dl
+            except Exception:
+                stuck = True
+            if stuck:  # it would fire again at once, forever: this mote stops
+                self.stop("fault")
+                return
+        self._after_guarded(now)
 
     def _emit(self, event: object, now: float) -> None:
         if type(event) is MalformedFrame and self.radio is not None:
             self.radio.counters.malformed += 1
         hook = self.on_event
         if hook is not None:
-            hook(self.node_id, event, now)
+            try:
+                hook(self.node_id, event, now)
+            except Exception as e:  # a hook's bug (e.g. the gateway's) must not stop the mote
+                self._fault(f"event hook {type(event).__name__}", e)

@@ -61,6 +61,8 @@ from awaremw.runtime.zenoh_session import (
 
 log = logging.getLogger(__name__)
 
+MAX_CONTROL_BYTES = 64 * 1024  # a control request is a few hundred bytes
+
 CoreFactory = Callable[[NodeSpec, Deployment], MoteCore]
 NodeFilter = Callable[[NodeSpec], bool]
 
@@ -516,8 +518,8 @@ class Fleet:
             tot.add(c)
         p50 = p99 = math.nan
         if self.lag is not None:
-            recent = self.lag.samples[self._lag_mark :]
-            self._lag_mark = len(self.lag.samples)
+            recent = self.lag.since(self._lag_mark)  # bounded: LagStats keeps a ring
+            self._lag_mark = self.lag.count
             p50, p99 = percentile(recent, 50), percentile(recent, 99)
         return FleetSnapshot(
             name=self.name,
@@ -535,6 +537,15 @@ class Fleet:
     # ------------------------------------------------------------------ control plane
 
     def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            self._on_query_unguarded(query)
+        except Exception as e:  # last guard: never raise into Zenoh's thread
+            if self._medium is not None:
+                self._medium.faults.count(f"control query: {type(e).__name__}", str(e), e)
+            else:
+                log.exception("control query failed")
+
+    def _on_query_unguarded(self, query: zenoh.Query) -> None:
         # Zenoh thread: copy the payload and hand the query to the loop.
         payload = query.payload.to_bytes() if query.payload is not None else b""
         loop = self._loop
@@ -548,7 +559,12 @@ class Fleet:
 
     def _answer(self, query: zenoh.Query, payload: bytes) -> None:
         try:
-            reply = self.control_request(payload)
+            try:
+                reply = self.control_request(payload)
+            except Exception as e:  # last guard: our bug, answered and counted
+                if self._medium is not None:
+                    self._medium.faults.count(f"control: {type(e).__name__}", str(e), e)
+                reply = {"fleet": self.name, "ok": False, "done": False, "error": "internal error"}
             query.reply(f"{self.prefix}/ctl/fleet/{self.name}", json.dumps(reply).encode())
         except zenoh.ZError as e:  # the asker went away
             log.debug("control reply failed: %s", e)
@@ -564,10 +580,14 @@ class Fleet:
         ``error`` or data.
         """
         base: dict[str, Any] = {"fleet": self.name, "pid": os.getpid()}
+        if len(payload) > MAX_CONTROL_BYTES:
+            return {**base, "ok": False, "done": False, "error": "request too large"}
         try:
             req = json.loads(payload)
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             return {**base, "ok": False, "done": False, "error": f"not JSON: {e}"}
+        except RecursionError:
+            return {**base, "ok": False, "done": False, "error": "not JSON: nested too deeply"}
         if not isinstance(req, dict) or not isinstance(req.get("op"), str):
             return {**base, "ok": False, "done": False, "error": 'expected {"op": ...}'}
         op = req["op"]
@@ -581,8 +601,11 @@ class Fleet:
                 "motes": {str(i): [round(x, 3), round(y, 3)] for i, (x, y) in pos.items()},
             }
         if op == "stats":
-            snap = self.snapshot()
-            return {**base, "ok": True, "done": True, "snapshot": _snap_dict(snap)}
+            snap = _snap_dict(self.snapshot())
+            if self._medium is not None:  # remote garbage dropped, bugs contained
+                snap["rejected"] = self._medium.rejected.as_dict()
+                snap["faults"] = self._medium.faults.as_dict()
+            return {**base, "ok": True, "done": True, "snapshot": snap}
         if op == "kill":
             nid = req.get("id")
             if not isinstance(nid, int) or isinstance(nid, bool):

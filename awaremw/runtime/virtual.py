@@ -22,6 +22,7 @@ Moving motes are evaluated afresh at every frame.
 from __future__ import annotations
 
 import heapq
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
 from awaremw.radio.counters import Battery, MoteCounters
+from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.model import (
     _GOLDEN,
@@ -45,6 +47,8 @@ from awaremw.radio.model import (
 )
 from awaremw.radio.neighbourhood import Neighbourhood, adjacent, hear, hear_link
 from awaremw.world.mobility import Mobility, Static
+
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 EventHook = Callable[[int, object, float], None]
@@ -97,6 +101,11 @@ class VirtualNetwork:
         self.cell_size = model.cell_size_m
         self.on_event: EventHook | None = None
         self.on_transmit: TransmitHook | None = None
+        # Last guard around every core call: an exception out of a core is our
+        # bug; it is counted here (and logged, rate-limited) instead of stopping
+        # the whole run. ``strict`` re-raises it (tests that hunt bugs).
+        self.faults = FaultLog("contained fault", log, logging.ERROR)
+        self.strict = False
         self._now = 0.0
         self._heap: list[tuple[float, int, int, object, object]] = []
         self._seq = 0
@@ -259,6 +268,12 @@ class VirtualNetwork:
         self._seq += 1
         heapq.heappush(self._heap, (t, self._seq, kind, node, data))
 
+    def _contain(self, node: _Node, where: str, e: Exception) -> None:
+        """A core raised: count it (rate-limited log); re-raise in strict mode."""
+        self.faults.count(f"{where}: {type(e).__name__}", f"node {node.node_id}: {e}", e)
+        if self.strict:
+            raise e
+
     def _after(self, node: _Node) -> None:
         """Collect what the core wants after any call into it."""
         core = node.core
@@ -306,7 +321,10 @@ class VirtualNetwork:
         else:
             node.fire_t, node.fire_count = now, 0
         node.armed = None
-        node.core.handle_timer(now)
+        try:
+            node.core.handle_timer(now)
+        except Exception as e:
+            self._contain(node, "handle_timer", e)
         self._after(node)
 
     def _start_next(self, node: _Node) -> None:
@@ -390,7 +408,10 @@ class VirtualNetwork:
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 core = r.core
-                core.receive(frame, rssi, now)
+                try:
+                    core.receive(frame, rssi, now)
+                except Exception as e:
+                    self._contain(r, "receive", e)
                 # Inlined _after(r): usually nothing to send, no event, same deadline.
                 txs = core.drain()
                 evs = core.events()
@@ -423,7 +444,10 @@ class VirtualNetwork:
         )
         if rssi is None:
             return
-        r.core.receive(frame, rssi, now)
+        try:
+            r.core.receive(frame, rssi, now)
+        except Exception as e:
+            self._contain(r, "receive", e)
         self._after(r)
         self._check_battery(r)
 
@@ -440,7 +464,10 @@ class VirtualNetwork:
                 rssi = hear_link(m, link, s.range_m, n, bits, packet_key(seq, a))
                 if rssi is not None:
                     if linklayer.accept_unicast(r, s.node_id, seq):
-                        r.core.receive(frame, rssi, now)
+                        try:
+                            r.core.receive(frame, rssi, now)
+                        except Exception as e:
+                            self._contain(r, "receive", e)
                         self._after(r)
                     if linklayer.send_ack(r):
                         # The hardware ACK, on the reverse link at the receiver's power.
@@ -459,7 +486,10 @@ class VirtualNetwork:
         if linklayer.settle(s, acked, self.preset.max_retries):
             self._schedule_attempt(s, len(tx.frame), s.cur_seq, s.cur_attempt)
             return
-        s.core.link_result(tx, acked, self._now)
+        try:
+            s.core.link_result(tx, acked, self._now)
+        except Exception as e:
+            self._contain(s, "link_result", e)
         self._after(s)
         if acked:
             self._check_battery(s)
