@@ -12,6 +12,7 @@ from collections.abc import Callable
 import pytest
 
 from awaremw.cli.fleet import control_query
+from awaremw.nodes import KindsFactory
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.hello import HelloMote
 from awaremw.runtime.deployment import Deployment, NodeSpec, load, parse_deployment
@@ -20,7 +21,6 @@ from awaremw.runtime.fleet import (
     Fleet,
     FleetError,
     FleetLauncher,
-    default_core_factory,
     hello_core,
     stripes,
 )
@@ -201,6 +201,7 @@ def test_default_core_factory_builds_the_node_kinds() -> None:
     from awaremw.protocol.mote import AwareMote
 
     dep = load("grid_small")
-    make = default_core_factory()
+    make = KindsFactory()
+    assert "tmote" in make.kinds
     assert isinstance(make(dep.nodes[0], dep), AwareMote)
     assert isinstance(hello_core(dep.nodes[0], dep), HelloMote)

@@ -43,7 +43,7 @@ from awaremw.gateway.bridge import Publish
 from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
-from awaremw.nodes import app_of, build_core, kind_names, world_of
+from awaremw.nodes import KindsFactory, app_of, build_core, kind_names, world_of
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.commands import CommandExecuted
 from awaremw.protocol.core import MoteCore
@@ -155,6 +155,7 @@ async def gateway(
 ) -> AsyncIterator[GatewayService]:
     fleet = Fleet(
         emu.dep,
+        KindsFactory(),
         speed=SPEED,
         connect=[emu.endpoint],
         node_filter=lambda s: s.kind == "gateway",

@@ -18,8 +18,8 @@ from typing import Any
 
 from awaremw.experiments import metrics as M
 from awaremw.experiments import plots
+from awaremw.experiments.metrics import RunResult
 from awaremw.experiments.scenario import Scenario
-from awaremw.experiments.virtual import RunResult
 from awaremw.nodes import config_for
 from awaremw.protocol.attributes import is_rssi
 from awaremw.protocol.frames import Op
