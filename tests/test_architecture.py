@@ -9,6 +9,10 @@ module level, inside functions and under ``TYPE_CHECKING``. No exception list.
 from __future__ import annotations
 
 import ast
+import importlib.metadata
+import re
+import sys
+import tomllib
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
@@ -159,6 +163,30 @@ def test_no_module_imports_one_that_imports_it_back() -> None:
 def test_every_module_sits_in_a_layer() -> None:
     for name in modules(ROOT):
         rank(name)  # raises for a module outside the layers
+
+
+def _canonical(dist: str) -> str:
+    return re.sub(r"[-_.]+", "-", dist).lower()
+
+
+def test_every_third_party_import_is_declared() -> None:
+    """pip installs only the declared dependencies: an undeclared import works in
+    a development venv (pulled in by another package) and breaks elsewhere."""
+    project = tomllib.loads((ROOT.parent / "pyproject.toml").read_text(encoding="utf-8"))
+    declared = {
+        _canonical(re.split(r"[<>=!~;\[ ]", d, maxsplit=1)[0])
+        for d in project["project"]["dependencies"]
+    }
+    dists = importlib.metadata.packages_distributions()
+    missing: list[str] = []
+    for name, path in modules(ROOT).items():
+        for target, line in imports(name, path, {}):
+            top = target.split(".")[0]
+            if top == PACKAGE or top in sys.stdlib_module_names or not top:
+                continue
+            if not {_canonical(d) for d in dists.get(top, [top])} & declared:
+                missing.append(f"{name} (line {line}) imports {top}")
+    assert missing == []
 
 
 # ------------------------------------------------------------------ the checker itself
