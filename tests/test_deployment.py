@@ -13,10 +13,10 @@ from awaremw.radio.model import CC1000
 from awaremw.runtime.deployment import (
     DeploymentError,
     find_deployment,
-    shipped_dir,
-    shipped_names,
     load,
     load_deployment,
+    shipped_dir,
+    shipped_names,
 )
 from awaremw.world.mobility import Path as MovePath
 from awaremw.world.mobility import Static

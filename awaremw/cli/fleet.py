@@ -35,7 +35,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="run a deployment's motes (one process or many)",
         description="Run the motes of DEPLOYMENT on the Zenoh radio medium.",
     )
-    p.add_argument("deployment", metavar="DEPLOYMENT", help="path or shipped name (romeo4r, fire, grid_small, large)")
+    p.add_argument(
+        "deployment",
+        metavar="DEPLOYMENT",
+        help="path or shipped name (romeo4r, fire, grid_small, large)",
+    )
     p.add_argument("--processes", type=int, default=1, metavar="N", help="worker processes")
     p.add_argument(
         "--connect", action="append", default=[], metavar="ENDPOINT", help="join this router"
