@@ -3,7 +3,8 @@ FROM python:3.11-slim
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY awaremw ./awaremw
-COPY nodes ./nodes
 COPY broker_cfg ./broker_cfg
-RUN pip install --no-cache-dir -e .
+# A real install: the shipped deployments (awaremw/deployments/*.toml) come as
+# package data, so `awaremw fleet fire` works from any directory.
+RUN pip install --no-cache-dir .
 ENTRYPOINT ["awaremw"]

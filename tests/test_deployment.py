@@ -11,11 +11,12 @@ import pytest
 from awaremw.nodes.kinds import ALIASES, KINDS
 from awaremw.radio.model import CC1000
 from awaremw.runtime.deployment import (
-    REPO_ROOT,
     DeploymentError,
     find_deployment,
     load,
     load_deployment,
+    shipped_dir,
+    shipped_names,
 )
 from awaremw.world.mobility import Path as MovePath
 from awaremw.world.mobility import Static
@@ -260,26 +261,27 @@ def test_unreadable_files(tmp_path: Path) -> None:
 
 
 def test_find_deployment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    shipped = REPO_ROOT / "nodes" / "grid_small.toml"
+    shipped = shipped_dir() / "grid_small.toml"
+    assert shipped.parent.parent.name == "awaremw"  # package data, not the checkout's root
     monkeypatch.chdir(tmp_path)
     assert find_deployment("grid_small") == shipped
     assert find_deployment("grid_small.toml") == shipped
-    # The working directory comes first.
-    (tmp_path / "nodes").mkdir()
-    local = tmp_path / "nodes" / "grid_small.toml"
+    # A file of that name in the working directory overrides the shipped one.
+    local = tmp_path / "grid_small.toml"
     local.write_text(HEAD + '[[nodes]]\nid = 1\nkind = "tmote"\nposition = [1, 1]\n')
     assert find_deployment("grid_small") == local
     assert load("grid_small").ids == (1,)
     assert find_deployment(str(shipped)) == shipped
     with pytest.raises(DeploymentError, match=r"no such deployment .* shipped: .*grid_small"):
         find_deployment("atlantis")
+    assert {"romeo4r", "fire", "grid_small", "large"} <= set(shipped_names())
     assert os.path.isabs(find_deployment("large"))
 
 
 @pytest.mark.parametrize("name", ["grid_small", "large"])
 def test_shipped_files(name: str) -> None:
     d = load(name, KNOWN)
-    assert d.name == name and d.path == REPO_ROOT / "nodes" / f"{name}.toml"
+    assert d.name == name and d.path == shipped_dir() / f"{name}.toml"
     assert len(d.of_kind("gateway")) == 1
     if name == "large":
         assert len(d.nodes) >= 1000 and len(d.of_kind("robot")) == 1

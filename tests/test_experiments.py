@@ -11,8 +11,10 @@ import pytest
 
 from awaremw.experiments import metrics as M
 from awaremw.experiments import write_metrics
+from awaremw.experiments.metrics import RunResult
 from awaremw.experiments.scenario import load_scenario, scenario_of
-from awaremw.experiments.virtual import RunResult, VirtualRun
+from awaremw.experiments.truth import components, truth_from
+from awaremw.experiments.virtual import VirtualRun
 from awaremw.protocol.attributes import attribute_id
 from awaremw.protocol.collection import Delivered
 from awaremw.protocol.frames import Condition, DataRecord, GroupTypeDef, Op
@@ -28,7 +30,6 @@ from awaremw.runtime.deployment import DeploymentError, parse_deployment
 from awaremw.world.fields import Keyframe, Source, World
 from awaremw.world.mobility import Path as MPath
 from awaremw.world.mobility import Static
-from awaremw.world.truth import components, truth_from
 
 # ---------------------------------------------------------------- ground truth
 

@@ -12,6 +12,7 @@ from collections.abc import Callable
 import pytest
 
 from awaremw.cli.fleet import control_query
+from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.hello import HelloMote
 from awaremw.runtime.deployment import Deployment, NodeSpec, load, parse_deployment
@@ -19,7 +20,6 @@ from awaremw.runtime.driver import MoteDown, MoteUp
 from awaremw.runtime.fleet import (
     Fleet,
     FleetLauncher,
-    default_core_factory,
     hello_core,
     stripes,
 )
@@ -208,6 +208,12 @@ def test_default_core_factory_builds_the_node_kinds() -> None:
     from awaremw.protocol.mote import AwareMote
 
     dep = load("grid_small")
-    make = default_core_factory()
-    assert isinstance(make(dep.nodes[0], dep), AwareMote)
-    assert isinstance(hello_core(dep.nodes[0], dep), HelloMote)
+    make = KindsFactory()
+    assert {"tmote", "mica2", "robot", "gateway"} <= make.kinds
+    spec = dep.nodes[0]
+    core = make(spec, dep)
+    assert isinstance(core, AwareMote) and core.node_id == spec.id
+    app = app_of(core)
+    assert app is not None and app.node_id == spec.id and app.position(0.0) == spec.position
+    hello = hello_core(spec, dep)
+    assert isinstance(hello, HelloMote) and hello.node_id == spec.id

@@ -43,7 +43,7 @@ from awaremw.gateway.bridge import Publish
 from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
-from awaremw.nodes import app_of, build_core, kind_names, world_of
+from awaremw.nodes import KindsFactory, app_of, build_core, kind_names, world_of
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.commands import CommandExecuted
 from awaremw.protocol.core import MoteCore
@@ -155,6 +155,7 @@ async def gateway(
 ) -> AsyncIterator[GatewayService]:
     fleet = Fleet(
         emu.dep,
+        KindsFactory(),
         speed=SPEED,
         connect=[emu.endpoint],
         node_filter=lambda s: s.kind == "gateway",
@@ -449,13 +450,17 @@ async def test_zenoh_hbn_define_and_receive() -> None:
 
         sub = session.declare_subscriber("aware/hbn/data/**", on_data)
         try:
-            # Retry the puts until the gateway has them (routes come up asynchronously).
-            while "def/channel/1" not in {k for k in svc.bridge.definitions()}:
-                session.put("aware/hbn/def/group/1", GROUP)
-                session.put("aware/hbn/def/channel/1", channel(1.0))
-                svc.handled.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(svc.handled.wait(), 0.5)
+            # Retry the puts until the gateway has them (routes come up asynchronously),
+            # within a deadline: a gateway that never gets them fails the test.
+            async def defined() -> None:
+                while "def/channel/1" not in {k for k in svc.bridge.definitions()}:
+                    session.put("aware/hbn/def/group/1", GROUP)
+                    session.put("aware/hbn/def/channel/1", channel(1.0))
+                    svc.handled.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(svc.handled.wait(), 0.5)
+
+            await asyncio.wait_for(defined(), 20)
 
             async def full() -> None:
                 while sum(1 for _, p in got if json.loads(p)["count"] >= 20) < 3:

@@ -146,7 +146,8 @@ def test_retained_replay_is_not_applied_twice(tmp_path: Path) -> None:
 
 def test_refused_retained_payload_is_reported_once() -> None:
     b = bridge()
-    assert b.handle("def/group/1", b"{", source="s", retained=True).error is not None
+    first = b.handle("def/group/1", b"{", source="s", retained=True).error
+    assert first is not None and first.code == "invalid_json"
     assert b.handle("def/group/1", b"{", source="s", retained=True).replay
 
 

@@ -1,4 +1,4 @@
-"""Every deployment shipped in nodes/ loads, validates, builds and runs.
+"""Every deployment shipped in awaremw/deployments/ loads, validates, builds and runs.
 
 Each one is run briefly on the virtual clock with the cores the fleet uses
 (:func:`awaremw.nodes.build_core`), its definitions injected at the gateway
@@ -17,9 +17,9 @@ from awaremw.experiments.scenario import load_scenario
 from awaremw.experiments.virtual import VirtualRun
 from awaremw.nodes import app_of, build_core, kind_names
 from awaremw.protocol.mote import AwareMote
-from awaremw.runtime.deployment import REPO_ROOT, load
+from awaremw.runtime.deployment import load, shipped_dir
 
-SHIPPED = sorted((REPO_ROOT / "nodes").glob("*.toml"))
+SHIPPED = sorted(shipped_dir().glob("*.toml"))
 # Emulated seconds of the smoke run: long enough for trees and dissemination,
 # short for the 1,024 motes of large.toml.
 RUN_S = {"large": 3.0}

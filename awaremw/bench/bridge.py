@@ -208,7 +208,7 @@ async def end_to_end(
     before ``warmup`` (tree and group forming) are not measured.
     """
     from awaremw.gateway.service import attach_to_fleet
-    from awaremw.nodes import kind_names
+    from awaremw.nodes import KindsFactory, kind_names
     from awaremw.protocol.channels import RecordProduced
     from awaremw.runtime.deployment import load
     from awaremw.runtime.fleet import Fleet
@@ -228,8 +228,10 @@ async def end_to_end(
     sub = asyncio.create_task(_subscriber(sub_url, f"{prefix}/data/#", ready, arrivals))
     try:
         await asyncio.wait_for(ready.wait(), 10)
+        factory = KindsFactory()
         sensors = Fleet(
             dep,
+            factory,
             speed=speed,
             listen=[ep],
             node_filter=lambda s: s.kind != "gateway",
@@ -240,6 +242,7 @@ async def end_to_end(
             sensors.on_event(on_event)
             gw = Fleet(
                 dep,
+                factory,
                 speed=speed,
                 connect=[ep],
                 node_filter=lambda s: s.kind == "gateway",

@@ -90,9 +90,9 @@ async def run_demo(
     from awaremw.experiments import metrics as M
     from awaremw.experiments.client import Received
     from awaremw.experiments.realtime import RealtimeRun
+    from awaremw.experiments.snapshot import record_line as to_line
+    from awaremw.experiments.snapshot import snapshot_of
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
-    from awaremw.view.snapshot import record_line as to_line
-    from awaremw.view.snapshot import snapshot_of
 
     view: View = PlainLog(every=10.0) if plain else LiveView()
 

@@ -35,7 +35,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="run a deployment's motes (one process or many)",
         description="Run the motes of DEPLOYMENT on the Zenoh radio medium.",
     )
-    p.add_argument("deployment", metavar="DEPLOYMENT", help="path or shipped name (nodes/*.toml)")
+    p.add_argument(
+        "deployment",
+        metavar="DEPLOYMENT",
+        help="path or shipped name (romeo4r, fire, grid_small, large)",
+    )
     p.add_argument("--processes", type=int, default=1, metavar="N", help="worker processes")
     p.add_argument(
         "--connect", action="append", default=[], metavar="ENDPOINT", help="join this router"
@@ -122,19 +126,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _load(arg: str, hello: bool) -> Any:
+    from awaremw import nodes
     from awaremw.runtime.deployment import load
 
-    kinds: list[str] | None = None
-    validate = None
-    if not hello:
-        with contextlib.suppress(ImportError):
-            from awaremw import nodes
-
-            kinds = nodes.kind_names()
-            validate = nodes.validate
-    dep = load(arg, kinds)
-    if validate is not None:
-        validate(dep)
+    if hello:
+        return load(arg)
+    dep = load(arg, nodes.kind_names())
+    nodes.validate(dep)
     return dep
 
 
@@ -189,14 +187,22 @@ def _part_filter(part: str | None, dep: Any) -> Any:
 async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     import zenoh
 
-    from awaremw.runtime.fleet import Fleet, FleetLauncher, FleetSnapshot, LaunchError, hello_core
+    from awaremw.nodes import KindsFactory
+    from awaremw.runtime.fleet import (
+        CoreFactory,
+        Fleet,
+        FleetLauncher,
+        FleetSnapshot,
+        LaunchError,
+        hello_core,
+    )
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     listen = args.listen or ([] if args.connect else [DEFAULT_ROUTER_ENDPOINT])
-    factory = hello_core if args.hello else None
+    factory: CoreFactory = hello_core if args.hello else KindsFactory()
     where = ", ".join(args.connect) if args.connect else ", ".join(listen)
     print(
         f"awaremw fleet: {dep.name}: {len(dep.nodes)} motes, {args.processes} process(es), "

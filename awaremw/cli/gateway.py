@@ -128,13 +128,14 @@ def run(args: argparse.Namespace) -> int:
 async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
     from awaremw.gateway.broker import EmbeddedBroker
     from awaremw.gateway.service import GatewaySettings, attach_to_fleet, deployment_definitions
-    from awaremw.nodes import kind_names
+    from awaremw.nodes import KindsFactory, kind_names, validate
     from awaremw.radio.zenoh_medium import DEFAULT_PREFIX
     from awaremw.runtime.deployment import DeploymentError, load
     from awaremw.runtime.fleet import Fleet
 
     try:
         dep = load(args.deployment, kind_names())
+        validate(dep)  # node entries and the world: a clear error now, not a traceback later
     except (DeploymentError, OSError) as e:
         print(f"awaremw gateway: {e}", file=sys.stderr)
         return 2
@@ -157,6 +158,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             )
         fleet = Fleet(
             dep,
+            KindsFactory(),
             speed=args.speed,
             prefix=radio_prefix,
             connect=args.connect,

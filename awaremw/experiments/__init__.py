@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from awaremw.experiments.virtual import RunResult
+from awaremw.experiments.metrics import RunResult
 
 Analyse = Callable[[RunResult, Path], dict[str, Any]]
 

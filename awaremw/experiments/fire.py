@@ -1,6 +1,6 @@
 """Fires that merge and split: the group id rules of the paper's section II-A.
 
-Runs ``nodes/fire.toml`` and checks, against the ground truth (the connected
+Runs ``awaremw/deployments/fire.toml`` and checks, against the ground truth (the connected
 regions of motes whose noise-free temperature is over the threshold):
 
 * while there are two fires, each is one group with its own id;
@@ -25,10 +25,10 @@ from typing import Any
 
 from awaremw.experiments import metrics as M
 from awaremw.experiments import plots
+from awaremw.experiments.metrics import RunResult
 from awaremw.experiments.romeo4r import SAMPLE_DT, settle_time
 from awaremw.experiments.scenario import Scenario
-from awaremw.experiments.virtual import RunResult
-from awaremw.world.truth import GroundTruth
+from awaremw.experiments.truth import GroundTruth
 
 MIN_REGION = 2  # motes: smaller true regions are not counted as fires
 

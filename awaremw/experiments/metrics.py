@@ -22,8 +22,10 @@ import bisect
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from awaremw.experiments.scenario import Scenario
+from awaremw.experiments.truth import GroundTruth
 from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.collection import Delivered
 from awaremw.protocol.frames import DataRecord, GroupTypeDef
@@ -35,10 +37,6 @@ from awaremw.protocol.groups import (
     LeaderElected,
     LeaderYielded,
 )
-from awaremw.world.truth import GroundTruth
-
-if TYPE_CHECKING:  # virtual.py imports this module
-    from awaremw.experiments.virtual import RunResult
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
 
@@ -340,6 +338,18 @@ def traffic(per_mote: Mapping[int, tuple[int, int, float]], among: Iterable[int]
         sum(per_mote[i][2] for i in ids) / n,
         {i: per_mote[i] for i in ids},
     )
+
+
+@dataclass
+class RunResult:
+    """What one run of a scenario produced (virtual or real time): the input of the metrics."""
+
+    scenario: Scenario
+    recorder: Recorder
+    duration: float
+    traffic: dict[int, tuple[int, int, float]] = field(default_factory=dict)  # tx, rx, mJ
+    mode: str = "virtual"
+    speed: float | None = None
 
 
 def run_metrics(

@@ -21,9 +21,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from awaremw.experiments.metrics import Instant, Recorder
+from awaremw.experiments.truth import GroundTruth
 from awaremw.protocol.frames import GroupTypeDef
 from awaremw.world.fields import World
-from awaremw.world.truth import GroundTruth
 
 Area = tuple[float, float, float, float]  # xmin, xmax, ymin, ymax
 _PALETTE = (

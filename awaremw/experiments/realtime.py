@@ -29,11 +29,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 from awaremw.experiments.client import GroupSeen, Received, RobotClient
-from awaremw.experiments.metrics import Recorder
+from awaremw.experiments.metrics import Recorder, RunResult
 from awaremw.experiments.scenario import Scenario
-from awaremw.experiments.virtual import RunResult
 from awaremw.gateway.mqtt import MqttSettings
-from awaremw.nodes import app_of, build_core
+from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.attributes import rssi_attribute
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.mote import AwareMote
@@ -91,13 +90,8 @@ class RealtimeRun:
 
     # ------------------------------------------------------------------ helpers
 
-    def _factory(self) -> Callable[[NodeSpec, Deployment], MoteCore]:
-        world = self.sc.world
-
-        def build(spec: NodeSpec, dep: Deployment) -> MoteCore:
-            return build_core(spec, dep, world)
-
-        return build
+    def _factory(self) -> KindsFactory:
+        return KindsFactory(self.sc.world)
 
     def now(self) -> float:
         from awaremw.runtime.fleet import Fleet
@@ -287,8 +281,8 @@ def run_realtime(
     (``plain`` False and stdout a TTY) or as status log lines."""
     import sys
 
+    from awaremw.experiments.snapshot import snapshot_of
     from awaremw.view.live import LiveView, PlainLog, View, describe
-    from awaremw.view.snapshot import snapshot_of
 
     view: View = LiveView() if not plain and sys.stdout.isatty() else PlainLog(every=10.0)
 

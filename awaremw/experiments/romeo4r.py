@@ -1,6 +1,6 @@
 """Section V of the paper: a group tracks the Romeo 4R robot.
 
-Runs ``nodes/romeo4r.toml`` (virtual clock, or the real-time fleet over Zenoh
+Runs ``awaremw/deployments/romeo4r.toml`` (virtual clock, or the real-time fleet over Zenoh
 with the gateway and an MQTT subscriber), then scores the tracking group
 against the ground truth and draws the paper's figures:
 
@@ -18,8 +18,8 @@ from typing import Any
 
 from awaremw.experiments import metrics as M
 from awaremw.experiments import plots
+from awaremw.experiments.metrics import RunResult
 from awaremw.experiments.scenario import Scenario
-from awaremw.experiments.virtual import RunResult
 from awaremw.nodes import config_for
 from awaremw.protocol.attributes import is_rssi
 from awaremw.protocol.frames import Op

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from awaremw.experiments.truth import GroundTruth, TruthNode
 from awaremw.gateway.schema import (
     Definition,
     Limits,
@@ -39,7 +40,6 @@ from awaremw.nodes import build_app, config_for, kind_names, validate, world_of
 from awaremw.protocol.frames import ChannelDef, GroupTypeDef
 from awaremw.runtime.deployment import Deployment, DeploymentError, load
 from awaremw.world.fields import World
-from awaremw.world.truth import GroundTruth, TruthNode
 
 
 @dataclass(frozen=True)

@@ -12,9 +12,8 @@ plotted motes believe the robot's RSSI is.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
-from awaremw.experiments.metrics import Recorder
+from awaremw.experiments.metrics import Recorder, RunResult
 from awaremw.experiments.scenario import Scenario
 from awaremw.nodes import app_of, build_core
 from awaremw.protocol.attributes import rssi_attribute
@@ -64,16 +63,6 @@ class ScriptedCore:
 
     def events(self) -> list[object]:
         return self.inner.events()
-
-
-@dataclass
-class RunResult:
-    scenario: Scenario
-    recorder: Recorder
-    duration: float
-    traffic: dict[int, tuple[int, int, float]] = field(default_factory=dict)  # tx, rx, mJ
-    mode: str = "virtual"
-    speed: float | None = None
 
 
 class VirtualRun:

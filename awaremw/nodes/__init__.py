@@ -39,6 +39,7 @@ __all__ = [
     "KINDS",
     "CommandAction",
     "KindInfo",
+    "KindsFactory",
     "NodeApp",
     "app_of",
     "build_app",
@@ -126,6 +127,38 @@ def build_core(spec: NodeSpec, deployment: Deployment, world: World | None) -> M
     """
     app = build_app(spec, deployment, world)
     return AwareMote(spec.id, app, config_for(spec, deployment), mote_rng(spec, deployment))
+
+
+class KindsFactory:
+    """The fleet's core factory for the node kinds: ``factory(spec, deployment)``
+    is :func:`build_core` with one world shared by every mote it builds.
+
+    The runtime below does not import the node kinds: callers (the CLI, the
+    experiments) pass one of these to :class:`~awaremw.runtime.fleet.Fleet` and
+    :class:`~awaremw.runtime.fleet.FleetLauncher`. Picklable, so a launcher can
+    hand it to its worker processes. ``kinds`` are the names a control-plane
+    ``add`` may use.
+    """
+
+    __slots__ = ("_world",)
+
+    def __init__(self, world: World | None = None) -> None:
+        self._world = world  # None: built from the first deployment seen
+
+    @property
+    def kinds(self) -> frozenset[str]:
+        return frozenset(kind_names())
+
+    def __call__(self, spec: NodeSpec, deployment: Deployment) -> MoteCore:
+        if self._world is None:
+            self._world = world_of(deployment)
+        return build_core(spec, deployment, self._world)
+
+    def __getstate__(self) -> World | None:
+        return self._world
+
+    def __setstate__(self, state: World | None) -> None:
+        self._world = state
 
 
 def app_of(core: MoteCore) -> NodeApp | None:

@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 
 from awaremw.protocol import aggregation
 from awaremw.protocol.collection import Collection
+from awaremw.protocol.component import Component, MoteContext
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     ANY_GROUP_TYPE,
@@ -42,7 +43,6 @@ from awaremw.protocol.frames import (
     Partial,
 )
 from awaremw.protocol.groups import Groups, Membership
-from awaremw.protocol.mote import Component, MoteContext
 
 MAX_CHANNEL_ID = 0xFF
 KEEP_EPOCHS = 3  # pending state kept this many epochs back (late partials)

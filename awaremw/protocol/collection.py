@@ -56,8 +56,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
+from awaremw.protocol.component import Component, MoteContext
 from awaremw.protocol.frames import BROADCAST, NO_ROUTE, CtpBeacon, CtpData, Frame, Payload
-from awaremw.protocol.mote import Component, MoteContext
 from awaremw.protocol.trickle import Trickle
 
 ETX_ONE = 10  # ETX 1.0 in the x10 integer scale of costs

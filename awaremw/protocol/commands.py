@@ -23,9 +23,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from awaremw.protocol.component import Component, MoteContext
 from awaremw.protocol.frames import ANY_GROUP_ID, CommandDef, ItemBody, ItemKind, TargetKind
 from awaremw.protocol.groups import Groups
-from awaremw.protocol.mote import Component, MoteContext
 
 VersionOf = Callable[[ItemKind, int], "int | None"]
 

@@ -7,8 +7,10 @@ are configuration, not constants (a deployment may override any).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Any
+
+import msgspec
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,9 +74,18 @@ class MiddlewareConfig:
     is_root: bool = False  # a gateway mote: root of the collection tree
 
     def with_overrides(self, overrides: dict[str, Any]) -> MiddlewareConfig:
-        """A copy with ``overrides`` applied; unknown keys raise ValueError."""
-        known = {f.name for f in fields(self)}
-        unknown = sorted(set(overrides) - known)
+        """A copy with ``overrides`` applied. Unknown keys and values of the wrong
+        type (checked against the annotations by msgspec, strictly: no bool for a
+        number, no float for an int) raise ValueError naming the setting."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        unknown = sorted(set(overrides) - set(values))
         if unknown:
             raise ValueError(f"unknown middleware settings: {', '.join(unknown)}")
-        return replace(self, **overrides)
+        try:
+            return msgspec.convert({**values, **overrides}, MiddlewareConfig, strict=True)
+        except msgspec.ValidationError as e:
+            what, _, where = str(e).partition(" - at `$.")
+            key = where.rstrip("`") or "?"
+            raise ValueError(
+                f"middleware setting {key!r}: {what.replace('`', '').lower()}"
+            ) from None

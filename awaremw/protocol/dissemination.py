@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
 
+from awaremw.protocol.component import Component, MoteContext
 from awaremw.protocol.frames import (
     BROADCAST,
     DripItem,
@@ -56,7 +57,6 @@ from awaremw.protocol.frames import (
     ItemKind,
     encode,
 )
-from awaremw.protocol.mote import Component, MoteContext
 from awaremw.protocol.trickle import Trickle
 
 OnItem = Callable[[ItemKind, int, ItemBody | None, float], None]

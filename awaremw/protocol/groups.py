@@ -40,6 +40,7 @@ from enum import Enum
 from typing import NamedTuple
 
 from awaremw.protocol.collection import Collection
+from awaremw.protocol.component import Component, MoteContext
 from awaremw.protocol.frames import (
     ANY_GROUP_TYPE,
     BROADCAST,
@@ -53,7 +54,6 @@ from awaremw.protocol.frames import (
     LeaderBeacon,
     Op,
 )
-from awaremw.protocol.mote import Component, MoteContext
 
 MAX_GROUP_ID = 0xFFFE
 MAX_WEIGHT = 0xFFFFFFFF

@@ -75,7 +75,7 @@ from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.model import RadioModel, cell_of, packet_key
 from awaremw.radio.neighbourhood import Cell, Neighbourhood, adjacent, hear
-from awaremw.runtime.clock import EmulatedClock
+from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
 
 log = logging.getLogger(__name__)

@@ -18,6 +18,7 @@ import random
 import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path as FsPath
 from typing import Any
 
@@ -27,7 +28,6 @@ from awaremw.world.mobility import Mobility, Path, Static
 
 Point = tuple[float, float]
 
-REPO_ROOT = FsPath(__file__).resolve().parents[2]
 DEFAULT_RADIO = "cc2420"
 
 _TOP_VALUES = {"name", "description", "radio", "seed", "tx_power_dbm", "area", "nodes", "grid"}
@@ -141,15 +141,27 @@ class Deployment:
 # --------------------------------------------------------------------------- loading
 
 
+def shipped_dir() -> FsPath:
+    """The folder of the deployments shipped with the package (package data
+    ``awaremw/deployments/*.toml``, found through :mod:`importlib.resources`)."""
+    return FsPath(str(resources.files("awaremw").joinpath("deployments")))
+
+
+def shipped_names() -> list[str]:
+    """The names of the shipped deployments (``romeo4r``, ``fire``, ...)."""
+    return sorted(p.stem for p in shipped_dir().glob("*.toml"))
+
+
 def find_deployment(name_or_path: str | FsPath) -> FsPath:
-    """Resolve ``"romeo4r"`` to ``nodes/romeo4r.toml`` (cwd first, then the repo);
-    an existing path is returned as it is."""
+    """Resolve a deployment: an existing path is returned as it is; a name such
+    as ``"romeo4r"`` is ``./romeo4r.toml`` when the working directory has one
+    (a local file overrides the shipped one), else the shipped deployment."""
     p = FsPath(name_or_path)
     if p.is_file():
         return p
     fname = p.name if p.suffix == ".toml" else p.name + ".toml"
     tried: list[FsPath] = []
-    candidates = [FsPath.cwd() / p, FsPath.cwd() / "nodes" / fname, REPO_ROOT / "nodes" / fname]
+    candidates = [FsPath.cwd() / p, shipped_dir() / fname]
     if p.suffix != ".toml":
         candidates.insert(1, FsPath.cwd() / (str(p) + ".toml"))
     for c in candidates:
@@ -157,10 +169,9 @@ def find_deployment(name_or_path: str | FsPath) -> FsPath:
             tried.append(c)
             if c.is_file():
                 return c
-    shipped = sorted(x.stem for x in (REPO_ROOT / "nodes").glob("*.toml"))
     raise DeploymentError(
         f"{name_or_path}: no such deployment (tried {', '.join(map(str, tried))}); "
-        f"shipped: {', '.join(shipped) or 'none'}"
+        f"shipped: {', '.join(shipped_names()) or 'none'}"
     )
 
 

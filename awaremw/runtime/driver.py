@@ -10,7 +10,7 @@ A :class:`MoteRunner` is the thin adapter between a sans-IO core
   to the ``on_event(node_id, event, now)`` hook (``MalformedFrame`` events are
   also counted in the mote's counters), and its ONE loop timer is re-armed at
   ``core.next_deadline()`` (converted to loop time by the
-  :class:`~awaremw.runtime.clock.EmulatedClock`), or cancelled;
+  :class:`~awaremw.world.clock.EmulatedClock`), or cancelled;
 * it records timer lag -- how late (in wall milliseconds) a timer ran compared
   with the deadline the core asked for -- into a shared :class:`LagStats`.
 
@@ -30,7 +30,7 @@ from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.zenoh_medium import Radio, ZenohMedium
-from awaremw.runtime.clock import EmulatedClock
+from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
 
 log = logging.getLogger(__name__)

@@ -43,7 +43,6 @@ from awaremw.protocol.core import MoteCore
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import RadioModel
 from awaremw.radio.zenoh_medium import DEFAULT_HANDLER, DEFAULT_PREFIX, Handler, ZenohMedium
-from awaremw.runtime.clock import EmulatedClock
 from awaremw.runtime.deployment import (
     Deployment,
     DeploymentError,
@@ -58,6 +57,7 @@ from awaremw.runtime.zenoh_session import (
     free_tcp_endpoint,
     open_session,
 )
+from awaremw.world.clock import EmulatedClock
 
 log = logging.getLogger(__name__)
 
@@ -78,33 +78,6 @@ def hello_core(spec: NodeSpec, deployment: Deployment) -> MoteCore:
 
     rng = random.Random(f"awaremw:{deployment.seed}:{spec.id}")
     return HelloMote(spec.id, HELLO_PERIOD_S, rng, deployment.preset.mtu)
-
-
-def default_core_factory(world: object | None = None) -> CoreFactory:
-    """``awaremw.nodes.build_core`` (the node kinds) when available, else :func:`hello_core`.
-
-    One world is shared by every mote the factory builds (built lazily from the
-    first deployment it sees when ``world`` is None).
-    """
-    try:
-        from awaremw import nodes
-    except ImportError:  # node kinds not installed in this tree
-        return hello_core
-    build = getattr(nodes, "build_core", None)
-    if build is None:
-        return hello_core
-    cache: dict[str, object] = {}
-
-    def factory(spec: NodeSpec, deployment: Deployment) -> MoteCore:
-        w = world
-        if w is None:
-            w = cache.get("world")
-            if w is None:
-                w = cache["world"] = nodes.world_of(deployment)
-        core: MoteCore = build(spec, deployment, w)
-        return core
-
-    return factory
 
 
 # --------------------------------------------------------------------------- stripes
@@ -233,7 +206,7 @@ class Fleet:
     def __init__(
         self,
         deployment: Deployment,
-        core_factory: CoreFactory | None = None,
+        core_factory: CoreFactory,
         *,
         speed: float = 1.0,
         prefix: str = DEFAULT_PREFIX,
@@ -241,7 +214,6 @@ class Fleet:
         listen: Sequence[str] = (),
         session: zenoh.Session | None = None,
         node_filter: NodeFilter | None = None,
-        world: object | None = None,
         start_wall: float | None = None,
         autostart: bool = True,
         name: str = "main",
@@ -254,7 +226,7 @@ class Fleet:
     ) -> None:
         self.deployment = deployment
         self.track_links = track_links
-        self.core_factory = core_factory or default_core_factory(world)
+        self.core_factory = core_factory
         self.speed = speed
         self.prefix = prefix
         self.node_filter = node_filter
@@ -645,13 +617,10 @@ class Fleet:
             "area": list(dep.area),
             "nodes": [dict(entry)],
         }
-        # Known node kinds, plus whatever kinds this deployment already runs
-        # (a custom core factory may use its own).
+        # The kinds this deployment already runs, plus those the core factory
+        # names (awaremw.nodes.KindsFactory.kinds; the runtime does not import nodes).
         kinds = {s.kind for s in dep.nodes}
-        with contextlib.suppress(ImportError):
-            from awaremw.nodes import kind_names
-
-            kinds.update(kind_names())
+        kinds.update(getattr(self.core_factory, "kinds", ()))
         spec = parse_deployment(doc, None, kinds).nodes[0]
         return spec
 
@@ -686,7 +655,7 @@ class WorkerParams:
     speed: float
     prefix: str
     handler: Handler
-    core_factory: CoreFactory | None
+    core_factory: CoreFactory
     progress_s: float | None
     collect_lag: bool
     exclude_kinds: frozenset[str] = frozenset()
@@ -858,7 +827,7 @@ class FleetLauncher:
         deployment: Deployment,
         *,
         processes: int,
-        core_factory: CoreFactory | None = None,
+        core_factory: CoreFactory,
         speed: float = 1.0,
         prefix: str = DEFAULT_PREFIX,
         connect: Sequence[str] = (),

@@ -1,19 +1,14 @@
 """What a view shows at one instant, independent of how it is drawn.
 
 A :class:`Snapshot` is built from any source (the virtual network's cores, a
-fleet's event stream plus positions, an MQTT subscriber) and rendered by
+fleet's event stream plus positions, an MQTT subscriber; an experiment run's is
+built by :func:`awaremw.experiments.snapshot.snapshot_of`) and rendered by
 :mod:`awaremw.view.render` (rich) or logged by :class:`awaremw.view.live.PlainLog`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from awaremw.experiments.metrics import Recorder
-    from awaremw.experiments.scenario import Scenario
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,73 +54,3 @@ class Snapshot:
     stats: dict[str, float | int | str] = field(default_factory=dict)
     title: str = "awaremw"
     group_type: int | None = None  # the group type the map colours
-
-
-def record_line(r: object) -> RecordLine:
-    """A RecordLine from a client's :class:`~awaremw.experiments.client.Received`."""
-    from awaremw.experiments.client import Received
-
-    assert isinstance(r, Received)
-    d = r.record
-    return RecordLine(r.t, d.channel, d.group_type, d.group_id, r.agg, d.value, d.count, d.leader)
-
-
-def snapshot_of(
-    sc: Scenario,
-    rec: Recorder,
-    now: float,
-    live: object | None = None,
-    traffic: Mapping[int, tuple[int, int, float]] | None = None,
-    title: str | None = None,
-) -> Snapshot:
-    """The view of a run at ``now``: positions from the deployment's mobility,
-    memberships from the recorded events, records from the robot client."""
-    gtype = sc.tracking_group if sc.group_json else None
-    members = rec.members_at(gtype, now) if gtype is not None else {}
-    dots = []
-    for spec in sc.deployment.nodes:
-        x, y = spec.mobility().position(now)
-        s = members.get(spec.id)
-        dots.append(
-            MoteDot(
-                spec.id, x, y, spec.kind,
-                None if s is None else s.gid, bool(s and s.leader),
-                alive=spec.id not in rec.down and spec.boot_s <= now,
-            )
-        )  # fmt: skip
-    groups: list[GroupLine] = []
-    if gtype is not None:
-        leaders = rec.leaders_at(gtype, now)
-        for gid, nodes in sorted(rec.groups_at(gtype, now).items()):
-            groups.append(GroupLine(gtype, gid, leaders.get(gid), len(nodes)))
-    records: tuple[RecordLine, ...] = ()
-    got = getattr(live, "records", None)
-    if got:
-        records = tuple(record_line(r) for r in got[-8:])
-    else:
-        records = tuple(
-            RecordLine(a.t, a.record.channel, a.record.group_type, a.record.group_id,
-                       _agg(a.record.agg), a.record.value, a.record.count, a.record.leader)
-            for a in sorted(rec.arrivals.values(), key=lambda a: a.t)[-8:]
-        )  # fmt: skip
-    stats: dict[str, float | int | str] = {
-        "records": len(rec.arrivals),
-        "groups seen": len(rec.group_ids(gtype, 0.0, now)) if gtype is not None else 0,
-        "handovers": len(rec.handovers),
-    }
-    if traffic:
-        sensors = [n for n in sc.sensors if n in traffic]
-        if sensors:
-            stats["frames/mote"] = sum(traffic[n][0] for n in sensors) / len(sensors)
-            stats["mJ/mote"] = sum(traffic[n][2] for n in sensors) / len(sensors)
-    w, h = sc.deployment.area
-    return Snapshot(
-        now, (0.0, w, 0.0, h), tuple(dots), tuple(groups), records, stats,
-        title=title or f"awaremw {sc.name}", group_type=gtype,
-    )  # fmt: skip
-
-
-def _agg(agg: int) -> str:
-    from awaremw.gateway.schema import agg_name
-
-    return agg_name(agg)

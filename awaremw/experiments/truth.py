@@ -25,17 +25,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from awaremw.protocol import attributes as A
 from awaremw.protocol.attributes import Application
 from awaremw.protocol.frames import MAX_NODE_ID, GroupTypeDef
 from awaremw.protocol.groups import condition_holds
+from awaremw.radio.model import RadioModel
 from awaremw.world.fields import World
 from awaremw.world.mobility import Mobility
-
-if TYPE_CHECKING:  # the world layer sits below the radio: types only
-    from awaremw.radio.model import RadioModel
 
 _FIELD_OF = {
     A.TEMPERATURE: "temperature",

@@ -1,0 +1,77 @@
+"""The view of an experiment run at one instant: a :class:`~awaremw.view.snapshot.Snapshot`
+built from the scenario, the recorder's events and the robot client's records.
+
+It lives with the experiments (it reads their recorder and scenario); the view
+layer below only draws snapshots.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from awaremw.experiments.client import Received
+from awaremw.experiments.metrics import Recorder
+from awaremw.experiments.scenario import Scenario
+from awaremw.gateway.schema import agg_name
+from awaremw.view.snapshot import GroupLine, MoteDot, RecordLine, Snapshot
+
+
+def record_line(r: Received) -> RecordLine:
+    """A RecordLine from a client's :class:`~awaremw.experiments.client.Received`."""
+    d = r.record
+    return RecordLine(r.t, d.channel, d.group_type, d.group_id, r.agg, d.value, d.count, d.leader)
+
+
+def snapshot_of(
+    sc: Scenario,
+    rec: Recorder,
+    now: float,
+    live: object | None = None,
+    traffic: Mapping[int, tuple[int, int, float]] | None = None,
+    title: str | None = None,
+) -> Snapshot:
+    """The view of a run at ``now``: positions from the deployment's mobility,
+    memberships from the recorded events, records from the robot client."""
+    gtype = sc.tracking_group if sc.group_json else None
+    members = rec.members_at(gtype, now) if gtype is not None else {}
+    dots = []
+    for spec in sc.deployment.nodes:
+        x, y = spec.mobility().position(now)
+        s = members.get(spec.id)
+        dots.append(
+            MoteDot(
+                spec.id, x, y, spec.kind,
+                None if s is None else s.gid, bool(s and s.leader),
+                alive=spec.id not in rec.down and spec.boot_s <= now,
+            )
+        )  # fmt: skip
+    groups: list[GroupLine] = []
+    if gtype is not None:
+        leaders = rec.leaders_at(gtype, now)
+        for gid, nodes in sorted(rec.groups_at(gtype, now).items()):
+            groups.append(GroupLine(gtype, gid, leaders.get(gid), len(nodes)))
+    records: tuple[RecordLine, ...] = ()
+    got = getattr(live, "records", None)
+    if got:
+        records = tuple(record_line(r) for r in got[-8:])
+    else:
+        records = tuple(
+            RecordLine(a.t, a.record.channel, a.record.group_type, a.record.group_id,
+                       agg_name(a.record.agg), a.record.value, a.record.count, a.record.leader)
+            for a in sorted(rec.arrivals.values(), key=lambda a: a.t)[-8:]
+        )  # fmt: skip
+    stats: dict[str, float | int | str] = {
+        "records": len(rec.arrivals),
+        "groups seen": len(rec.group_ids(gtype, 0.0, now)) if gtype is not None else 0,
+        "handovers": len(rec.handovers),
+    }
+    if traffic:
+        sensors = [n for n in sc.sensors if n in traffic]
+        if sensors:
+            stats["frames/mote"] = sum(traffic[n][0] for n in sensors) / len(sensors)
+            stats["mJ/mote"] = sum(traffic[n][2] for n in sensors) / len(sensors)
+    w, h = sc.deployment.area
+    return Snapshot(
+        now, (0.0, w, 0.0, h), tuple(dots), tuple(groups), records, stats,
+        title=title or f"awaremw {sc.name}", group_type=gtype,
+    )  # fmt: skip

@@ -1,0 +1,93 @@
+"""The contract between the mote and its components: :class:`MoteContext` (what
+the components of one mote share) and :class:`Component` (timers plus hooks).
+
+A module of its own so that the components (dissemination, collection, groups,
+channels, commands) and :mod:`awaremw.protocol.mote`, which composes them,
+import it without importing each other in a circle.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+
+from awaremw.protocol.attributes import RSSI_BASE, Application
+from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.core import Transmission
+from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode
+from awaremw.protocol.timers import TimerSet
+
+
+@dataclass(frozen=True, slots=True)
+class RssiSample:
+    dbm: float  # EWMA of recent frames
+    last_heard: float
+
+
+class MoteContext:
+    """What every component of one mote shares: identity, config, randomness,
+    the application, the outbox and the event list."""
+
+    def __init__(
+        self,
+        node_id: int,
+        config: MiddlewareConfig,
+        rng: random.Random,
+        app: Application | None,
+    ) -> None:
+        self.node_id = node_id
+        self.config = config
+        self.rng = rng
+        self.app = app
+        self.rssi: dict[int, RssiSample] = {}
+        self.outbox: list[Transmission] = []
+        self.pending: dict[int, tuple[Component, Frame]] = {}
+        self.event_list: list[object] = []
+
+    def send(self, owner: Component, frame: Frame) -> Transmission:
+        """Encode ``frame`` (MTU enforced: an oversize frame is our bug) and queue it."""
+        data = encode(frame, self.config.mtu)
+        if frame.dst == BROADCAST:
+            tx = Transmission.broadcast(data)
+        else:
+            tx = Transmission.unicast(data, frame.dst)
+            self.pending[tx.tx_id] = (owner, frame)
+        self.outbox.append(tx)
+        return tx
+
+    def emit(self, event: object) -> None:
+        self.event_list.append(event)
+
+    def read(self, attr: int, now: float) -> float | None:
+        """An attribute's current value, or None if this mote cannot give it."""
+        if attr & RSSI_BASE:
+            s = self.rssi.get(attr & MAX_NODE_ID)
+            if s is None or now - s.last_heard > self.config.rssi_ttl:
+                return None
+            return s.dbm
+        if self.app is None or not self.app.offers(attr):
+            return None
+        return self.app.read(attr, now)
+
+
+class Component:
+    """Base of the middleware's components: timers plus four hooks."""
+
+    def __init__(self, ctx: MoteContext) -> None:
+        self.ctx = ctx
+        self.timers = TimerSet()
+
+    def start(self, now: float) -> None:
+        """Called once when the mote boots."""
+
+    def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
+        """A decoded frame of a type this component owns."""
+
+    def on_timer(self, name: object, now: float) -> None:
+        """A timer this component set is due."""
+
+    def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
+        """Outcome of a unicast this component sent."""
+
+    def send(self, frame: Frame) -> Transmission:
+        return self.ctx.send(self, frame)

@@ -1,0 +1,33 @@
+"""Suite-wide settings.
+
+Hypothesis profiles, chosen by ``AWAREMW_HYPOTHESIS_PROFILE`` (``.ci/run`` sets
+``ci``):
+
+* ``dev`` (default): Hypothesis's defaults -- random examples, a local example
+  database, so a failure found once is replayed first next time;
+* ``ci``: derandomized (the same examples on every run: a CI failure is a real
+  regression, reproducible locally with the same profile), ``CI_MAX_EXAMPLES``
+  examples per test unless the test sets its own (bounded) ``max_examples``,
+  no example database, no deadline (shared CI machines are slow), and the
+  failing example printed for reproduction.
+"""
+
+from __future__ import annotations
+
+import os
+
+from hypothesis import settings
+
+PROFILE_ENV = "AWAREMW_HYPOTHESIS_PROFILE"
+CI_MAX_EXAMPLES = 200
+
+settings.register_profile("dev", settings())
+settings.register_profile(
+    "ci",
+    derandomize=True,
+    max_examples=CI_MAX_EXAMPLES,
+    database=None,
+    deadline=None,
+    print_blob=True,
+)
+settings.load_profile(os.environ.get(PROFILE_ENV, "dev"))
