@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
 from awaremw.gateway.store import unwrap, wire_version
-from awaremw.nodes import kind_names
+from awaremw.nodes import KindsFactory, kind_names
 from awaremw.protocol.dissemination import ItemAdopted, newer, next_version
 from awaremw.protocol.frames import (
     BROADCAST,
@@ -298,10 +298,16 @@ async def fleet_and_gateway() -> AsyncIterator[
     dep = load("grid_small", kind_names())
     ep = free_tcp_endpoint()
     async with Fleet(
-        dep, speed=SPEED, listen=[ep], node_filter=lambda s: s.kind != "gateway", name="sensors"
+        dep,
+        KindsFactory(),
+        speed=SPEED,
+        listen=[ep],
+        node_filter=lambda s: s.kind != "gateway",
+        name="sensors",
     ) as sensors:
         gw = Fleet(
             dep,
+            KindsFactory(),
             speed=SPEED,
             connect=[ep],
             node_filter=lambda s: s.kind == "gateway",
