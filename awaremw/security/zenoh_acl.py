@@ -90,8 +90,11 @@ GRANTS: Final[dict[Role, tuple[_Grant, ...]]] = {
 
 def access_control(prefix: str = DEFAULT_PREFIX) -> dict[str, Any]:
     """The router's ``access_control`` block for key prefix ``prefix``."""
-    if not prefix or prefix.startswith("/") or prefix.endswith("/") or any(
-        c in prefix for c in "*$?#"
+    if (
+        not prefix
+        or prefix.startswith("/")
+        or prefix.endswith("/")
+        or any(c in prefix for c in "*$?#")
     ):
         raise ValueError(f"bad key prefix {prefix!r}: expected e.g. 'aware' or 'site1/aware'")
     rules: list[dict[str, Any]] = []
@@ -154,22 +157,25 @@ class SecretsError(ValueError):
     """A secrets directory that is missing, incomplete or unreadable."""
 
 
-def role_config_path(secrets: Path, role: Role) -> Path:
-    path = Path(secrets) / "zenoh" / f"{role}.json5"
+def _existing(secrets: Path | str, name: str) -> Path:
+    path = Path(secrets) / "zenoh" / name
     if not path.is_file():
-        raise SecretsError(f"{path} not found: create the secrets with `awaremw keys init {secrets}`")
+        raise SecretsError(f"{path} not found: make the secrets with `awaremw keys init {secrets}`")
     return path
 
 
-def router_config_path(secrets: Path) -> Path:
-    path = Path(secrets) / "zenoh" / "router.json5"
-    if not path.is_file():
-        raise SecretsError(f"{path} not found: create the secrets with `awaremw keys init {secrets}`")
-    return path
+def role_config_path(secrets: Path | str, role: Role) -> Path:
+    """DIR/zenoh/<role>.json5, which must exist."""
+    return _existing(secrets, f"{role}.json5")
+
+
+def router_config_path(secrets: Path | str) -> Path:
+    """DIR/zenoh/router.json5, which must exist."""
+    return _existing(secrets, "router.json5")
 
 
 def role_settings(
-    secrets: Path,
+    secrets: Path | str,
     role: Role,
     connect: Sequence[str] = (),
     *,
