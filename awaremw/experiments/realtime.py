@@ -325,7 +325,12 @@ def run_realtime(
             view.log(t, line)
 
     rt = RealtimeRun(
-        sc, speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, on_tick=tick, on_event=event,
+        sc,
+        speed=speed,
+        mqtt=mqtt,
+        robot_mqtt=robot_mqtt,
+        on_tick=tick,
+        on_event=event,
         secrets=secrets,
     )
     view.start()
