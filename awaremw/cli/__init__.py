@@ -23,6 +23,7 @@ VERB_MODULES: tuple[str, ...] = (
     "client",
     "experiment",
     "bench",
+    "keys",
 )
 
 

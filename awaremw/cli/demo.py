@@ -39,6 +39,12 @@ def register(sub: Any) -> None:
         metavar="URL",
         help="the robot client's own broker account (default: the --mqtt URL)",
     )
+    p.add_argument(
+        "--secrets",
+        default=None,
+        metavar="DIR",
+        help="Zenoh with authentication and access control by role (DIR from `awaremw keys init`)",
+    )
     p.add_argument("--plain", action="store_true", help="log lines instead of the live view")
     p.set_defaults(func=main)
 
@@ -72,7 +78,7 @@ def main(args: argparse.Namespace) -> int:
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
     summary = asyncio.run(
-        run_demo(sc, args.duration, args.speed, args.mqtt, plain, args.robot_mqtt)
+        run_demo(sc, args.duration, args.speed, args.mqtt, plain, args.robot_mqtt, args.secrets)
     )
     print_summary(summary, plain=plain)
     return 0
@@ -85,6 +91,7 @@ async def run_demo(
     mqtt: str | None,
     plain: bool,
     robot_mqtt: str | None = None,
+    secrets: str | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the summary figures."""
     from awaremw.experiments import metrics as M
@@ -109,7 +116,7 @@ async def run_demo(
 
     run = RealtimeRun(
         sc, speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, on_tick=tick, on_event=event,
-        on_record=record,
+        on_record=record, secrets=secrets,
     )  # fmt: skip
     end = sc.duration if duration is None else duration
     view.log(0.0, f"demo {sc.name}: {len(sc.deployment.nodes)} motes, {end:g} s at speed "

@@ -42,6 +42,12 @@ def register(sub: Any) -> None:
         metavar="URL",
         help="the robot client's own broker account (default: the --mqtt URL)",
     )
+    p.add_argument(
+        "--secrets",
+        default=None,
+        metavar="DIR",
+        help="Zenoh with authentication and access control by role (DIR from `awaremw keys init`)",
+    )
     p.add_argument("--plain", action="store_true", help="log lines instead of a live view")
     p.set_defaults(func=main)
 
@@ -78,6 +84,7 @@ def main(args: argparse.Namespace) -> int:
             mqtt=args.mqtt,
             plain=args.plain,
             robot_mqtt=args.robot_mqtt,
+            secrets=args.secrets,
         )
     metrics = analysis(name)(result, out)
     metrics["wall_s"] = round(time.monotonic() - started, 2)

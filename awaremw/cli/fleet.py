@@ -26,7 +26,7 @@ import signal
 import sys
 from typing import Any
 
-from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
+from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -88,6 +88,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="PATH",
         help="at the end, write the frames delivered per (src, dst) link as JSON",
     )
+    p.add_argument(
+        "--secrets",
+        default=None,
+        metavar="DIR",
+        help="connect with role fleet (DIR from `awaremw keys init`): to the router at "
+        "--connect, else to an embedded router started here with DIR's access rules",
+    )
     p.set_defaults(func=run_fleet)
 
     c = subparsers.add_parser(
@@ -104,6 +111,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     c.add_argument("--prefix", default="aware", help="Zenoh key prefix (default aware)")
     c.add_argument("--timeout", type=float, default=3.0, metavar="S", help="wait for answers")
+    c.add_argument(
+        "--secrets",
+        default=None,
+        metavar="DIR",
+        help="connect to the router with role operator (DIR from `awaremw keys init`)",
+    )
     csub = c.add_subparsers(dest="op", metavar="OP", required=True)
     a = csub.add_parser("add", help="add a mote (validated like a [[nodes]] entry)")
     a.add_argument("id", type=int)
@@ -158,6 +171,20 @@ def run_fleet(args: argparse.Namespace) -> int:
     if args.part_filter is not None and args.processes != 1:
         print("awaremw fleet: --part and --processes do not combine", file=sys.stderr)
         return 2
+    args.role_config = args.router_config = None
+    if args.secrets is not None:
+        from awaremw.security.zenoh_acl import SecretsError, role_config_path, router_config_path
+
+        try:
+            args.role_config = str(role_config_path(args.secrets, "fleet"))
+            if not args.connect:
+                args.router_config = str(router_config_path(args.secrets))
+        except SecretsError as e:
+            print(f"awaremw fleet: {e}", file=sys.stderr)
+            return 2
+        if args.part_filter is not None and not args.connect:
+            print("awaremw fleet: --part with --secrets needs --connect", file=sys.stderr)
+            return 2
     try:
         return asyncio.run(_run_fleet(args, dep))
     except _StartError as e:
@@ -206,7 +233,8 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     where = ", ".join(args.connect) if args.connect else ", ".join(listen)
     print(
         f"awaremw fleet: {dep.name}: {len(dep.nodes)} motes, {args.processes} process(es), "
-        f"speed x{args.speed:g}, Zenoh {'via ' if args.connect else 'on '}{where}",
+        f"speed x{args.speed:g}, Zenoh {'via ' if args.connect else 'on '}{where}"
+        f"{' (role fleet, access control on)' if args.role_config else ''}",
         flush=True,
     )
 
@@ -227,7 +255,12 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
                 show(fleet.snapshot())
 
     skip = frozenset(args.without_kind)
-    if args.processes == 1:
+    # With --secrets and no --connect the motes run behind an embedded router that
+    # applies the access rules: the launcher's layout, even with one process.
+    if args.processes == 1 and args.router_config is None:
+        settings = None
+        if args.role_config is not None:
+            settings = SessionSettings("client", tuple(args.connect), config_file=args.role_config)
         try:
             fleet = Fleet(
                 dep,
@@ -240,6 +273,7 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
                 node_filter=_combine(args.part_filter, skip),
                 start_wall=args.start_at,
                 track_links=args.links_json is not None,
+                session_settings=settings,
             )
             await fleet.__aenter__()
         except zenoh.ZError as e:
@@ -267,6 +301,8 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         progress_s=args.progress,
         on_progress=show,
         exclude_kinds=skip,
+        router_config_file=args.router_config,
+        worker_config_file=args.role_config,
     )
     try:
         await launcher.__aenter__()
@@ -343,14 +379,23 @@ def _node_entry(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def control_query(
-    connect: list[str], prefix: str, request: dict[str, Any], timeout: float
+    connect: list[str],
+    prefix: str,
+    request: dict[str, Any],
+    timeout: float,
+    config_file: str | None = None,
 ) -> list[dict[str, Any]]:
-    """Send one control request to every fleet process; their JSON replies."""
+    """Send one control request to every fleet process; their JSON replies.
+
+    ``config_file``: a Zenoh client config with credentials (role operator).
+    """
     import zenoh
 
-    from awaremw.runtime.zenoh_session import SessionSettings, close_quietly, open_session
+    from awaremw.runtime.zenoh_session import close_quietly, open_session
 
-    session = open_session(SessionSettings("client", tuple(connect), connect_timeout_s=2.0))
+    session = open_session(
+        SessionSettings("client", tuple(connect), connect_timeout_s=2.0, config_file=config_file)
+    )
     out: list[dict[str, Any]] = []
     try:
         replies = session.get(
@@ -378,6 +423,15 @@ def run_ctl(args: argparse.Namespace) -> int:
     import zenoh
 
     connect = args.connect or [DEFAULT_ROUTER_ENDPOINT]
+    config_file = None
+    if args.secrets is not None:
+        from awaremw.security.zenoh_acl import SecretsError, role_config_path
+
+        try:
+            config_file = str(role_config_path(args.secrets, "operator"))
+        except SecretsError as e:
+            print(f"awaremw fleet-ctl: {e}", file=sys.stderr)
+            return 2
     if args.op == "add":
         try:
             req: dict[str, Any] = {"op": "add", "node": _node_entry(args)}
@@ -389,7 +443,7 @@ def run_ctl(args: argparse.Namespace) -> int:
     else:
         req = {"op": args.op}
     try:
-        replies = control_query(connect, args.prefix, req, args.timeout)
+        replies = control_query(connect, args.prefix, req, args.timeout, config_file)
     except zenoh.ZError as e:
         print(f"awaremw fleet-ctl: cannot reach {', '.join(connect)}: {e}", file=sys.stderr)
         return 1

@@ -60,6 +60,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     p.add_argument(
+        "--secrets",
+        default=None,
+        metavar="DIR",
+        help="connect to the router at --connect (default tcp/127.0.0.1:7447) with role "
+        "gateway (DIR from `awaremw keys init`)",
+    )
+    p.add_argument(
         "--state-dir",
         default=None,
         metavar="DIR",
@@ -116,6 +123,18 @@ def run(args: argparse.Namespace) -> int:
     except BadMqttUrl as e:
         print(f"awaremw gateway: {e}", file=sys.stderr)
         return 2
+    args.session_settings = None
+    if args.secrets is not None:
+        from awaremw.security.zenoh_acl import SecretsError, role_settings
+
+        if args.listen:
+            print("awaremw gateway: --listen and --secrets do not combine", file=sys.stderr)
+            return 2
+        try:
+            args.session_settings = role_settings(args.secrets, "gateway", args.connect)
+        except SecretsError as e:
+            print(f"awaremw gateway: {e}", file=sys.stderr)
+            return 2
     if args.speed <= 0 or args.buffer < 1:
         print("awaremw gateway: --speed must be > 0 and --buffer >= 1", file=sys.stderr)
         return 2
@@ -166,10 +185,11 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             node_filter=lambda s: s.kind == "gateway",
             name="gateway",
             autostart=False,
+            session_settings=args.session_settings,
         )
         await stack.enter_async_context(fleet)
         start_wall = args.start_wall
-        if start_wall is None and args.connect:
+        if start_wall is None and (args.connect or args.session_settings is not None):
             start_wall = await _fleet_start_wall(fleet, radio_prefix, args.speed)
         fleet.start(start_wall)
         settings = GatewaySettings(

@@ -34,6 +34,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="ENDPOINT",
         help="another router to link to (repeatable)",
     )
+    p.add_argument(
+        "--secrets",
+        default=None,
+        metavar="DIR",
+        help="authenticate every session and apply the access rules of DIR/zenoh/router.json5 "
+        "(from `awaremw keys init DIR`)",
+    )
     p.set_defaults(func=run)
 
 
@@ -48,12 +55,22 @@ def run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    config_file: str | None = None
+    if args.secrets is not None:
+        from awaremw.security.zenoh_acl import SecretsError, router_config_path
+
+        try:
+            config_file = str(router_config_path(args.secrets))
+        except SecretsError as e:
+            print(f"awaremw router: {e}", file=sys.stderr)
+            return 2
     try:
-        router = EmbeddedRouter(listen, args.connect).start()
+        router = EmbeddedRouter(listen, args.connect, config_file=config_file).start()
     except Exception as e:  # bad endpoint, port in use: the user's input, not our bug
         print(f"awaremw router: cannot start: {e}", file=sys.stderr)
         return 2
-    print(f"awaremw router listening on {', '.join(listen)}", flush=True)
+    mode = "authenticated, access control by role" if config_file else "open to every client"
+    print(f"awaremw router listening on {', '.join(listen)} ({mode})", flush=True)
     # serve_forever closes the session once ``stop`` is set; on a loaded machine a Zenoh
     # close can stall, so it runs in a thread and the process leaves after a bounded wait.
     server = threading.Thread(target=router.serve_forever, args=(stop,), daemon=True)

@@ -27,6 +27,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 from awaremw.experiments.client import GroupSeen, Received, RobotClient
 from awaremw.experiments.metrics import Recorder, RunResult
@@ -37,7 +38,7 @@ from awaremw.protocol.attributes import rssi_attribute
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.deployment import Deployment, NodeSpec
-from awaremw.runtime.zenoh_session import free_tcp_endpoint
+from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +71,7 @@ class RealtimeRun:
         on_record: Callable[[Received], None] | None = None,
         on_event: Callable[[int, object, float], None] | None = None,
         prefix: str = "aware",
+        secrets: str | None = None,
     ) -> None:
         if not speed > 0:
             raise ValueError(f"speed must be > 0, got {speed}")
@@ -83,6 +85,9 @@ class RealtimeRun:
         self.on_record = on_record
         self.on_event = on_event
         self.prefix = prefix
+        # With a secrets directory (`awaremw keys init`): an embedded router with its
+        # access rules, the motes and the gateway connect to it with their roles.
+        self.secrets = secrets
         self.live = LiveState()
         self.fleets: list[object] = []
         self.client: RobotClient | None = None
@@ -92,6 +97,14 @@ class RealtimeRun:
 
     def _factory(self) -> KindsFactory:
         return KindsFactory(self.sc.world)
+
+    def _session_settings(self, name: str, endpoint: str) -> SessionSettings | None:
+        if self.secrets is None:
+            return None
+        from awaremw.security.zenoh_acl import role_settings
+
+        return role_settings(Path(self.secrets), "gateway" if name == "gateway" else "fleet",
+                             [endpoint])  # fmt: skip
 
     def now(self) -> float:
         from awaremw.runtime.fleet import Fleet
@@ -165,6 +178,15 @@ class RealtimeRun:
             gw_mqtt = MqttSettings.from_url(url, client_id=f"awaremw-gw-{id(self):x}",
                                             prefix=self.prefix)  # fmt: skip
             endpoint = free_tcp_endpoint()
+            if self.secrets is not None:
+                from awaremw.runtime.router import EmbeddedRouter
+                from awaremw.security.zenoh_acl import router_config_path
+
+                router = EmbeddedRouter(
+                    [endpoint], config_file=str(router_config_path(Path(self.secrets)))
+                )
+                await asyncio.to_thread(router.start)
+                stack.callback(router.close)
             factory = self._factory()
             groups: tuple[tuple[str, Callable[[NodeSpec], bool], list[str], list[str]], ...] = (
                 ("field", lambda s: s.kind not in ("robot", "gateway"), [endpoint], []),
@@ -176,7 +198,8 @@ class RealtimeRun:
                 if not any(flt(s) for s in d.nodes):
                     continue
                 f = Fleet(d, factory, speed=self.speed, listen=listen, connect=connect,
-                          node_filter=flt, name=name, autostart=False, control=False)  # fmt: skip
+                          node_filter=flt, name=name, autostart=False, control=False,
+                          session_settings=self._session_settings(name, endpoint))  # fmt: skip
                 await stack.enter_async_context(f)
                 f.on_event(self.recorder.on_event)
                 if self.on_event is not None:
@@ -276,6 +299,7 @@ def run_realtime(
     mqtt: str | None = None,
     plain: bool = True,
     robot_mqtt: str | None = None,
+    secrets: str | None = None,
 ) -> RunResult:
     """Blocking helper for the CLI: one real-time run, shown live on a terminal
     (``plain`` False and stdout a TTY) or as status log lines."""
@@ -295,7 +319,13 @@ def run_realtime(
             view.log(t, line)
 
     rt = RealtimeRun(
-        sc, speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, on_tick=tick, on_event=event
+        sc,
+        speed=speed,
+        mqtt=mqtt,
+        robot_mqtt=robot_mqtt,
+        on_tick=tick,
+        on_event=event,
+        secrets=secrets,
     )
     view.start()
     try:

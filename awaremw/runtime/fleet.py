@@ -200,7 +200,8 @@ class Fleet:
 
     Zenoh: pass an open ``session`` to share the process's session (it is then
     not closed here), or ``connect``/``listen`` endpoints (peer mode, multicast
-    scouting off) for a session the fleet opens and closes.
+    scouting off) for a session the fleet opens and closes, or full
+    ``session_settings`` (e.g. a role's client settings with ``--secrets``).
     """
 
     def __init__(
@@ -223,6 +224,7 @@ class Fleet:
         freeze_gc: bool = False,
         radio_model: RadioModel | None = None,
         track_links: bool = False,
+        session_settings: SessionSettings | None = None,
     ) -> None:
         self.deployment = deployment
         self.track_links = track_links
@@ -235,7 +237,7 @@ class Fleet:
         self.control = control
         self.freeze_gc = freeze_gc
         self.model = radio_model or deployment.radio_model()
-        self._settings = SessionSettings("peer", tuple(connect), tuple(listen))
+        self._settings = session_settings or SessionSettings("peer", tuple(connect), tuple(listen))
         self._session = session
         self._own_session = session is None
         self._start_wall = start_wall
@@ -660,6 +662,7 @@ class WorkerParams:
     collect_lag: bool
     exclude_kinds: frozenset[str] = frozenset()
     track_links: bool = False
+    session_settings: SessionSettings | None = None  # instead of connect/listen
 
 
 @dataclass(frozen=True, slots=True)
@@ -741,6 +744,7 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
         collect_lag=p.collect_lag,
         freeze_gc=True,
         track_links=p.track_links,
+        session_settings=p.session_settings,
     )
     cpu0 = time.process_time()
     wall0 = time.perf_counter()
@@ -819,7 +823,10 @@ class FleetLauncher:
     With ``connect`` the workers join that router (e.g. ``awaremw router``);
     otherwise the launcher starts an embedded router listening on ``listen``
     (default: a free loopback port), available as :attr:`endpoint` for
-    gateways and ``awaremw fleet-ctl``.
+    gateways and ``awaremw fleet-ctl``. With ``router_config_file`` that router
+    starts from that Zenoh config (``awaremw keys init``'s router.json5:
+    authentication and access control); with ``worker_config_file`` (a role's
+    client config) the workers connect to the router in client mode with it.
     """
 
     def __init__(
@@ -841,6 +848,8 @@ class FleetLauncher:
         exclude_kinds: Iterable[str] = (),
         track_links: bool = False,
         layout: Layout = "stripes",
+        router_config_file: str | None = None,
+        worker_config_file: str | None = None,
     ) -> None:
         if processes < 1:
             raise ValueError("processes must be >= 1")
@@ -860,6 +869,8 @@ class FleetLauncher:
         self.exclude_kinds = frozenset(exclude_kinds)
         self.track_links = track_links
         self.layout: Layout = layout
+        self.router_config_file = router_config_file
+        self.worker_config_file = worker_config_file
         self.clock = EmulatedClock(speed)
         self.router: EmbeddedRouter | None = None
         self.endpoint = ""
@@ -896,9 +907,14 @@ class FleetLauncher:
             self.endpoint = self.connect[0]
         else:
             listen = self.listen or (free_tcp_endpoint(),)
-            self.router = EmbeddedRouter(listen)
+            self.router = EmbeddedRouter(listen, config_file=self.router_config_file)
             await asyncio.to_thread(self.router.start)
             self.endpoint = listen[0]
+        worker_settings = None
+        if self.worker_config_file is not None:
+            worker_settings = SessionSettings(
+                "client", (self.endpoint,), config_file=self.worker_config_file
+            )
         loop = asyncio.get_running_loop()
         for k, stripe in enumerate(partition(self.deployment, self.processes, self.layout)):
             params = WorkerParams(
@@ -915,6 +931,7 @@ class FleetLauncher:
                 collect_lag=self.collect_lag,
                 exclude_kinds=self.exclude_kinds,
                 track_links=self.track_links,
+                session_settings=worker_settings,
             )
             psock, csock = socket.socketpair()
             proc = subprocess.Popen(

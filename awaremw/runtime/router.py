@@ -32,12 +32,18 @@ class EmbeddedRouter:
     """
 
     def __init__(
-        self, listen: Sequence[str] = (DEFAULT_ROUTER_ENDPOINT,), connect: Sequence[str] = ()
+        self,
+        listen: Sequence[str] = (DEFAULT_ROUTER_ENDPOINT,),
+        connect: Sequence[str] = (),
+        *,
+        config_file: str | None = None,
     ) -> None:
         if not listen:
             raise ValueError("a router needs at least one listen endpoint")
         self.listen = tuple(listen)
         self.connect = tuple(connect)
+        # e.g. DIR/zenoh/router.json5 of `awaremw keys init`: accounts and access control
+        self.config_file = config_file
         self._session: zenoh.Session | None = None
 
     @property
@@ -48,7 +54,12 @@ class EmbeddedRouter:
     def start(self) -> EmbeddedRouter:
         if self._session is None:
             self._session = open_session(
-                SessionSettings(mode="router", listen=self.listen, connect=self.connect)
+                SessionSettings(
+                    mode="router",
+                    listen=self.listen,
+                    connect=self.connect,
+                    config_file=self.config_file,
+                )
             )
             log.info("Zenoh router %s listening on %s", self._session.zid(), ", ".join(self.listen))
         return self

@@ -43,6 +43,9 @@ class SessionSettings:
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     connect_timeout_s: float = 10.0
+    # A Zenoh json5 config to start from (credentials, access control: the role
+    # configs of ``awaremw keys init``); mode and endpoints above override it.
+    config_file: str | None = None
 
     def config(self) -> zenoh.Config:
         return make_config(
@@ -50,6 +53,7 @@ class SessionSettings:
             connect=self.connect,
             listen=self.listen,
             connect_timeout_s=self.connect_timeout_s,
+            config_file=self.config_file,
         )
 
 
@@ -59,17 +63,19 @@ def make_config(
     connect: Sequence[str] = (),
     listen: Sequence[str] = (),
     connect_timeout_s: float = 10.0,
+    config_file: str | None = None,
 ) -> zenoh.Config:
     """A Zenoh config with multicast scouting off and exactly these endpoints.
 
     With ``connect`` endpoints, opening keeps trying for ``connect_timeout_s``
-    (the router may still be starting), then fails.
+    (the router may still be starting), then fails. With ``config_file`` the
+    config starts from that json5 file (e.g. credentials and access control).
     """
     for ep in (*connect, *listen):
         check_endpoint(ep)
     if mode == "peer" and connect and not listen:
         listen = (LOOPBACK_EPHEMERAL,)  # see the module docstring
-    cfg = zenoh.Config()
+    cfg = zenoh.Config() if config_file is None else zenoh.Config.from_file(config_file)
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))

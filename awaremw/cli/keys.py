@@ -1,0 +1,73 @@
+"""``awaremw keys init DIR [--force]``: the secrets of a deployment (docs/security.md).
+
+::
+
+    awaremw keys init secrets/
+    awaremw router --secrets secrets/
+    awaremw fleet romeo4r --connect tcp/127.0.0.1:7447 --secrets secrets/ --without-kind gateway
+    awaremw gateway romeo4r --connect tcp/127.0.0.1:7447 --secrets secrets/
+    awaremw fleet-ctl --secrets secrets/ list
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from awaremw.security.zenoh_acl import DEFAULT_PREFIX
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "keys",
+        help="create the secrets: radio key, gateway signing key, Zenoh and MQTT accounts",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ksub = p.add_subparsers(dest="keys_op", metavar="OP", required=True)
+    i = ksub.add_parser(
+        "init",
+        help="create every secret in DIR (files 0600, directories 0700)",
+        description="Create in DIR: the radio network key, the gateway's Ed25519 key pair, "
+        "Zenoh accounts per role with the router's config (authentication, access control) "
+        "and one client config per role, the Mosquitto password and ACL files.",
+    )
+    i.add_argument("dir", type=Path, metavar="DIR")
+    i.add_argument("--force", action="store_true", help="replace existing secret files")
+    i.add_argument(
+        "--prefix",
+        default=DEFAULT_PREFIX,
+        help=f"key and topic prefix the access rules are written for (default {DEFAULT_PREFIX})",
+    )
+    i.add_argument(
+        "--network-key-bytes",
+        type=int,
+        choices=(16, 32),
+        default=16,
+        help="size of the radio network key (default 16, AES-128 as IEEE 802.15.4)",
+    )
+    i.set_defaults(func=run_init)
+
+
+def run_init(args: argparse.Namespace) -> int:
+    from awaremw.security.keys import SecretsExist, init_secrets
+
+    try:
+        written = init_secrets(
+            args.dir,
+            force=args.force,
+            prefix=args.prefix,
+            network_key_bytes=args.network_key_bytes,
+        )
+    except SecretsExist as e:
+        print(f"awaremw keys init: {e}", file=sys.stderr)
+        return 1
+    except (OSError, ValueError) as e:
+        print(f"awaremw keys init: {e}", file=sys.stderr)
+        return 2
+    root = args.dir.resolve()
+    print(f"awaremw keys init: wrote {len(written)} files under {root} (mode 0600):")
+    for p in written:
+        print(f"  {p.relative_to(root)}")
+    return 0

@@ -1,0 +1,244 @@
+"""``awaremw keys init DIR``: every secret of a deployment, in one directory.
+
+Layout (directories 0700, files 0600; see docs/security.md)::
+
+    DIR/secrets.json            what was made, for which key prefix (no secret in it)
+    DIR/radio/network.key       the radio network key: 16 (default) or 32 random bytes
+    DIR/signing/gateway.key     the gateway's Ed25519 private key (PKCS#8 PEM)
+    DIR/signing/gateway.pub     its public key (SubjectPublicKeyInfo PEM), for the motes
+    DIR/zenoh/users.txt         Zenoh accounts, ``user:password`` (the router's dictionary)
+    DIR/zenoh/router.json5      the router's config: usrpwd auth + access control by role
+    DIR/zenoh/<role>.json5      a client config per role (fleet, gateway, app, operator)
+    DIR/mqtt/passwd             Mosquitto password file (PBKDF2-SHA512, mosquitto's $7$)
+    DIR/mqtt/acl                Mosquitto ACL of the accounts operator, gateway, viewer
+    DIR/mqtt/accounts.json      the MQTT accounts' clear passwords, for their owners
+
+Nothing is overwritten unless ``force``: without it, an existing file makes
+the whole call fail before anything is written.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime
+import hashlib
+import json
+import os
+import secrets
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+from awaremw.security.zenoh_acl import (
+    DEFAULT_PREFIX,
+    ROLES,
+    Role,
+    access_control,
+    client_config,
+    router_config,
+)
+
+FORMAT_VERSION: Final = 1
+NETWORK_KEY_SIZES: Final = (16, 32)
+MQTT_ACCOUNTS: Final = ("operator", "gateway", "viewer")  # as broker_cfg/
+# Mosquitto's $7$ hashes: PBKDF2-HMAC-SHA512, 12-byte salt, 64-byte key. Mosquitto
+# itself uses 101 iterations; any count is accepted when reading the file.
+MQTT_PBKDF2_ITERATIONS: Final = 1000
+MQTT_SALT_BYTES: Final = 12
+
+
+class SecretsExist(FileExistsError):
+    """``keys init`` would overwrite files and ``force`` was not given."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+        shown = ", ".join(str(p) for p in paths[:4]) + (" ..." if len(paths) > 4 else "")
+        super().__init__(f"{len(paths)} secret file(s) exist already ({shown}); use --force")
+
+
+@dataclass(frozen=True, slots=True)
+class SecretsDir:
+    """Where each secret lives under ``root``."""
+
+    root: Path
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "secrets.json"
+
+    @property
+    def network_key(self) -> Path:
+        return self.root / "radio" / "network.key"
+
+    @property
+    def signing_key(self) -> Path:
+        return self.root / "signing" / "gateway.key"
+
+    @property
+    def signing_pub(self) -> Path:
+        return self.root / "signing" / "gateway.pub"
+
+    @property
+    def zenoh_users(self) -> Path:
+        return self.root / "zenoh" / "users.txt"
+
+    @property
+    def router_config(self) -> Path:
+        return self.root / "zenoh" / "router.json5"
+
+    def role_config(self, role: Role) -> Path:
+        return self.root / "zenoh" / f"{role}.json5"
+
+    @property
+    def mqtt_passwd(self) -> Path:
+        return self.root / "mqtt" / "passwd"
+
+    @property
+    def mqtt_acl(self) -> Path:
+        return self.root / "mqtt" / "acl"
+
+    @property
+    def mqtt_accounts(self) -> Path:
+        return self.root / "mqtt" / "accounts.json"
+
+    def read_network_key(self) -> bytes:
+        key = self.network_key.read_bytes()
+        if len(key) not in NETWORK_KEY_SIZES:
+            raise ValueError(f"{self.network_key}: {len(key)} bytes, expected 16 or 32")
+        return key
+
+    def read_signing_key(self) -> Ed25519PrivateKey:
+        key = serialization.load_pem_private_key(self.signing_key.read_bytes(), password=None)
+        if not isinstance(key, Ed25519PrivateKey):
+            raise ValueError(f"{self.signing_key}: not an Ed25519 private key")
+        return key
+
+
+def mosquitto_hash(
+    password: str, *, salt: bytes | None = None, iterations: int = MQTT_PBKDF2_ITERATIONS
+) -> str:
+    """A password hash in the format of ``mosquitto_passwd`` (``$7$``, PBKDF2-SHA512)."""
+    salt = secrets.token_bytes(MQTT_SALT_BYTES) if salt is None else salt
+    dk = hashlib.pbkdf2_hmac("sha512", password.encode(), salt, iterations)
+    b64 = base64.b64encode
+    return f"$7${iterations}${b64(salt).decode()}${b64(dk).decode()}"
+
+
+def mosquitto_acl(prefix: str = DEFAULT_PREFIX) -> str:
+    """The ACL of broker_cfg/acl for topic prefix ``prefix``."""
+    p = prefix
+    return (
+        f"# Mosquitto ACL for awaremw (topic prefix {p!r}), made by `awaremw keys init`.\n"
+        "# operator: definitions and commands; gateway: what the sensor network says;\n"
+        "# viewer: reads data, group state, gateway status and errors.\n\n"
+        f"user operator\ntopic readwrite {p}/def/#\ntopic readwrite {p}/cmd/#\n"
+        f"topic read {p}/#\n\n"
+        f"user gateway\ntopic read {p}/def/#\ntopic read {p}/cmd/#\ntopic write {p}/data/#\n"
+        f"topic write {p}/groups/#\ntopic write {p}/gateway/#\ntopic write {p}/errors\n\n"
+        f"user viewer\ntopic read {p}/data/#\ntopic read {p}/groups/#\n"
+        f"topic read {p}/gateway/#\ntopic read {p}/errors\n"
+    )
+
+
+def _json5(doc: Mapping[str, Any], what: str) -> bytes:
+    head = f"// {what}\n// Made by `awaremw keys init`; secret: keep it 0600.\n"
+    return (head + json.dumps(doc, indent=2) + "\n").encode()
+
+
+def _password() -> str:
+    return secrets.token_urlsafe(24)  # 32 characters of [A-Za-z0-9_-]: safe in URLs and files
+
+
+def make_secrets(
+    root: Path, *, prefix: str = DEFAULT_PREFIX, network_key_bytes: int = 16
+) -> dict[Path, bytes]:
+    """The contents of every secret file (nothing written)."""
+    if network_key_bytes not in NETWORK_KEY_SIZES:
+        raise ValueError(f"network key must be 16 or 32 bytes, not {network_key_bytes}")
+    access_control(prefix)  # validates the prefix
+    d = SecretsDir(root.resolve())
+    files: dict[Path, bytes] = {}
+    files[d.network_key] = secrets.token_bytes(network_key_bytes)
+    sk = Ed25519PrivateKey.generate()
+    files[d.signing_key] = sk.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.NoEncryption(),
+    )
+    files[d.signing_pub] = sk.public_key().public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    )
+    zpw = {role: _password() for role in ROLES}
+    files[d.zenoh_users] = "".join(f"{r}:{pw}\n" for r, pw in zpw.items()).encode()
+    files[d.router_config] = _json5(
+        router_config(d.zenoh_users, prefix), "Zenoh router: accounts and access control by role"
+    )
+    for role in ROLES:
+        files[d.role_config(role)] = _json5(
+            client_config(role, zpw[role]), f"Zenoh client config of role {role!r}"
+        )
+    mpw = {user: _password() for user in MQTT_ACCOUNTS}
+    files[d.mqtt_passwd] = "".join(f"{u}:{mosquitto_hash(pw)}\n" for u, pw in mpw.items()).encode()
+    files[d.mqtt_acl] = mosquitto_acl(prefix).encode()
+    files[d.mqtt_accounts] = (json.dumps(mpw, indent=2) + "\n").encode()
+    manifest = {
+        "format": FORMAT_VERSION,
+        "prefix": prefix,
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "network_key_bytes": network_key_bytes,
+        "zenoh_roles": list(ROLES),
+        "mqtt_accounts": list(MQTT_ACCOUNTS),
+    }
+    files[d.manifest] = (json.dumps(manifest, indent=2) + "\n").encode()
+    return files
+
+
+def _private_dir(path: Path) -> None:
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    os.chmod(path, 0o700)
+
+
+def _write_private(path: Path, data: bytes, force: bool) -> None:
+    """Write ``data`` to ``path`` with mode 0600; replace an old file only if ``force``."""
+    if not force:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+    else:
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    os.chmod(path, 0o600)
+
+
+def init_secrets(
+    root: Path,
+    *,
+    force: bool = False,
+    prefix: str = DEFAULT_PREFIX,
+    network_key_bytes: int = 16,
+) -> list[Path]:
+    """Create every secret under ``root``; the files written.
+
+    Raises :class:`SecretsExist` (and writes nothing) if one exists and not ``force``.
+    """
+    files = make_secrets(Path(root), prefix=prefix, network_key_bytes=network_key_bytes)
+    existing = [p for p in files if p.exists() or p.is_symlink()]
+    if existing and not force:
+        raise SecretsExist(existing)
+    for p in files:
+        _private_dir(p.parent)
+    _private_dir(Path(root).resolve())
+    for p, data in files.items():
+        _write_private(p, data, force)
+    return list(files)
