@@ -170,8 +170,9 @@ def summarise(name: str, per_seed: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "ideal_ids_fraction": (
             None if ideal is None or n == 0 else round(sum(i == ideal for i in ids) / n, 4)
         ),
-        "seeds_not_ideal": [m["seed"] for m in per_seed if ideal is not None
-                            and m["distinct_group_ids"] != ideal],  # fmt: skip
+        "seeds_not_ideal": [
+            m["seed"] for m in per_seed if ideal is not None and m["distinct_group_ids"] != ideal
+        ],
         "elections": mean_ci([m["elections"] for m in per_seed]),
         "delivery_ratio": mean_ci([m["delivery_ratio"] for m in per_seed]),
         "frames_per_mote": mean_ci([m["frames_per_mote"] for m in per_seed]),
