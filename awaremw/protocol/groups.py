@@ -779,6 +779,8 @@ class Groups(Component):
         period, so that it yields within a flood rather than a beacon period."""
         if now - st.rebutted < 0.5 * self.ctx.config.beacon_period:
             return
+        if st.role is Role.MEMBER and now - st.last_beacon > self._claim_after():
+            return  # our own news is stale: do not hold a new group back with it
         st.rebutted = now
         name = ("rebut", st.gtype)
         if name not in self.timers:
