@@ -397,7 +397,7 @@ def test_weight_grows_with_data_and_reports_are_periodic() -> None:
     assert [b.weight for b in bs][-1] == 12
     alive = [r for r in h.reports() if r.status is GroupStatus.ALIVE]
     assert len(alive) == 3  # beacons 1, 4, 7
-    assert (alive[-1].weight, alive[-1].members) == (12, 5)
+    assert (alive[-1].weight, alive[-1].readings) == (12, 5)
 
 
 def test_refused_report_is_counted() -> None:

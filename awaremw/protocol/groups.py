@@ -231,6 +231,7 @@ class _TypeState:
     leader_direct: float = -math.inf  # last time we heard it directly or it acked us
     suspect_at: float | None = None  # a unicast to the leader failed at this time
     rebutted: float = -math.inf  # last re-broadcast answering a lighter group's beacon
+    split_from: int = 0  # the id whose leader we lost before creating this group
 
 
 def seq_newer(a: int, b: int) -> bool:
@@ -630,6 +631,8 @@ class Groups(Component):
             for n, u in st.upstream.items()
             if st.role is Role.MEMBER and st.gid == gid and n != st.leader
         }
+        if cause is not ElectionCause.ELECTION:
+            st.split_from = 0
         st.role = Role.LEADER
         st.gid, st.leader, st.weight, st.seq = gid, self.ctx.node_id, weight, seq
         st.hops, st.parent = 0, None
@@ -675,6 +678,7 @@ class Groups(Component):
             self._schedule_claim(st, now)
             return
         dead = st.gid
+        st.split_from = dead  # named by the group this mote may create now
         self._leave(st, now, LeaveReason.LEADER_LOST)
         st.nearby.pop(dead, None)
         if self._qualifies(st, True, now):
@@ -917,7 +921,7 @@ class Groups(Component):
             min(st.weight, MAX_WEIGHT),
             min(st.readings, 0xFFFF),
             status,
-            successor,
+            successor or (st.split_from if status is GroupStatus.ALIVE else 0),
         )
         if not self.collection.submit(report, now):
             self.stats.reports_refused += 1
