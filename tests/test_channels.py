@@ -66,6 +66,7 @@ class FakeGroups:
         self.children: list[tuple[int, int, int]] = []
         self.weight: dict[int, int] = {}
         self.failed: list[tuple[int, int]] = []
+        self.acked: list[tuple[int, int]] = []
 
     def set(self, gtype: int, gid: int, hops: int, parent: int | None = 5) -> None:
         leader = hops == 0
@@ -87,6 +88,9 @@ class FakeGroups:
 
     def parent_failed(self, gtype: int, node: int, now: float) -> None:
         self.failed.append((gtype, node))
+
+    def parent_acked(self, gtype: int, node: int, now: float) -> None:
+        self.acked.append((gtype, node))
 
     def add_weight(self, gtype: int, n: int) -> None:
         self.weight[gtype] = self.weight.get(gtype, 0) + n

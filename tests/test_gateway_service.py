@@ -164,6 +164,22 @@ async def test_mqtt_definitions_data_groups_and_refusals(
             assert json.loads(groups[0][0])["leader"] == 12
             assert groups[-1] == (b"", False)  # cleared (live message; retained now empty)
 
+            # A merge: a client sees which group 514 merged into before it is cleared.
+            svc.on_event(0, FakeDelivered(14, GroupReport(1, 514, 14, 1, 2), 2, 104.0), 104.0)
+            gone = GroupReport(1, 514, 14, 1, 0, GroupStatus.GONE, 600)
+            svc.on_event(0, FakeDelivered(14, gone, 2, 105.0), 105.0)
+            await viewer.wait_for(
+                lambda ms: any(t == "aware/groups/1/514" and b"merged_into" in p for t, p, _ in ms)
+            )
+            wsn.t = 105.0 + svc.bridge.report_period_s  # one report period later: cleared
+            await viewer.wait_for(
+                lambda ms: any(t == "aware/groups/1/514" and not p for t, p, _ in ms)
+            )
+            merged = [p for t, p, _ in viewer.messages if t == "aware/groups/1/514"]
+            # (the ALIVE state may be coalesced away: retained topics keep their latest)
+            assert json.loads(merged[-2])["merged_into"] == 600
+            assert merged[-1] == b""
+
 
 @pytest.mark.mosquitto
 async def test_restart_keeps_versions_and_reinjects(mosquitto: Mosquitto, tmp_path: Path) -> None:

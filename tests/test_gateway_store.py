@@ -196,12 +196,28 @@ def test_group_state_retained_then_cleared_when_gone_or_unheard() -> None:
         "group_id": 513,
         "leader": 17,
         "weight": 4,
-        "members": 3,
+        "readings": 3,
         "t": 5.0,
     }
-    [p] = b.on_payload(GroupReport(1, 513, 17, 4, 0, GroupStatus.GONE, 600), 6.0)
-    assert (p.topic, p.payload, p.retain) == ("groups/1/513", b"", True)
+    # Merged into 600: the successor is published (retained), the state cleared one
+    # report period later.
+    [merged] = b.on_payload(GroupReport(1, 513, 17, 4, 0, GroupStatus.GONE, 600), 6.0)
+    assert (merged.topic, merged.retain) == ("groups/1/513", True)
+    assert json.loads(merged.payload) == {
+        "group_type": 1,
+        "group_id": 513,
+        "merged_into": 600,
+        "t": 6.0,
+    }
     assert b.on_payload(GroupReport(1, 513, 17, 4, 0, GroupStatus.GONE, 600), 6.5) == []
+    assert b.next_expiry() == 16.0 and b.expire(15.9) == []
+    [cleared] = b.expire(16.0)
+    assert (cleared.topic, cleared.payload, cleared.retain) == ("groups/1/513", b"", True)
+    # A group that split off names its parent; a dissolved one is only cleared.
+    [p] = b.on_payload(GroupReport(1, 900, 5, 0, 2, GroupStatus.ALIVE, 513), 7.0)
+    assert json.loads(p.payload)["split_from"] == 513
+    [p] = b.on_payload(GroupReport(1, 900, 5, 0, 2, GroupStatus.GONE, 0), 8.0)
+    assert (p.topic, p.payload) == ("groups/1/900", b"")
 
     b.on_payload(GroupReport(1, 7, 2, 1, 1), 10.0)
     b.on_payload(GroupReport(2, 8, 3, 1, 1), 20.0)

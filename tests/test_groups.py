@@ -331,7 +331,15 @@ def test_member_switches_to_heavier_group_and_ignores_lighter() -> None:
     h.events()
     h.hear(beacon(src=8, gid=900, leader=3, weight=5, seq=1, hops=0))  # lighter
     h.advance(0.2)
-    assert h.sent() == [] and h.g.membership(1).group_id == 500  # type: ignore[union-attr]
+    # It stays, and answers the contender with its own current beacon (once), so
+    # that the lighter group's motes hear the heavier one within a flood.
+    (rebut,) = h.sent()
+    assert isinstance(rebut, LeaderBeacon)
+    assert (rebut.group_id, rebut.seq, rebut.weight, rebut.hops) == (500, 3, 10, 2)
+    assert h.g.membership(1).group_id == 500  # type: ignore[union-attr]
+    h.hear(beacon(src=8, gid=900, leader=3, weight=5, seq=2, hops=0))
+    h.advance(0.22)
+    assert h.sent() == []  # rate-limited: at most twice a beacon period
     h.hear(beacon(src=8, gid=100, leader=3, weight=11, seq=1, hops=0))  # heavier
     evs = h.events()
     assert [type(e) for e in evs] == [GroupLeft, GroupJoined]
@@ -389,7 +397,7 @@ def test_weight_grows_with_data_and_reports_are_periodic() -> None:
     assert [b.weight for b in bs][-1] == 12
     alive = [r for r in h.reports() if r.status is GroupStatus.ALIVE]
     assert len(alive) == 3  # beacons 1, 4, 7
-    assert (alive[-1].weight, alive[-1].members) == (12, 5)
+    assert (alive[-1].weight, alive[-1].readings) == (12, 5)
 
 
 def test_refused_report_is_counted() -> None:
@@ -492,7 +500,7 @@ def test_new_group_after_leader_loss_never_reuses_the_dead_id() -> None:
     h = H()
     h.ctx.rng = Rigged([500, 500, 321])
     h.g.define(1, HOT, 0.0)
-    h.hear(beacon(src=2, gid=500))
+    h.hear(beacon(src=3, gid=500, hops=1))  # the leader is not a neighbour: a split
     h.advance(30.0)
     m = h.g.membership(1)
     assert m is not None and m.is_leader and m.group_id == 321
@@ -632,10 +640,12 @@ def test_refusal_is_sent_back_once() -> None:
 # --------------------------------------------------------------------------- leader loss
 
 
-def test_members_elect_a_new_group_when_the_leader_is_lost() -> None:
+def test_members_elect_a_new_group_when_a_distant_leader_is_lost() -> None:
+    """A member that never heard the leader directly cannot tell its death from a
+    split: the paper's split rule, a new id."""
     h = H()
     h.g.define(1, HOT, 0.0)
-    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h.hear(beacon(src=3, gid=500, leader=2, weight=40, seq=17, hops=1))
     h.events()
     timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
     h.advance(timeout - 0.01)
@@ -651,7 +661,7 @@ def test_members_elect_a_new_group_when_the_leader_is_lost() -> None:
 def test_orphan_joins_a_new_group_heard_meanwhile() -> None:
     h = H()
     h.g.define(1, HOT, 0.0)
-    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h.hear(beacon(src=4, gid=500, leader=2, weight=40, seq=17, hops=1))
     timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
     h.advance(timeout - 1)
     h.hear(beacon(src=3, gid=600, leader=3, weight=0, seq=1))  # a lighter new group
@@ -659,3 +669,83 @@ def test_orphan_joins_a_new_group_heard_meanwhile() -> None:
     h.advance(timeout + 0.01)
     m = h.g.membership(1)
     assert m is not None and m.group_id == 600 and not m.is_leader
+
+
+def test_neighbour_of_a_silent_leader_takes_over_with_the_id() -> None:
+    """Beacon timeout as the fallback detector: a member that heard the leader
+    directly claims the group with its id, weight and a newer seq."""
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h.events()
+    h.sent()
+    timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
+    h.advance(timeout - 0.01)
+    assert h.g.membership(1).leader == 2  # type: ignore[union-attr]
+    h.advance(timeout + 2 * h.cfg.forward_jitter + 0.01)
+    (e,) = h.events(LeaderElected)
+    assert (e.cause, e.group_id, e.weight) == (ElectionCause.FAILOVER, 500, 40)
+    assert h.events(GroupLeft) == []
+    b = [f for f in h.sent() if isinstance(f, LeaderBeacon)]
+    assert (b[-1].group_id, b[-1].leader, b[-1].seq, b[-1].hops) == (500, 10, 18, 0)
+
+
+def test_unacked_partial_to_the_leader_triggers_failover_unless_it_was_heard() -> None:
+    """The data path as failure detector: a partial to the leader not acknowledged
+    after the retries makes the member claim the group once the leader's last sign
+    of life is older than 1.25 beacon periods; a sign of life meanwhile cancels."""
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h.advance(0.5)
+    h.g.parent_failed(1, 2, h.now)  # 0.5 s after the beacon: evidence is fresh
+    claim_at = 1.25 * h.cfg.beacon_period
+    h.advance(claim_at - 0.01)
+    h.g.parent_acked(1, 2, h.now)  # the leader acked a retry later: alive
+    h.advance(claim_at + 1.0)
+    assert h.events(LeaderElected) == []
+    assert h.g.membership(1).leader == 2  # type: ignore[union-attr]
+    # Now it really is gone: the next failed partial claims at once (evidence stale).
+    h.advance(h.now + 1.3 * claim_at)
+    h.g.parent_failed(1, 2, h.now)
+    h.advance(h.now + 2 * h.cfg.forward_jitter + 0.01)
+    (e,) = h.events(LeaderElected)
+    assert (e.cause, e.group_id) == (ElectionCause.FAILOVER, 500)
+    assert h.g.stats.failovers == 1
+
+
+def test_two_claimants_converge_on_the_heavier_then_higher_node() -> None:
+    """Two members claimed the same id: a member follows the (seq, weight, leader)
+    order, the lighter claimant yields without a GONE report and adopts the winner."""
+    h = H()  # node 10
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h.hear(beacon(src=7, gid=500, leader=7, weight=40, seq=18))  # claimant 7
+    assert h.g.membership(1).leader == 7  # type: ignore[union-attr]
+    h.hear(beacon(src=12, gid=500, leader=12, weight=40, seq=18))  # claimant 12, same seq
+    assert h.g.membership(1).leader == 12  # type: ignore[union-attr]
+    h.hear(beacon(src=7, gid=500, leader=7, weight=40, seq=18))  # stale now
+    assert h.g.membership(1).leader == 12  # type: ignore[union-attr]
+    # As a claimant itself, node 10 yields to 12 (same weight, higher node id) ...
+    h2 = H()
+    h2.g.define(1, HOT, 0.0)
+    h2.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    timeout = h2.cfg.leader_timeout_periods * h2.cfg.beacon_period
+    h2.advance(timeout + 0.2)
+    assert h2.g.membership(1).is_leader  # type: ignore[union-attr]
+    h2.events()
+    h2.hear(beacon(src=12, gid=500, leader=12, weight=40, seq=18))
+    (y,) = h2.events(LeaderYielded)
+    assert y.successor == 500 and h2.g.membership(1).leader == 12  # type: ignore[union-attr]
+    assert not [r for r in h2.reports() if r.status is GroupStatus.GONE]
+    # ... and beats 7: it keeps the group and outnumbers 7's seq.
+    h3 = H()
+    h3.g.define(1, HOT, 0.0)
+    h3.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h3.advance(timeout + 0.2)
+    h3.hear(beacon(src=7, gid=500, leader=7, weight=40, seq=30))
+    assert h3.g.membership(1).is_leader  # type: ignore[union-attr]
+    h3.sent()
+    h3.advance(h3.now + h3.cfg.beacon_period + 0.01)
+    b = [f for f in h3.sent() if isinstance(f, LeaderBeacon) and f.leader == 10]
+    assert b and b[-1].seq > 30

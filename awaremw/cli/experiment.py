@@ -19,6 +19,8 @@ from typing import Any
 
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
 
+REALTIME = ("romeo4r", "fire")  # experiments that also run in real time over Zenoh
+
 
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
@@ -49,6 +51,13 @@ def register(sub: Any) -> None:
         help="Zenoh with authentication and access control by role (DIR from `awaremw keys init`)",
     )
     p.add_argument("--plain", action="store_true", help="log lines instead of a live view")
+    p.add_argument(
+        "--seeds",
+        default=None,
+        metavar="A-B",
+        help="with --virtual: run every seed (A-B, or a comma list) and summarise (summary.json)",
+    )
+    p.add_argument("--jobs", type=int, default=1, help="parallel processes for --seeds")
     p.set_defaults(func=main)
 
 
@@ -69,12 +78,23 @@ def main(args: argparse.Namespace) -> int:
     if args.speed <= 0:
         print("awaremw experiment: --speed must be > 0", file=sys.stderr)
         return 2
+    if args.seeds is not None:
+        return _main_seeds(args, name, out)
     started = time.monotonic()
     if args.virtual:
+        import importlib
+
         from awaremw.experiments.virtual import VirtualRun
 
-        result = VirtualRun(sc).run(args.duration)
+        run = VirtualRun(sc)
+        prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
+        if prepare is not None:
+            prepare(run)
+        result = run.run(args.duration)
     else:
+        if name not in REALTIME:
+            print(f"awaremw experiment: {name} runs only with --virtual", file=sys.stderr)
+            return 2
         from awaremw.experiments.realtime import run_realtime
 
         result = run_realtime(
@@ -96,4 +116,34 @@ def main(args: argparse.Namespace) -> int:
     path = write_metrics(out, metrics)
     print(json.dumps(metrics, indent=2))
     print(f"wrote {path} and the figures in {out}/", file=sys.stderr)
+    return 0
+
+
+def _main_seeds(args: argparse.Namespace, name: str, out: Path) -> int:
+    from awaremw.experiments.seeds import SeedSpecError, parse_seeds, run_seeds
+
+    if not args.virtual:
+        print("awaremw experiment: --seeds needs --virtual", file=sys.stderr)
+        return 2
+    if args.jobs < 1:
+        print("awaremw experiment: --jobs must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        seeds = parse_seeds(args.seeds)
+    except SeedSpecError as e:
+        print(f"awaremw experiment: {e}", file=sys.stderr)
+        return 2
+
+    def progress(m: dict[str, Any]) -> None:
+        print(
+            f"seed {m['seed']}: F1 {m['membership_f1']:.3f}, ids {m['distinct_group_ids']}",
+            file=sys.stderr,
+        )
+
+    started = time.monotonic()
+    summary = run_seeds(name, seeds, out, args.jobs, args.deployment, args.duration, progress)
+    summary["wall_s"] = round(time.monotonic() - started, 2)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    print(json.dumps(summary, indent=2))
+    print(f"wrote {out}/summary.json, {out}/seeds.png and seed-*/metrics.json", file=sys.stderr)
     return 0

@@ -20,6 +20,7 @@ Analyse = Callable[[RunResult, Path], dict[str, Any]]
 EXPERIMENTS: dict[str, tuple[str, str]] = {
     "romeo4r": ("romeo4r", "awaremw.experiments.romeo4r"),
     "fire": ("fire", "awaremw.experiments.fire"),
+    "failover": ("failover", "awaremw.experiments.failover"),
 }
 
 

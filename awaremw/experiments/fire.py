@@ -30,6 +30,7 @@ from awaremw.experiments.romeo4r import SAMPLE_DT, settle_time
 from awaremw.experiments.scenario import Scenario
 from awaremw.experiments.truth import GroundTruth
 
+IDEAL_IDS = 3  # two fires, then the id of the part that split off
 MIN_REGION = 2  # motes: smaller true regions are not counted as fires
 
 

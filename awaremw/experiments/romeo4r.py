@@ -25,6 +25,7 @@ from awaremw.protocol.attributes import is_rssi
 from awaremw.protocol.frames import Op
 
 SAMPLE_DT = 0.5  # s between scored instants
+IDEAL_IDS = 1  # one group id for the whole pass (summary of --seeds)
 
 
 def settle_time(sc: Scenario) -> float:

@@ -17,6 +17,7 @@ The ``[experiment]`` table (all optional):
 ``snapshots_s``               instants of the snapshot figures
 ``field``                     [xmin, xmax, ymin, ymax] of the sensor field
 ``two_fires_s``, ``merged_s``, ``split_s``  phases of the fire checks
+``kill_at_s``                 when the failover experiment kills the group's leader
 """
 
 from __future__ import annotations
@@ -214,6 +215,7 @@ _SETTINGS: dict[str, str] = {
     "two_fires_s": "nums2",
     "merged_s": "nums2",
     "split_s": "nums2",
+    "kill_at_s": "num",
 }
 
 

@@ -103,9 +103,10 @@ class GroupState:
     group_id: int
     leader: int
     weight: int
-    members: int
+    readings: int  # readings in the leader's last aggregated epoch (not a member count)
     t: float  # emulated time of the last report
     last_heard: float  # emulated time of the last report or record
+    split_from: int = 0  # the group id this one split from (its leader was lost), or 0
 
     def to_json(self) -> bytes:
         return json.dumps(
@@ -114,9 +115,10 @@ class GroupState:
                 "group_id": self.group_id,
                 "leader": self.leader,
                 "weight": self.weight,
-                "members": self.members,
+                "readings": self.readings,
                 "t": round(self.t, 3),
             }
+            | ({"split_from": self.split_from} if self.split_from else {})
         ).encode()
 
 
@@ -152,6 +154,10 @@ class GatewayBridge:
 
     ``report_period_s`` is how often leaders report their group (emulated
     seconds); a group unheard for ``expiry_periods`` of them is taken as gone.
+    A group merged into another keeps a retained ``{"merged_into": id}`` state for
+    one report period (so that live and late subscribers learn the successor; the
+    MQTT side coalesces retained topics, so a notice and its clearing sent together
+    would reach clients as the clearing alone), then it is cleared.
     """
 
     store: VersionStore
@@ -161,6 +167,8 @@ class GatewayBridge:
     command_slots: int = 16
     dedupe_window: int = 4096
     groups: dict[tuple[int, int], GroupState] = field(default_factory=dict)
+    merged: dict[tuple[int, int], float] = field(default_factory=dict)  # key -> since (bounded
+    # by the live groups: one entry per group that merged, cleared after a report period)
     stats: BridgeStats = field(default_factory=BridgeStats)
     _recent: OrderedDict[DataRecord, None] = field(default_factory=OrderedDict)
     _defined_here: set[tuple[ItemKind, int]] = field(default_factory=set)
@@ -312,8 +320,17 @@ class GatewayBridge:
             log.info(
                 "group %d/%d gone%s", *key, f" (merged into {r.successor})" if r.successor else ""
             )
-            return [Publish(group_topic(*key), b"", retain=True)]
-        g = GroupState(r.group_type, r.group_id, r.leader, r.weight, r.members, now, now)
+            if not r.successor:
+                return [Publish(group_topic(*key), b"", retain=True)]
+            # A merge: the retained state names the successor until expire() clears it.
+            self.merged[key] = now
+            doc = {"group_type": r.group_type, "group_id": r.group_id,
+                   "merged_into": r.successor, "t": round(now, 3)}  # fmt: skip
+            return [Publish(group_topic(*key), json.dumps(doc).encode(), retain=True)]
+        self.merged.pop(key, None)
+        g = GroupState(
+            r.group_type, r.group_id, r.leader, r.weight, r.readings, now, now, r.successor
+        )
         self.groups[key] = g
         return [Publish(group_topic(*key), g.to_json(), retain=True)]
 
@@ -321,6 +338,10 @@ class GatewayBridge:
         """Clear the groups not heard from for ``expiry_periods`` report periods."""
         limit = self.expiry_periods * self.report_period_s
         out = []
+        for key, since in list(self.merged.items()):
+            if now - since >= self.report_period_s:
+                del self.merged[key]
+                out.append(Publish(group_topic(*key), b"", retain=True))
         for key, g in list(self.groups.items()):
             if now - g.last_heard > limit:
                 del self.groups[key]
@@ -331,10 +352,10 @@ class GatewayBridge:
 
     def next_expiry(self) -> float | None:
         """Emulated time at which :meth:`expire` may next clear a group."""
-        if not self.groups:
-            return None
         limit = self.expiry_periods * self.report_period_s
-        return min(g.last_heard for g in self.groups.values()) + limit
+        times = [g.last_heard + limit for g in self.groups.values()]
+        times += [since + self.report_period_s for since in self.merged.values()]
+        return min(times, default=None)
 
     # ----------------------------------------------------------------- views
 

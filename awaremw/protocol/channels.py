@@ -175,7 +175,10 @@ class Channels(Component):
             self._on_partial(frame, now)
 
     def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
-        if not isinstance(frame, Partial) or acked:
+        if not isinstance(frame, Partial):
+            return
+        if acked:
+            self.groups.parent_acked(frame.group_type, frame.dst, now)
             return
         self.stats.link_dropped += 1
         self.groups.parent_failed(frame.group_type, frame.dst, now)

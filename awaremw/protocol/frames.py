@@ -335,9 +335,11 @@ class GroupReport:
     group_id: int
     leader: int
     weight: int
-    members: int  # readings in the last epoch, 0 when unknown
+    readings: int  # readings aggregated in the leader's last epoch, 0 when unknown
     status: GroupStatus = GroupStatus.ALIVE
-    successor: int = 0  # group id it merged into, or 0
+    # GONE: the group id it merged into (0: dissolved); ALIVE: the id of the group
+    # it split from (a group created when its members lost that group's leader), or 0
+    successor: int = 0
 
     TAG: ClassVar[int] = 1
 
@@ -346,7 +348,7 @@ class GroupReport:
         _u16("group_id", self.group_id)
         _node("leader", self.leader)
         _u32("weight", self.weight)
-        _u16("members", self.members)
+        _u16("readings", self.readings)
         if not isinstance(self.status, GroupStatus):
             object.__setattr__(self, "status", GroupStatus(self.status))
         _u16("successor", self.successor)
@@ -358,7 +360,7 @@ class GroupReport:
             self.group_id,
             self.leader,
             self.weight,
-            self.members,
+            self.readings,
             int(self.status),
             self.successor,
         ]

@@ -84,6 +84,7 @@ class ElectionCause(Enum):
     CREATED = "created"  # a qualifying mote found no group nearby
     HANDOVER = "handover"  # took over a leaving leader's group (same id)
     ELECTION = "election"  # the leader was lost; a new group (new id) replaces it
+    FAILOVER = "failover"  # the leader died: a member that was its neighbour took over (same id)
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,6 +165,8 @@ class GroupStats:
 
     beacons_sent: int = 0
     beacons_forwarded: int = 0
+    beacons_rebutted: int = 0  # current beacon re-sent to a lighter contending group
+    failovers: int = 0  # leader claims after the leader was lost (same id)
     beacons_unknown_type: int = 0
     handovers_sent: int = 0
     handovers_failed: int = 0  # link failures and refusals
@@ -223,6 +226,12 @@ class _TypeState:
     candidates: list[int] = field(default_factory=list)
     handover_to: int | None = None
     handed: tuple[int, int] | None = None  # (group id, seq) of our last Handover
+    # Failure detection of the leader (failover keeping the id):
+    leader_ok: float = -math.inf  # last evidence it lives: a new seq, or an acked unicast to it
+    leader_direct: float = -math.inf  # last time we heard it directly or it acked us
+    suspect_at: float | None = None  # a unicast to the leader failed at this time
+    rebutted: float = -math.inf  # last re-broadcast answering a lighter group's beacon
+    split_from: int = 0  # the id whose leader we lost before creating this group
 
 
 def seq_newer(a: int, b: int) -> bool:
@@ -363,12 +372,61 @@ class Groups(Component):
         if st is None or st.role is not Role.MEMBER:
             return
         st.failed[node] = now
+        if node == st.leader:
+            self._suspect(st, now)
         if st.parent != node:
             return
         alts = [(n, u) for n, u in self._alternatives(st) if n != node]
         if alts:
             n, u = alts[0]
             st.parent, st.hops, st.parent_rssi = n, u.hops + 1, u.rssi
+
+    def parent_acked(self, group_type: int, node: int, now: float) -> None:
+        """A unicast to ``node`` was acknowledged: if it is our leader, it lives."""
+        st = self._types.get(group_type)
+        if st is None or st.role is not Role.MEMBER or node != st.leader:
+            return
+        st.leader_ok = st.leader_direct = now
+        self._clear_suspicion(st)
+
+    # ----------------------------------------------------------------- failover
+
+    def _claim_after(self) -> float:
+        """Hysteresis in time: a leader heard from this recently is not suspected."""
+        return 1.25 * self.ctx.config.beacon_period
+
+    def _suspect(self, st: _TypeState, now: float) -> None:
+        """A partial to the leader was not acknowledged after the link retries
+        (the data path as failure detector, as CTP does). Claim the group unless
+        the leader gave a sign of life within ``_claim_after``; then claim when
+        that evidence gets stale, unless new evidence arrives meanwhile."""
+        if st.suspect_at is None:
+            st.suspect_at = now
+        at = max(now, st.leader_ok + self._claim_after())
+        self._schedule_claim(st, at)
+
+    def _schedule_claim(self, st: _TypeState, at: float) -> None:
+        # A jitter of a few frame times: neighbours of the dead leader that detect
+        # the loss together mostly hear the first claim and adopt it.
+        name = ("claim", st.gtype)
+        if name not in self.timers:
+            self.timers.set(name, at + self.ctx.rng.uniform(0, 2 * self.ctx.config.forward_jitter))
+
+    def _clear_suspicion(self, st: _TypeState) -> None:
+        st.suspect_at = None
+        self.timers.cancel(("claim", st.gtype))
+
+    def _leader_was_neighbour(self, st: _TypeState, now: float) -> bool:
+        return now - st.leader_direct <= 2 * self._timeout()
+
+    def _claim(self, st: _TypeState, now: float) -> None:
+        """Take over the group of a lost leader with its id: beacon seq + 1, the
+        group's weight as last heard (docs/protocol-groups.md, Failover)."""
+        if not self._qualifies(st, True, now):
+            self._leave(st, now, LeaveReason.CONDITION)
+            return
+        self.stats.failovers += 1
+        self._become_leader(st, st.gid, st.weight, st.seq, now, ElectionCause.FAILOVER)
 
     def _alternatives(self, st: _TypeState) -> list[tuple[int, _Up]]:
         # Only copies of the current seq with fewer hops than ours: a switch never
@@ -417,6 +475,13 @@ class Groups(Component):
             self._forward(st)
         elif kind == "lost" and st.role is Role.MEMBER:
             self._leader_lost(st, now)
+        elif kind == "claim" and st.role is Role.MEMBER:
+            if st.suspect_at is not None and st.leader_ok > st.suspect_at:
+                st.suspect_at = None  # the leader gave a sign of life meanwhile
+            else:
+                self._claim(st, now)
+        elif kind == "rebut" and st.role in (Role.MEMBER, Role.LEADER):
+            self._forward(st, count=False)
         elif kind == "create" and st.role is Role.WAITING:
             best = self._best_nearby(st, now)
             if best is not None:
@@ -528,6 +593,10 @@ class Groups(Component):
         st.upstream = {src: _Up(seq, hops, heard_at, rssi)}
         st.failed = {}
         st.children = {}
+        st.suspect_at = None
+        st.leader_ok = heard_at
+        st.leader_direct = heard_at if src == leader else -math.inf
+        self.timers.cancel(("claim", st.gtype))
         self.timers.set(("lost", st.gtype), heard_at + self._timeout())
         self.ctx.emit(GroupJoined(self.ctx.node_id, st.gtype, gid, leader, now))
 
@@ -553,23 +622,34 @@ class Groups(Component):
     def _become_leader(
         self, st: _TypeState, gid: int, weight: int, seq: int, now: float, cause: ElectionCause
     ) -> None:
-        for kind in ("create", "lost", "fwd", "handover"):
+        for kind in ("create", "lost", "fwd", "handover", "claim"):
             self.timers.cancel((kind, st.gtype))
+        # A member taking over knows its member neighbours already (those it heard
+        # forward the beacons): handover candidates before any partial arrives.
+        known = {
+            n: (u.t, 0, u.rssi)
+            for n, u in st.upstream.items()
+            if st.role is Role.MEMBER and st.gid == gid and n != st.leader
+        }
+        if cause is not ElectionCause.ELECTION:
+            st.split_from = 0
         st.role = Role.LEADER
         st.gid, st.leader, st.weight, st.seq = gid, self.ctx.node_id, weight, seq
         st.hops, st.parent = 0, None
         st.beacons = 0
         st.readings = 0
         st.upstream = {}
-        st.children = {}
+        st.children = known
+        st.suspect_at = None
         self.ctx.emit(LeaderElected(self.ctx.node_id, st.gtype, gid, weight, cause, now))
         self._beacon(st, now)
 
     def _leave(self, st: _TypeState, now: float, reason: LeaveReason) -> None:
         gid = st.gid
-        for kind in ("create", "lost", "fwd", "beacon", "handover"):
+        for kind in ("create", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
             self.timers.cancel((kind, st.gtype))
         st.role = Role.IDLE
+        st.suspect_at = None
         st.parent = None
         st.upstream = {}
         st.children = {}
@@ -585,13 +665,20 @@ class Groups(Component):
             self._report(st, now, GroupStatus.GONE)
         if st.role in (Role.MEMBER, Role.LEADER, Role.HANDING_OVER):
             self._leave(st, now, LeaveReason.DELETED)
-        for kind in ("create", "lost", "fwd", "beacon", "handover"):
+        for kind in ("create", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
             self.timers.cancel((kind, group_type))
         if not self._types:
             self.timers.cancel("check")
 
     def _leader_lost(self, st: _TypeState, now: float) -> None:
+        if self._leader_was_neighbour(st, now) and self._qualifies(st, True, now):
+            # We heard the leader directly: most likely it died (a split leaves
+            # its neighbours on its side). Take over with the id, after a jitter.
+            st.suspect_at = st.suspect_at if st.suspect_at is not None else now
+            self._schedule_claim(st, now)
+            return
         dead = st.gid
+        st.split_from = dead  # named by the group this mote may create now
         self._leave(st, now, LeaveReason.LEADER_LOST)
         st.nearby.pop(dead, None)
         if self._qualifies(st, True, now):
@@ -628,7 +715,7 @@ class Groups(Component):
             weak = st.parent_rssi < self.ctx.config.group_link_rssi_floor
             self.timers.set(name, now + (j if weak else 0.0) + self.ctx.rng.uniform(0, j))
 
-    def _forward(self, st: _TypeState) -> None:
+    def _forward(self, st: _TypeState, count: bool = True) -> None:
         st.forwarded = True
         # Built at send time: carries the best hop count learnt during the jitter.
         self.send(
@@ -640,10 +727,13 @@ class Groups(Component):
                 st.leader,
                 st.weight,
                 st.seq,
-                st.hops,
+                0 if st.role is Role.LEADER else st.hops,
             )
         )
-        self.stats.beacons_forwarded += 1
+        if count:
+            self.stats.beacons_forwarded += 1
+        else:
+            self.stats.beacons_rebutted += 1
 
     def _on_beacon(self, f: LeaderBeacon, rssi: float, now: float) -> None:
         st = self._types.get(f.group_type)
@@ -669,13 +759,36 @@ class Groups(Component):
             elif heavier(f.weight, f.group_id, st.weight, st.gid):
                 self._leave(st, now, LeaveReason.SWITCHED)
                 self._adopt(st, f, rssi, now)
+            else:
+                self._rebut(st, now)
         elif role is Role.LEADER:
             if f.group_id == st.gid:
-                # Another leader with our id: an id clash or a duplicated handover.
+                # Another leader with our id: a failover claim, an id clash or a
+                # duplicated handover. The larger (weight, leader node) keeps it;
+                # the winner's next beacon outnumbers the loser's seq.
                 if (f.weight, f.leader) > (st.weight, me):
                     self._yield(st, f, rssi, now)
+                else:
+                    if seq_newer(f.seq, st.seq):
+                        st.seq = f.seq
+                    self._rebut(st, now)
             elif heavier(f.weight, f.group_id, st.weight, st.gid):
                 self._yield(st, f, rssi, now)
+            else:
+                self._rebut(st, now)
+
+    def _rebut(self, st: _TypeState, now: float) -> None:
+        """A lighter contender (another group of our type, or a lighter leader of
+        our id) is in range: re-send our current beacon soon, at most twice a beacon
+        period, so that it yields within a flood rather than a beacon period."""
+        if now - st.rebutted < 0.5 * self.ctx.config.beacon_period:
+            return
+        if st.role is Role.MEMBER and now - st.last_beacon > self._claim_after():
+            return  # our own news is stale: do not hold a new group back with it
+        st.rebutted = now
+        name = ("rebut", st.gtype)
+        if name not in self.timers:
+            self.timers.set(name, now + self.ctx.rng.uniform(0, self.ctx.config.forward_jitter))
 
     def _note_nearby(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         h = st.nearby.get(f.group_id)
@@ -686,10 +799,24 @@ class Groups(Component):
 
     def _same_group(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         lr = self._link_rssi(f.src, rssi)
-        st.upstream[f.src] = _Up(f.seq, f.hops, now, lr)
         hops = min(f.hops + 1, MAX_HOPS)
-        if seq_newer(f.seq, st.seq):
+        if f.src == f.leader == st.leader:
+            st.leader_direct = now
+        # Beacons of one id are ordered by (seq, weight, leader): a newer seq, or
+        # the same seq from a heavier claimant (two members took over together).
+        newer = seq_newer(f.seq, st.seq) or (
+            f.seq == st.seq and f.leader != st.leader
+            and (f.weight, f.leader) > (st.weight, st.leader)
+        )  # fmt: skip
+        if not newer and f.leader != st.leader:
+            return  # a stale beacon, or a lighter claimant of our id: not our tree
+        st.upstream[f.src] = _Up(f.seq, f.hops, now, lr)
+        if newer:
             # The first copy of a new seq sets the parent ...
+            if f.leader != st.leader:
+                st.leader_direct = now if f.src == f.leader else -math.inf
+            st.leader_ok = now
+            self._clear_suspicion(st)
             st.seq, st.leader, st.weight = f.seq, f.leader, f.weight
             st.hops = hops
             st.parent, st.parent_rssi = f.src, lr
@@ -794,7 +921,7 @@ class Groups(Component):
             min(st.weight, MAX_WEIGHT),
             min(st.readings, 0xFFFF),
             status,
-            successor,
+            successor or (st.split_from if status is GroupStatus.ALIVE else 0),
         )
         if not self.collection.submit(report, now):
             self.stats.reports_refused += 1
