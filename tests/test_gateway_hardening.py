@@ -285,7 +285,7 @@ async def test_broker_refuses_oversize_and_bounds_retained(tmp_path: Path) -> No
     async with EmbeddedBroker(max_retained=3) as b:
         kw: dict[str, Any] = {"username": b.username, "password": b.password}
         with pytest.raises(aiomqtt.MqttError):
-            async with aiomqtt.Client(b.host, b.port, identifier="big", **kw) as c:
+            async with aiomqtt.Client(b.host, b.port, identifier="big", timeout=1, **kw) as c:
                 await c.publish("aware/def/group/1", b"x" * 1_000_000, qos=1, retain=True)
         assert b.stats.oversize == 1 and b.stats.retained == 0
         async with aiomqtt.Client(b.host, b.port, identifier="many", **kw) as c:
@@ -376,7 +376,9 @@ async def test_gateway_memory_stays_bounded_under_oversize_and_long_topics(
         rss0 = _rss_kb(p.pid)
         for i in range(20):  # 20 retained messages of 10 MB: used to take 225 MB
             with pytest.raises(aiomqtt.MqttError):
-                async with aiomqtt.Client("127.0.0.1", port, identifier=f"big{i}", **kw) as c:
+                async with aiomqtt.Client(
+                    "127.0.0.1", port, identifier=f"big{i}", timeout=1, **kw
+                ) as c:
                     await c.publish(
                         f"aware/def/group/{i}", os.urandom(10_000_000), qos=1, retain=True
                     )
@@ -386,6 +388,7 @@ async def test_gateway_memory_stays_bounded_under_oversize_and_long_topics(
             await c.subscribe("aware/gateway/stats", qos=1)
         rss1 = _rss_kb(p.pid)
         assert p.poll() is None
+        print(f"gateway RSS {rss0} kB -> {rss1} kB")
         assert rss1 - rss0 < 40_000, (rss0, rss1)  # KB
     finally:
         _stop(p)
