@@ -12,7 +12,9 @@ class Inbox:
         self.items: list[tuple[str, bytes, bool, str]] = []
         self.changed = asyncio.Event()
 
-    def __call__(self, rel: str, payload: bytes, retained: bool, where: str) -> None:
+    def __call__(
+        self, rel: str, payload: bytes, retained: bool, where: str, size: int | None = None
+    ) -> None:
         self.items.append((rel, payload, retained, where))
         self.changed.set()
 

@@ -6,6 +6,7 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from mosquitto import PASSWORDS, Mosquitto, mosquitto_fixture, require  # noqa: F401
@@ -92,10 +93,10 @@ def test_client_verbs_publish_the_contract(
     assert [ln.split(" ")[0] for ln in retained(mosquitto, "aware/def/#")] == ["aware/def/group/1"]
 
 
-def test_gateway_verb_starts_an_embedded_broker() -> None:
+def test_gateway_verb_starts_an_embedded_broker(tmp_path: Path) -> None:
     r = subprocess.run(
         [sys.executable, "-m", "awaremw", "gateway", "grid_small", "--duration", "2",
-         "--speed", "4"],
+         "--speed", "4", "--mqtt-port", "0", "--state-dir", str(tmp_path)],
         capture_output=True, timeout=60, check=False,
     )  # fmt: skip
     out = r.stdout.decode()

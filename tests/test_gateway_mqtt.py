@@ -163,7 +163,7 @@ async def test_broker_outage_buffers_in_order_drops_past_bound(mosquitto: Mosqui
 async def test_embedded_broker_speaks_311_and_bridges() -> None:
     inbox = Inbox()
     async with EmbeddedBroker() as broker:
-        assert broker.port > 0 and broker.url.startswith("mqtt://127.0.0.1:")
+        assert broker.port > 0 and broker.public_url.startswith("mqtt://awaremw:***@127.0.0.1:")
         # Another "gateway" leaves a retained group state, a viewer watches groups.
         other = MqttBridge(MqttSettings.from_url(broker.url, client_id="other"), Inbox())
         async with (

@@ -45,6 +45,18 @@ def register(sub: Any) -> None:
         metavar="DIR",
         help="Zenoh with authentication and access control by role (DIR from `awaremw keys init`)",
     )
+    p.add_argument(
+        "--mqtt-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="embedded broker port (default 1883 when free, else a free one)",
+    )
+    p.add_argument(
+        "--mqtt-anonymous",
+        action="store_true",
+        help="let the embedded broker accept clients without an account",
+    )
     p.add_argument("--plain", action="store_true", help="log lines instead of the live view")
     p.set_defaults(func=main)
 
@@ -65,6 +77,11 @@ def main(args: argparse.Namespace) -> int:
     if not args.speed > 0 or (args.duration is not None and not args.duration > 0):
         print("awaremw demo: --speed and --duration must be > 0", file=sys.stderr)
         return 2
+    if args.mqtt is not None and (args.mqtt_port is not None or args.mqtt_anonymous):
+        print(
+            "awaremw demo: --mqtt-port and --mqtt-anonymous cannot go with --mqtt", file=sys.stderr
+        )
+        return 2
     for url in (args.mqtt, args.robot_mqtt):
         if url is not None:
             try:
@@ -77,9 +94,25 @@ def main(args: argparse.Namespace) -> int:
         return 2
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
-    summary = asyncio.run(
-        run_demo(sc, args.duration, args.speed, args.mqtt, plain, args.robot_mqtt, args.secrets)
-    )
+    from awaremw.gateway.broker import BrokerError
+
+    try:
+        summary = asyncio.run(
+            run_demo(
+                sc,
+                args.duration,
+                args.speed,
+                args.mqtt,
+                plain,
+                args.robot_mqtt,
+                args.secrets,
+                mqtt_port=args.mqtt_port,
+                mqtt_anonymous=args.mqtt_anonymous,
+            )
+        )
+    except BrokerError as e:
+        print(f"awaremw demo: {e}", file=sys.stderr)
+        return 2
     print_summary(summary, plain=plain)
     return 0
 
@@ -92,13 +125,32 @@ async def run_demo(
     plain: bool,
     robot_mqtt: str | None = None,
     secrets: str | None = None,
+    *,
+    mqtt_port: int | None = 0,
+    mqtt_anonymous: bool = False,
 ) -> dict[str, Any]:
-    """Run the demo; returns the summary figures."""
+    """Run the demo; returns the summary figures.
+
+    Without ``mqtt`` an embedded broker runs for the demo's length, with a
+    generated account (printed once) that the gateway and the robot client use;
+    ``mqtt_port=None`` asks for 1883 when free, 0 for any free port.
+    """
+    if mqtt is None:
+        from awaremw.gateway.broker import EmbeddedBroker
+
+        async with EmbeddedBroker(port=mqtt_port, anonymous=mqtt_anonymous) as broker:
+            account = "anonymous access" if broker.anonymous else (
+                f"account {broker.username!r}, password {broker.password} (this run only)"
+            )  # fmt: skip
+            print(f"embedded MQTT broker: mqtt://{broker.host}:{broker.port} {account}",
+                  flush=True)  # fmt: skip
+            return await run_demo(sc, duration, speed, broker.url, plain, robot_mqtt, secrets)
     from awaremw.experiments import metrics as M
     from awaremw.experiments.client import Received
     from awaremw.experiments.realtime import RealtimeRun
     from awaremw.experiments.snapshot import record_line as to_line
     from awaremw.experiments.snapshot import snapshot_of
+    from awaremw.gateway.broker import mask_url
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
 
     view: View = PlainLog(every=10.0) if plain else LiveView()
@@ -120,7 +172,7 @@ async def run_demo(
     )  # fmt: skip
     end = sc.duration if duration is None else duration
     view.log(0.0, f"demo {sc.name}: {len(sc.deployment.nodes)} motes, {end:g} s at speed "
-                  f"{speed:g} (MQTT {'embedded broker' if mqtt is None else mqtt})")  # fmt: skip
+                  f"{speed:g} (MQTT {mask_url(mqtt)})")  # fmt: skip
     view.start()
     try:
         result = await run.run(end)
@@ -133,7 +185,7 @@ async def run_demo(
         "deployment": sc.name,
         "emulated_s": end,
         "speed": speed,
-        "mqtt": run.broker_url,
+        "mqtt": None if run.broker_url is None else mask_url(run.broker_url),
         "records_received": len(run.live.records),
         "records_produced": len(rec.produced),
         "delivery_ratio": M.delivery_ratio(rec, end - 5.0),

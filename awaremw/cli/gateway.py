@@ -3,7 +3,13 @@
 ::
 
     awaremw gateway romeo4r --connect tcp/127.0.0.1:7447 --mqtt mqtt://gateway:pw@broker:1883
-    awaremw gateway romeo4r                      # embedded broker on a free port, printed
+    awaremw gateway romeo4r                      # embedded broker (port 1883 if free), printed
+
+The embedded broker has an account (user ``awaremw``, a password generated on
+first start, printed once and kept with mode 0600 in ``STATE/broker/mqtt-account``
+where STATE is ``--state-dir``, by default ``~/.local/state/awaremw``), keeps its
+port and retained messages across restarts, and refuses anonymous clients unless
+``--mqtt-anonymous``. See docs/robustness.md.
 
 The gateway runs the deployment's gateway motes (collection roots) in this
 process, joined to the emulation through ``--connect`` (a router or a fleet
@@ -45,6 +51,19 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="broker mqtt[s]://[user:pass@]host:port (default: embedded broker)",
     )
     p.add_argument(
+        "--mqtt-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="embedded broker port (default: the port used last time, else 1883 when free, "
+        "else a free one, printed)",
+    )
+    p.add_argument(
+        "--mqtt-anonymous",
+        action="store_true",
+        help="let the embedded broker accept clients without an account",
+    )
+    p.add_argument(
         "--connect",
         action="append",
         default=[],
@@ -70,7 +89,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--state-dir",
         default=None,
         metavar="DIR",
-        help="keep versions in DIR/gateway.sqlite (survive restarts)",
+        help="keep versions in DIR/gateway.sqlite and the embedded broker's account, port "
+        "and retained messages in DIR/broker (default for the broker: "
+        "~/.local/state/awaremw/broker)",
     )
     p.add_argument("--speed", type=float, default=1.0, help="emulation speed factor")
     p.add_argument(
@@ -138,6 +159,16 @@ def run(args: argparse.Namespace) -> int:
     if args.speed <= 0 or args.buffer < 1:
         print("awaremw gateway: --speed must be > 0 and --buffer >= 1", file=sys.stderr)
         return 2
+    if args.mqtt is not None and (args.mqtt_port is not None or args.mqtt_anonymous):
+        print(
+            "awaremw gateway: --mqtt-port and --mqtt-anonymous are for the embedded broker; "
+            "they cannot go with --mqtt",
+            file=sys.stderr,
+        )
+        return 2
+    if args.mqtt_port is not None and not 0 <= args.mqtt_port <= 65535:
+        print("awaremw gateway: --mqtt-port must be in 0..65535", file=sys.stderr)
+        return 2
     try:
         return asyncio.run(_main(args, mqtt))
     except KeyboardInterrupt:
@@ -145,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
-    from awaremw.gateway.broker import EmbeddedBroker
+    from awaremw.gateway.broker import BrokerError, EmbeddedBroker, default_state_dir
     from awaremw.gateway.service import GatewaySettings, attach_to_fleet, deployment_definitions
     from awaremw.nodes import KindsFactory, kind_names, validate
     from awaremw.radio.zenoh_medium import DEFAULT_PREFIX
@@ -170,8 +201,19 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
 
     async with contextlib.AsyncExitStack() as stack:
         if mqtt is None:
-            broker = await stack.enter_async_context(EmbeddedBroker())
-            print(f"embedded MQTT broker: {broker.url}", flush=True)
+            state = (
+                default_state_dir() if args.state_dir is None else Path(args.state_dir) / "broker"
+            )
+            try:
+                broker = await stack.enter_async_context(
+                    EmbeddedBroker(
+                        port=args.mqtt_port, state_dir=state, anonymous=args.mqtt_anonymous
+                    )
+                )
+            except (BrokerError, OSError) as e:
+                print(f"awaremw gateway: {e}", file=sys.stderr)
+                return 2
+            print_broker(broker)
             mqtt = MqttSettings.from_url(
                 broker.url, client_id=args.client_id, buffer_size=args.buffer
             )
@@ -220,6 +262,32 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             if (exc := t.exception()) is not None:
                 raise exc
     return 0
+
+
+def print_broker(broker: object) -> None:
+    """Say where the embedded broker is and how to log in (the password once only)."""
+    from awaremw.gateway.broker import EmbeddedBroker
+
+    assert isinstance(broker, EmbeddedBroker)
+    where = f"mqtt://{broker.host}:{broker.port}"
+    if broker.moved_from is not None:
+        print(
+            f"embedded MQTT broker: port {broker.moved_from} is in use, so the broker is on "
+            f"port {broker.port} instead (kept for the next start)",
+            flush=True,
+        )
+    if broker.anonymous:
+        print(f"embedded MQTT broker: {where} (anonymous access allowed)", flush=True)
+        return
+    print(f"embedded MQTT broker: {where} account {broker.username!r}", flush=True)
+    if broker.password_generated:
+        print(
+            f"embedded MQTT broker: generated password {broker.password} (shown once; "
+            f"kept in {broker.account_file}, mode 0600)",
+            flush=True,
+        )
+    else:
+        print(f"embedded MQTT broker: password in {broker.account_file}", flush=True)
 
 
 async def _fleet_start_wall(fleet: object, radio_prefix: str, speed: float) -> float | None:

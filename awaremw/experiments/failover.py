@@ -24,8 +24,8 @@ from typing import Any
 
 from awaremw.experiments import metrics as M
 from awaremw.experiments import plots
-from awaremw.experiments.romeo4r import SAMPLE_DT, settle_time
 from awaremw.experiments.metrics import RunResult
+from awaremw.experiments.romeo4r import SAMPLE_DT, settle_time
 from awaremw.experiments.virtual import VirtualRun
 from awaremw.protocol.mote import AwareMote
 

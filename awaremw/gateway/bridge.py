@@ -20,13 +20,17 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from awaremw.gateway.schema import (
     Limits,
+    PayloadTooLarge,
     SchemaError,
+    TopicTooLong,
     UnknownTopic,
     agg_name,
     parse_channel,
@@ -47,6 +51,48 @@ from awaremw.protocol.frames import (
 log = logging.getLogger(__name__)
 
 MAX_ERROR_PAYLOAD = 512  # characters of the refused payload echoed on the errors topic
+MAX_ERROR_TOPIC = 200  # characters of the topic echoed on the errors topic and in the log
+MAX_TOPIC = 256  # longest IP-side topic accepted (the contract's are < 40 characters)
+MAX_GROUPS = 4096  # live groups tracked; beyond it the longest-unheard one is dropped
+REFUSAL_LOG_INTERVAL_S = 10.0  # at most one refusal log line per code in this span
+
+
+def clip(text: str, n: int) -> str:
+    """``text`` cut to ``n`` characters, with a marker saying how much was cut."""
+    return text if len(text) <= n else f"{text[:n]}...(+{len(text) - n} chars)"
+
+
+class RateLimitedLog:
+    """Log refusals at WARNING, at most once per ``interval_s`` per code.
+
+    The lines skipped in between are counted and reported with the next line,
+    so a flood of garbage costs a log line per code per interval, not one each.
+    """
+
+    def __init__(
+        self,
+        logger: logging.Logger,
+        interval_s: float = REFUSAL_LOG_INTERVAL_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.logger = logger
+        self.interval_s = interval_s
+        self.clock = clock
+        self._last: dict[str, float] = {}  # bounded by the set of error codes
+        self._skipped: dict[str, int] = {}
+
+    def warning(self, code: str, msg: str, *args: object) -> bool:
+        """Log unless ``code`` was logged less than ``interval_s`` ago; True if logged."""
+        now = self.clock()
+        last = self._last.get(code)
+        if last is not None and now - last < self.interval_s:
+            self._skipped[code] = self._skipped.get(code, 0) + 1
+            return False
+        self._last[code] = now
+        skipped = self._skipped.pop(code, 0)
+        suffix = f" ({skipped} more {code} refusals not logged)" if skipped else ""
+        self.logger.warning(msg + suffix, *args)
+        return True
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,16 +174,20 @@ class BridgeStats:
     unchanged: int = 0  # valid payloads equal to the current state: no new version
     replays: int = 0  # retained payloads seen before: ignored
     refused: int = 0
+    refused_by_code: dict[str, int] = field(default_factory=dict)  # bounded: one key per code
     records: int = 0
     duplicate_records: int = 0
     group_reports: int = 0
     groups_gone: int = 0
     groups_expired: int = 0
+    groups_evicted: int = 0  # dropped because MAX_GROUPS were tracked
     learned: int = 0  # item versions learned from the network
     reasserted: int = 0  # our newer definitions re-sent above the network's version
 
-    def as_dict(self) -> dict[str, int]:
-        return {k: getattr(self, k) for k in self.__slots__}
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {k: getattr(self, k) for k in self.__slots__}
+        out["refused_by_code"] = dict(sorted(self.refused_by_code.items()))
+        return out
 
 
 def group_topic(group_type: int, group_id: int) -> str:
@@ -166,9 +216,11 @@ class GatewayBridge:
     expiry_periods: float = 3.0
     command_slots: int = 16
     dedupe_window: int = 4096
+    max_groups: int = MAX_GROUPS
+    refusal_log: RateLimitedLog = field(default_factory=lambda: RateLimitedLog(log))
     groups: dict[tuple[int, int], GroupState] = field(default_factory=dict)
-    merged: dict[tuple[int, int], float] = field(default_factory=dict)  # key -> since (bounded
-    # by the live groups: one entry per group that merged, cleared after a report period)
+    # key -> since: groups that merged, cleared after a report period (at most max_groups)
+    merged: dict[tuple[int, int], float] = field(default_factory=dict)
     stats: BridgeStats = field(default_factory=BridgeStats)
     _recent: OrderedDict[DataRecord, None] = field(default_factory=OrderedDict)
     _defined_here: set[tuple[ItemKind, int]] = field(default_factory=set)
@@ -180,7 +232,13 @@ class GatewayBridge:
         return [Inject(i.kind, i.item_id, i.version, i.body) for i in self.store.items()]
 
     def handle(
-        self, rel_topic: str, payload: bytes, *, source: str, retained: bool = False
+        self,
+        rel_topic: str,
+        payload: bytes,
+        *,
+        source: str,
+        retained: bool = False,
+        size: int | None = None,
     ) -> Outcome:
         """One payload from the IP side on ``rel_topic`` (relative to the prefix).
 
@@ -188,8 +246,19 @@ class GatewayBridge:
         used to recognise replays); ``retained`` marks a payload replayed by
         the broker from its retained store rather than published just now: one
         equal to the last payload seen on that topic is ignored, so a
-        reconnect or restart never applies a definition twice.
+        reconnect or restart never applies a definition twice. ``size``, when
+        given, is the payload's size as sent (a transport that did not copy an
+        oversize payload passes it empty with its size).
         """
+        if size is not None and size > self.limits.max_payload_bytes:
+            return self._refuse(source, payload, PayloadTooLarge(
+                f"payload of {size} bytes exceeds the limit of {self.limits.max_payload_bytes}"
+            ))  # fmt: skip
+        if len(source) > MAX_TOPIC:
+            # Refused before anything is remembered: a long topic is never stored.
+            return self._refuse(source, payload, TopicTooLong(
+                f"topic of {len(source)} characters exceeds the limit of {MAX_TOPIC}"
+            ))  # fmt: skip
         h = payload_hash(payload)
         if retained and self.store.last_seen(source) == h:
             self.stats.replays += 1
@@ -197,13 +266,22 @@ class GatewayBridge:
         try:
             outcome = self._apply(rel_topic, payload)
         except SchemaError as e:
-            self.stats.refused += 1
-            text = payload.decode("utf-8", errors="replace")[:MAX_ERROR_PAYLOAD]
-            log.warning("refused %s: %s", source, e)
             self.store.set_seen(source, h)
-            return Outcome(error=ErrorReport(source, e.code, str(e), text))
+            return self._refuse(source, payload, e)
         self.store.set_seen(source, h)
         return outcome
+
+    def _refuse(self, source: str, payload: bytes, e: SchemaError) -> Outcome:
+        """Count, log (rate-limited) and report a refusal; the echoes are truncated."""
+        self.stats.refused += 1
+        self.stats.refused_by_code[e.code] = self.stats.refused_by_code.get(e.code, 0) + 1
+        topic = clip(source, MAX_ERROR_TOPIC)
+        text = payload[:MAX_ERROR_PAYLOAD].decode("utf-8", errors="replace")
+        if len(payload) > MAX_ERROR_PAYLOAD:
+            text += f"...(+{len(payload) - MAX_ERROR_PAYLOAD} bytes)"
+        error = clip(str(e), MAX_ERROR_PAYLOAD)
+        self.refusal_log.warning(e.code, "refused %s: %s", topic, error)
+        return Outcome(error=ErrorReport(topic, e.code, error, text))
 
     def _apply(self, rel_topic: str, payload: bytes) -> Outcome:
         parts = rel_topic.split("/")
@@ -323,6 +401,8 @@ class GatewayBridge:
             if not r.successor:
                 return [Publish(group_topic(*key), b"", retain=True)]
             # A merge: the retained state names the successor until expire() clears it.
+            if len(self.merged) >= self.max_groups:
+                del self.merged[min(self.merged, key=self.merged.__getitem__)]
             self.merged[key] = now
             doc = {"group_type": r.group_type, "group_id": r.group_id,
                    "merged_into": r.successor, "t": round(now, 3)}  # fmt: skip
@@ -331,8 +411,15 @@ class GatewayBridge:
         g = GroupState(
             r.group_type, r.group_id, r.leader, r.weight, r.readings, now, now, r.successor
         )
+        out = []
+        if key not in self.groups and len(self.groups) >= self.max_groups:
+            oldest = min(self.groups, key=lambda k: self.groups[k].last_heard)
+            del self.groups[oldest]
+            self.stats.groups_evicted += 1
+            out.append(Publish(group_topic(*oldest), b"", retain=True))
         self.groups[key] = g
-        return [Publish(group_topic(*key), g.to_json(), retain=True)]
+        out.append(Publish(group_topic(*key), g.to_json(), retain=True))
+        return out
 
     def expire(self, now: float) -> list[Publish]:
         """Clear the groups not heard from for ``expiry_periods`` report periods."""

@@ -1,33 +1,290 @@
-"""Embedded MQTT broker (amqtt 0.12) for the demo: nothing to install or run.
+"""Embedded MQTT broker (amqtt 0.12): nothing to install or run, and safe by default.
 
-When the gateway gets no ``--mqtt`` URL it starts this in-process broker on a
-free loopback port and says where (``mqtt://127.0.0.1:PORT``). amqtt speaks
-MQTT 3.1.1 only (the gateway falls back to it), allows anonymous clients here
-and keeps retained messages in memory for the life of the process.
+When the gateway gets no ``--mqtt`` URL it starts this in-process broker. What
+it does beyond plain amqtt (see docs/robustness.md):
+
+* **an account by default**: user ``awaremw`` with a generated password. With a
+  state directory the password is written once to ``mqtt-account``
+  (``user:password``, mode 0600) and reused on every restart; the broker checks
+  it with amqtt's ``FileAuthPlugin`` against an Argon2 hash in ``mqtt.passwd``
+  (0600). Without one (tests, the demo) the account lives as long as the
+  process. Anonymous clients are refused unless ``anonymous=True``
+  (``--mqtt-anonymous``).
+* **a fixed port**: ``port=None`` takes the port saved in the state directory,
+  else 1883 when free, else a free one (:attr:`EmbeddedBroker.moved_from` says
+  which port was busy); the port used is saved, so a restart keeps it. An
+  explicit port that is busy is an error (:class:`BrokerPortInUse`).
+* **limits**: a packet larger than ``max_message_bytes`` is refused before it
+  is read (the client is disconnected, as Mosquitto does for 3.1.1 clients);
+  at most ``max_retained`` retained topics and ``max_retained_bytes`` of their
+  payloads are kept (a retained message beyond either is delivered but not
+  retained). All refusals are counted in :attr:`EmbeddedBroker.stats`.
+* **retained messages survive a restart**: with a state directory they are kept
+  in ``retained.sqlite`` and put back before the listener opens. (amqtt's own
+  ``SessionDBPlugin`` would need SQLAlchemy; the standard library's sqlite3
+  does this job.)
+
+amqtt speaks MQTT 3.1.1 only (the gateway falls back to it).
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import errno
+import fcntl
+import json
 import logging
+import os
+import secrets
 import socket
-from typing import Any
+import sqlite3
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+from urllib.parse import quote
 
-from amqtt.broker import Broker
+from amqtt.adapters import ReaderAdapter, StreamReaderAdapter, StreamWriterAdapter
+from amqtt.broker import Broker, RetainedApplicationMessage
 
 log = logging.getLogger(__name__)
 
+DEFAULT_PORT = 1883
+DEFAULT_USER = "awaremw"
+MAX_MESSAGE_BYTES = 65_536  # one MQTT packet; the gateway's payloads are <= 4 KiB
+MAX_RETAINED = 10_000  # retained topics
+MAX_RETAINED_BYTES = 16 * 1024 * 1024  # sum of retained payloads
+ACCOUNT_FILE = "mqtt-account"  # user:password, 0600
+PASSWD_FILE = "mqtt.passwd"  # user:argon2-hash, 0600 (amqtt FileAuthPlugin)
+PORT_FILE = "broker.json"
+RETAINED_FILE = "retained.sqlite"
+LOCK_FILE = "broker.lock"
+REFUSAL_LOG_INTERVAL_S = 10.0
+
+
+class BrokerError(RuntimeError):
+    """The embedded broker cannot start as asked (a local configuration error)."""
+
+
+class BrokerPortInUse(BrokerError):
+    pass
+
+
+class BrokerStateInUse(BrokerError):
+    pass
+
+
+def default_state_dir() -> Path:
+    """``$XDG_STATE_HOME/awaremw/broker`` (``~/.local/state/awaremw/broker``)."""
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "awaremw" / "broker"
+
+
+def mask_url(url: str) -> str:
+    """``url`` with its password replaced by ``***`` (for logs and summaries)."""
+    scheme, sep, rest = url.partition("://")
+    creds, at, host = rest.rpartition("@")
+    if not sep or not at or ":" not in creds:
+        return url
+    return f"{scheme}://{creds.split(':', 1)[0]}:***@{host}"
+
+
+@dataclass(slots=True)
+class BrokerStats:
+    oversize: int = 0  # packets refused by size (the client was disconnected)
+    retained_refused: int = 0  # retained messages not retained (store full)
+    retained: int = 0  # topics retained now
+    retained_bytes: int = 0  # their payload bytes
+
+    def as_dict(self) -> dict[str, int]:
+        return {k: getattr(self, k) for k in self.__slots__}
+
+
+class MessageTooLarge(Exception):
+    """A client sent a packet over the limit; amqtt's reader loop ends the connection."""
+
+
+class _LimitedReader(StreamReaderAdapter):  # type: ignore[misc]
+    """Refuses a read (a packet body) over the limit before a byte of it is buffered."""
+
+    def __init__(self, reader: asyncio.StreamReader, owner: _LimitedBroker) -> None:
+        super().__init__(reader)
+        self._owner = owner
+
+    async def read(self, n: int = -1) -> bytes:
+        if n > self._owner.max_message_bytes:
+            self._owner.note_oversize(n)
+            raise MessageTooLarge(f"{n} bytes over the limit of {self._owner.max_message_bytes}")
+        data: bytes = await super().read(n)
+        return data
+
+
+class _LimitedBroker(Broker):  # type: ignore[misc]
+    """amqtt's broker with a packet size limit, a bounded and persistent retained store."""
+
+    _sql: ClassVar[str] = (
+        "CREATE TABLE IF NOT EXISTS retained (topic TEXT PRIMARY KEY, data BLOB, qos INTEGER)"
+    )
+
+    def __init__(
+        self,
+        config: dict[str, Any],
+        *,
+        max_message_bytes: int,
+        max_retained: int,
+        max_retained_bytes: int,
+        db_path: Path | None,
+        stats: BrokerStats,
+    ) -> None:
+        super().__init__(config)
+        self.max_message_bytes = max_message_bytes
+        self.max_retained = max_retained
+        self.max_retained_bytes = max_retained_bytes
+        self.stats = stats
+        self._db: sqlite3.Connection | None = None
+        if db_path is not None:
+            self._db = sqlite3.connect(str(db_path))
+            os.chmod(db_path, 0o600)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute(self._sql)
+            self._db.commit()
+        self._last_log = -REFUSAL_LOG_INTERVAL_S
+
+    def _rate_limited(self, msg: str, *args: object) -> None:
+        now = time.monotonic()
+        if now - self._last_log >= REFUSAL_LOG_INTERVAL_S:
+            self._last_log = now
+            log.warning(msg, *args)
+
+    def note_oversize(self, n: int) -> None:
+        self.stats.oversize += 1
+        self._rate_limited(
+            "embedded broker: refused a %d-byte MQTT packet (limit %d); %d so far",
+            n, self.max_message_bytes, self.stats.oversize,
+        )  # fmt: skip
+
+    async def stream_connected(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, listener_name: str
+    ) -> None:
+        limited: ReaderAdapter = _LimitedReader(reader, self)
+        await self._client_connected(listener_name, limited, StreamWriterAdapter(writer))
+
+    async def _start_listeners(self) -> None:
+        # start() has just cleared the retained store: put back the persisted one
+        # before any client can connect.
+        if self._db is not None:
+            rows = self._db.execute("SELECT topic, data, qos FROM retained").fetchall()
+            for topic, data, qos in rows[: self.max_retained]:
+                self._retained_messages[topic] = RetainedApplicationMessage(
+                    None, topic, bytes(data), qos
+                )
+            self._recount()
+            log.info("embedded broker: %d retained messages restored", len(rows))
+        await super()._start_listeners()
+
+    def _recount(self) -> None:
+        self.stats.retained = len(self._retained_messages)
+        msgs = self._retained_messages.values()
+        self.stats.retained_bytes = sum(len(m.data or b"") for m in msgs)
+
+    async def retain_message(
+        self,
+        source_session: Any,
+        topic_name: str | None,
+        data: bytes | bytearray | None,
+        qos: int | None = None,
+    ) -> None:
+        if data and topic_name is not None:
+            old = self._retained_messages.get(topic_name)
+            old_len = 0 if old is None else len(old.data or b"")
+            if (old is None and self.stats.retained >= self.max_retained) or (
+                self.stats.retained_bytes - old_len + len(data) > self.max_retained_bytes
+            ):
+                self.stats.retained_refused += 1
+                self._rate_limited(
+                    "embedded broker: retained store full (%d topics, %d bytes; limits %d, %d): "
+                    "%s delivered but not retained",
+                    self.stats.retained, self.stats.retained_bytes, self.max_retained,
+                    self.max_retained_bytes, topic_name[:200],
+                )  # fmt: skip
+                return
+        await super().retain_message(source_session, topic_name, data, qos)
+        self._recount()
+        if self._db is not None and topic_name is not None:
+            with self._db:
+                if data:
+                    self._db.execute(
+                        "INSERT OR REPLACE INTO retained VALUES (?, ?, ?)",
+                        (topic_name, bytes(data), qos or 0),
+                    )
+                else:
+                    self._db.execute("DELETE FROM retained WHERE topic=?", (topic_name,))
+
+    def close_store(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
 
 class EmbeddedBroker:
-    """``async with EmbeddedBroker() as b: b.url``; ``port=0`` picks a free port."""
+    """``async with EmbeddedBroker() as b: b.url`` (the URL carries the account).
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
+    ``port=0`` picks a free port; ``port=None`` the saved port, else 1883 when
+    free, else a free one. ``state_dir=None`` keeps the account and the retained
+    messages in memory only.
+    """
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int | None = 0,
+        *,
+        state_dir: str | Path | None = None,
+        anonymous: bool = False,
+        username: str = DEFAULT_USER,
+        max_message_bytes: int = MAX_MESSAGE_BYTES,
+        max_retained: int = MAX_RETAINED,
+        max_retained_bytes: int = MAX_RETAINED_BYTES,
+    ) -> None:
+        if max_message_bytes < 1024 or max_retained < 1 or max_retained_bytes < 1:
+            raise ValueError("broker limits: max_message_bytes >= 1024, the others >= 1")
         self.host = host
-        self.port = port
-        self._broker: Broker | None = None
+        self.port = 0 if port is None else port
+        self._requested_port = port
+        self.state_dir = None if state_dir is None else Path(state_dir)
+        self.anonymous = anonymous
+        self.username = username
+        self.password = ""
+        self.password_generated = False  # True when this start made a new password
+        self.moved_from: int | None = None  # the busy port this start did not get
+        self.limits = (max_message_bytes, max_retained, max_retained_bytes)
+        self.stats = BrokerStats()
+        self._broker: _LimitedBroker | None = None
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
+        self._lock_fd: int | None = None
+
+    # ----------------------------------------------------------------- addresses
 
     @property
     def url(self) -> str:
-        return f"mqtt://{self.host}:{self.port}"
+        """The broker's URL with the account (give it to clients, never to a log)."""
+        if self.anonymous:
+            return f"mqtt://{self.host}:{self.port}"
+        user, password = quote(self.username, safe=""), quote(self.password, safe="")
+        return f"mqtt://{user}:{password}@{self.host}:{self.port}"
+
+    @property
+    def public_url(self) -> str:
+        """:attr:`url` with the password masked (for logs and summaries)."""
+        return mask_url(self.url)
+
+    @property
+    def account_file(self) -> Path | None:
+        return None if self.state_dir is None else self.state_dir / ACCOUNT_FILE
+
+    # ----------------------------------------------------------------- lifecycle
 
     async def start(self) -> None:
         amqtt_log = logging.getLogger("amqtt")
@@ -35,24 +292,53 @@ class EmbeddedBroker:
             # amqtt warns about every client it refuses (the gateway's MQTT 5 probe
             # included) and about harmless protocol quirks: keep its errors only.
             amqtt_log.setLevel(logging.ERROR)
+        state = self._open_state()
+        if not self.anonymous:
+            self._account(state)
+        self.port = self._choose_port(state)
+        plugins: dict[str, Any] = {
+            "amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": self.anonymous},
+        }
+        if not self.anonymous:
+            plugins["amqtt.plugins.authentication.FileAuthPlugin"] = {
+                "password_file": str(state / PASSWD_FILE)
+            }
         config: dict[str, Any] = {
             "listeners": {"default": {"type": "tcp", "bind": f"{self.host}:{self.port}"}},
-            # Only what the demo needs: no $SYS publisher, no per-packet logging.
-            "plugins": {
-                "amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True},
-            },
+            # No $SYS publisher, no per-packet logging.
+            "plugins": plugins,
         }
-        broker = Broker(config)
-        await broker.start()
+        mm, mr, mb = self.limits
+        broker = _LimitedBroker(
+            config,
+            max_message_bytes=mm,
+            max_retained=mr,
+            max_retained_bytes=mb,
+            db_path=None if self.state_dir is None else state / RETAINED_FILE,
+            stats=self.stats,
+        )
+        try:
+            await broker.start()
+        except Exception as e:
+            broker.close_store()
+            self._release()
+            where = f"{self.host}:{self.port}"
+            raise BrokerError(f"embedded MQTT broker cannot listen on {where}: {e}") from e
         self._broker = broker
         if self.port == 0:
             self.port = _bound_port(broker)
-        log.info("embedded MQTT broker listening on %s", self.url)
+        if self.state_dir is not None:
+            _write_private(state / PORT_FILE, json.dumps({"port": self.port}) + "\n")
+        log.info("embedded MQTT broker listening on %s", self.public_url)
 
     async def stop(self) -> None:
         if self._broker is not None:
             broker, self._broker = self._broker, None
-            await broker.shutdown()
+            try:
+                await broker.shutdown()
+            finally:
+                broker.close_store()
+        self._release()
 
     async def __aenter__(self) -> EmbeddedBroker:
         await self.start()
@@ -60,6 +346,89 @@ class EmbeddedBroker:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
+
+    # ----------------------------------------------------------------- state
+
+    def _open_state(self) -> Path:
+        """The state directory (created 0700 and locked), or a private temporary one."""
+        if self.state_dir is None:
+            self._tmp = tempfile.TemporaryDirectory(prefix="awaremw-broker-")
+            return Path(self._tmp.name)
+        d = self.state_dir
+        d.mkdir(parents=True, exist_ok=True, mode=0o700)
+        fd = os.open(d / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise BrokerStateInUse(
+                f"the broker state {d} is in use by another embedded broker; "
+                "give this one its own --state-dir"
+            ) from None
+        self._lock_fd = fd
+        return d
+
+    def _release(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def _account(self, state: Path) -> None:
+        """Read the saved account, or make one (password generated once)."""
+        from pwdlib import PasswordHash
+        from pwdlib.hashers.argon2 import Argon2Hasher
+
+        account = state / ACCOUNT_FILE
+        if self.state_dir is not None and account.exists():
+            user, sep, password = account.read_text().strip().partition(":")
+            if not sep or not user or not password:
+                raise BrokerError(f"{account} is not user:password; delete it to make a new one")
+            self.username, self.password = user, password
+        else:
+            self.password = secrets.token_urlsafe(18)
+            self.password_generated = True
+            _write_private(account, f"{self.username}:{self.password}\n")
+        digest = PasswordHash((Argon2Hasher(),)).hash(self.password)
+        _write_private(state / PASSWD_FILE, f"{self.username}:{digest}\n")
+
+    def _choose_port(self, state: Path) -> int:
+        if self._requested_port is not None:
+            if self._requested_port and not _port_free(self.host, self._requested_port):
+                raise BrokerPortInUse(
+                    f"port {self._requested_port} on {self.host} is in use; choose another "
+                    "--mqtt-port or leave it out to take a free one"
+                )
+            return self._requested_port
+        wanted = DEFAULT_PORT
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+            wanted = int(json.loads((state / PORT_FILE).read_text())["port"])
+        if _port_free(self.host, wanted):
+            return wanted
+        self.moved_from = wanted
+        return 0
+
+
+def _port_free(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            if e.errno in (errno.EADDRINUSE, errno.EACCES):
+                return False
+            raise
+    return True
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` with mode 0600 from the first byte."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.chmod(path, 0o600)
 
 
 def _bound_port(broker: Broker) -> int:

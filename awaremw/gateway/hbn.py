@@ -7,7 +7,11 @@ Same contract as MQTT, on key expressions instead of topics:
 * subscribe to ``aware/hbn/data/<channel>/<type>/<group_id>`` (records) and
   ``aware/hbn/groups/<type>/<group_id>`` (group state; a ``delete`` when the
   group is gone), ``aware/hbn/gateway/status``;
-* refusals are put on ``aware/hbn/errors`` (same JSON as MQTT);
+* refusals are put on ``aware/hbn/errors`` (same JSON as MQTT); a payload
+  larger than ``max_payload_bytes`` is not copied out of Zenoh at all (only its
+  size goes to the loop, to be refused as ``payload_too_large``), and at most
+  ``max_pending`` samples wait for the loop (beyond, they are dropped and
+  counted in ``dropped``);
 * ``get aware/hbn/**`` (or any narrower selector such as ``aware/hbn/def/**``
   or ``aware/hbn/groups/**``) answers with the current definitions, group
   states and gateway status/stats -- Zenoh's stand-in for retained messages.
@@ -22,8 +26,8 @@ Zenoh thread.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
+import threading
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
 
@@ -33,7 +37,10 @@ from awaremw.gateway.bridge import ErrorReport, Publish
 
 log = logging.getLogger(__name__)
 
-OnMessage = Callable[[str, bytes, bool, str], object]  # (rel_topic, payload, retained, key)
+# (rel_topic, payload, retained, key, size): ``size`` is the payload's size as
+# put; a payload over the limit arrives empty, to be refused by its size alone.
+OnMessage = Callable[[str, bytes, bool, str, int], object]
+MAX_PENDING = 1_000  # samples handed to the loop and not yet handled
 
 
 class HbnApi:
@@ -50,6 +57,8 @@ class HbnApi:
         *,
         prefix: str = "aware",
         loop: asyncio.AbstractEventLoop | None = None,
+        max_payload_bytes: int = 4096,
+        max_pending: int = MAX_PENDING,
     ) -> None:
         self.session = session
         self.on_message = on_message
@@ -58,8 +67,13 @@ class HbnApi:
         self._snapshot: Mapping[str, bytes] = MappingProxyType({})
         self._decls: list[zenoh.Subscriber[None] | zenoh.Queryable[None]] = []
         self._inputs = (f"{self.base}/def/", f"{self.base}/cmd/")
+        self.max_payload_bytes = max_payload_bytes
+        self.max_pending = max_pending
         self.received = 0
         self.queries = 0
+        self.dropped = 0  # samples dropped because max_pending were waiting
+        self._pending = 0  # written on Zenoh threads and the loop: guarded by _lock
+        self._lock = threading.Lock()
 
     def key(self, rel: str) -> str:
         return f"{self.base}/{rel}"
@@ -108,19 +122,30 @@ class HbnApi:
         key = str(sample.key_expr)
         if not key.startswith(self._inputs):
             return  # data, groups, errors: output of this or another gateway
+        with self._lock:
+            if self._pending >= self.max_pending:
+                self.dropped += 1
+                return
+            self._pending += 1
         deleted = sample.kind == zenoh.SampleKind.DELETE
-        payload = b"" if deleted else sample.payload.to_bytes()
+        size = 0 if deleted else len(sample.payload)
+        # An oversize payload is not copied out of Zenoh: its size is enough to refuse it.
+        payload = b"" if deleted or size > self.max_payload_bytes else sample.payload.to_bytes()
         rel = key[len(self.base) + 1 :]
-        # RuntimeError: the loop closed while Zenoh was still delivering.
-        with contextlib.suppress(RuntimeError):
-            self.loop.call_soon_threadsafe(self._deliver, rel, payload, key)
+        try:
+            self.loop.call_soon_threadsafe(self._deliver, rel, payload, key, size)
+        except RuntimeError:  # the loop closed while Zenoh was still delivering
+            with self._lock:
+                self._pending -= 1
 
-    def _deliver(self, rel: str, payload: bytes, key: str) -> None:
+    def _deliver(self, rel: str, payload: bytes, key: str, size: int) -> None:
+        with self._lock:
+            self._pending -= 1
         self.received += 1
         try:
-            self.on_message(rel, payload, False, key)
+            self.on_message(rel, payload, False, key, size)
         except Exception:  # a bug in the handler must not kill the subscription
-            log.exception("handling %s failed", key)
+            log.exception("handling %s failed", key[:200])
 
     def _on_query(self, query: zenoh.Query) -> None:
         self.queries += 1

@@ -83,6 +83,8 @@ class MqttSettings:
     drain_timeout_s: float = 2.0  # on stop, how long to try to deliver the backlog
     max_inflight: int = 16  # stream messages awaiting their PUBACK at once
     stats_interval_s: float = 5.0  # gateway/stats at most this often (and on drops)
+    max_incoming: int = 1_000  # received messages queued for the gateway (aiomqtt drops beyond)
+    max_packet_bytes: int = 65_536  # MQTT 5: the broker sends the gateway nothing larger
 
     @classmethod
     def from_url(cls, url: str, **overrides: object) -> MqttSettings:
@@ -236,6 +238,7 @@ class MqttBridge:
         if protocol is aiomqtt.ProtocolVersion.V5:
             props = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
             props.SessionExpiryInterval = s.session_expiry_s if s.persistent_session else 0
+            props.MaximumPacketSize = s.max_packet_bytes
             kwargs["properties"] = props
             kwargs["clean_start"] = not s.persistent_session
         else:
@@ -252,6 +255,7 @@ class MqttBridge:
             timeout=s.timeout_s,
             tls_context=self._tls_context(),
             tls_insecure=s.tls_insecure if s.tls else None,
+            max_queued_incoming_messages=s.max_incoming,
             **kwargs,  # type: ignore[arg-type]
         )
         # aiomqtt warns above 10 pending calls; our in-flight window is the bound.

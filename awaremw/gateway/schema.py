@@ -22,7 +22,11 @@ The JSON shapes (see docs/gateway.md):
 
     {"target": "all" | {"node": 7} | {"group_type": 1, "group_id": 513}, "args": {"k": v}}
 
-An empty payload on a definition topic deletes the definition.
+An empty payload on a definition topic deletes the definition; a JSON ``null``
+is refused (``wrong_type``), never taken for a deletion. Before any parsing a
+payload is bounded in size (``max_payload_bytes``) and in nesting depth
+(``max_depth``): a deeply nested document is refused as ``payload_too_deep``
+instead of exhausting the parser's recursion. See docs/robustness.md.
 """
 
 from __future__ import annotations
@@ -88,6 +92,14 @@ class InvalidJson(SchemaError):
 
 class PayloadTooLarge(SchemaError):
     code = "payload_too_large"
+
+
+class PayloadTooDeep(SchemaError):
+    code = "payload_too_deep"
+
+
+class TopicTooLong(SchemaError):
+    code = "topic_too_long"
 
 
 class WrongType(SchemaError):
@@ -163,6 +175,7 @@ class Limits:
 
     mtu: int = 100
     max_payload_bytes: int = 4096
+    max_depth: int = 8  # nesting of JSON arrays/objects (the contract needs 3)
     max_group_type: int = 254  # 0xFF means "any" in a channel
     max_channel_id: int = 255
     max_group_types: int = 8  # how many may be defined at once (mote table size)
@@ -215,21 +228,49 @@ class Command:
 # --------------------------------------------------------------------------- payload helpers
 
 
+_STRINGS = re.compile(r'"(?:[^"\\]|\\.)*"')
+_NOT_BRACKETS = re.compile(r"[^\[\]{}]+")
+
+
+def is_empty(payload: bytes, limits: Limits) -> bool:
+    """An empty (or all-whitespace, within the size limit) payload: a deletion."""
+    return len(payload) <= limits.max_payload_bytes and not payload.strip()
+
+
+def json_depth(text: str) -> int:
+    """Greatest nesting of arrays/objects in ``text`` (strings skipped), without recursion."""
+    depth = deepest = 0
+    for ch in _NOT_BRACKETS.sub("", _STRINGS.sub("", text)):
+        if ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        else:
+            depth -= 1
+    return deepest
+
+
 def decode_payload(payload: bytes, limits: Limits) -> Any:
-    """Size, UTF-8 and JSON checks; returns the JSON value (None if empty)."""
+    """Size, UTF-8, depth and JSON checks; returns the JSON value.
+
+    The caller handles the empty payload (:func:`is_empty`) first: here it is
+    not JSON. A JSON ``null`` comes back as None, for the caller to refuse.
+    """
     if len(payload) > limits.max_payload_bytes:
         raise PayloadTooLarge(
             f"payload of {len(payload)} bytes exceeds the limit of {limits.max_payload_bytes}"
         )
-    if not payload.strip():
-        return None
     try:
         text = payload.decode("utf-8")
     except UnicodeDecodeError as e:
         raise InvalidUtf8(f"payload is not UTF-8: {e.reason} at byte {e.start}") from None
+    depth = json_depth(text)
+    if depth > limits.max_depth:
+        raise PayloadTooDeep(
+            f"payload nests arrays/objects {depth} deep, more than the limit of {limits.max_depth}"
+        )
     try:
         return json.loads(text, parse_constant=_no_constant)
-    except (json.JSONDecodeError, ValueError) as e:
+    except (json.JSONDecodeError, ValueError, RecursionError) as e:
         raise InvalidJson(f"payload is not JSON: {e}") from None
 
 
@@ -289,6 +330,20 @@ def _string(v: object, what: str) -> str:
     return v
 
 
+def _attribute(name: str, what: str) -> int:
+    """Wire id of an attribute name; every bad name is ``unknown_attribute``."""
+    prefix = f"{what}: " if what else ""
+    if name.startswith("rssi:") and not name[5:].isascii():
+        # str.isdigit() accepts Unicode digits ("rssi:\u00b2") that int() refuses.
+        raise UnknownAttributeName(
+            f"{prefix}{name!r}: rssi:<node id> needs a node id in 0..{MAX_NODE_ID}"
+        )
+    try:
+        return attribute_id(name)
+    except UnknownAttribute as e:
+        raise UnknownAttributeName(f"{prefix}{e}") from None
+
+
 def parse_id(text: str, what: str, lo: int, hi: int, err: type[SchemaError]) -> int:
     """A decimal id from a topic level, in ``[lo, hi]``."""
     if not text.isascii() or not text.isdigit():
@@ -323,9 +378,9 @@ def parse_group_type(
 ) -> Definition:
     """``def/group/<type>``; ``defined`` lists the group types already defined."""
     gtype = group_type_id(type_text, limits)
-    doc = decode_payload(payload, limits)
-    if doc is None:
+    if is_empty(payload, limits):
         return Definition(ItemKind.GROUP_TYPE, gtype, None, None)
+    doc = decode_payload(payload, limits)
     obj = _object(doc, "group definition", ("conditions", "hysteresis"), ("conditions",))
     conds_doc = obj["conditions"]
     if not isinstance(conds_doc, list):
@@ -336,11 +391,7 @@ def parse_group_type(
     for i, c in enumerate(conds_doc):
         what = f"conditions[{i}]"
         co = _object(c, what, ("attr", "op", "value"), ("attr", "op", "value"))
-        attr_name = _string(co["attr"], f"{what}.attr")
-        try:
-            attr = attribute_id(attr_name)
-        except UnknownAttribute as e:
-            raise UnknownAttributeName(f"{what}: {e}") from None
+        attr = _attribute(_string(co["attr"], f"{what}.attr"), what)
         op_text = _string(co["op"], f"{what}.op")
         try:
             op = Op.from_symbol(op_text)
@@ -390,16 +441,12 @@ def parse_channel(
 ) -> Definition:
     """``def/channel/<id>``; ``defined`` lists the channel ids already defined."""
     ch = channel_id(id_text, limits)
-    doc = decode_payload(payload, limits)
-    if doc is None:
+    if is_empty(payload, limits):
         return Definition(ItemKind.CHANNEL, ch, None, None)
+    doc = decode_payload(payload, limits)
     keys = ("attr", "group_type", "group_id", "period_s", "agg")
     obj = _object(doc, "channel definition", keys, ("attr", "period_s"))
-    attr_name = _string(obj["attr"], "attr")
-    try:
-        attr = attribute_id(attr_name)
-    except UnknownAttribute as e:
-        raise UnknownAttributeName(str(e)) from None
+    attr = _attribute(_string(obj["attr"], "attr"), "")
     gt_doc = obj.get("group_type", ANY)
     if gt_doc == ANY:
         gtype = ANY_GROUP_TYPE
@@ -457,8 +504,8 @@ def parse_command(
             f"command name {name!r} must be 1..{MAX_COMMAND_NAME} characters of "
             "letters, digits, '_', '-', '.'"
         )
-    doc = decode_payload(payload, limits)
-    obj = _object({} if doc is None else doc, "command", ("target", "args"), ())
+    doc = {} if is_empty(payload, limits) else decode_payload(payload, limits)
+    obj = _object(doc, "command", ("target", "args"), ())
     target = obj.get("target", "all")
     tk, ta, tb, tjson = _parse_target(target, limits, group_types)
     args_doc = obj.get("args", {})

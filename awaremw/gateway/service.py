@@ -150,10 +150,11 @@ class GatewayService:
         if self.settings.hbn and self._session is not None:
             self.hbn = HbnApi(
                 self._session,
-                lambda rel, payload, retained, key: self.handle(
-                    rel, payload, retained=retained, topic=key, via="hbn"
+                lambda rel, payload, retained, key, size: self.handle(
+                    rel, payload, retained=retained, topic=key, via="hbn", size=size
                 ),
                 prefix=self.settings.prefix,
+                max_payload_bytes=self.settings.max_payload_bytes,
             )
             self.hbn.start()
             self._refresh_hbn()
@@ -195,10 +196,18 @@ class GatewayService:
     # ----------------------------------------------------------------- IP -> WSN
 
     def handle(
-        self, rel: str, payload: bytes, *, retained: bool = False, topic: str = "", via: str = ""
+        self,
+        rel: str,
+        payload: bytes,
+        *,
+        retained: bool = False,
+        topic: str = "",
+        via: str = "",
+        size: int | None = None,
     ) -> Outcome:
-        """One payload from an IP transport (``via``: ``mqtt``, ``hbn`` or ``local``)."""
-        out = self.bridge.handle(rel, payload, source=topic or rel, retained=retained)
+        """One payload from an IP transport (``via``: ``mqtt``, ``hbn`` or ``local``);
+        ``size``: the payload's size as sent, when the transport did not copy it whole."""
+        out = self.bridge.handle(rel, payload, source=topic or rel, retained=retained, size=size)
         if out.inject is not None:
             self._inject_all(out.inject)
             self._refresh_hbn()
@@ -315,6 +324,12 @@ class GatewayService:
         out: dict[str, Any] = {"bridge": self.bridge.stats.as_dict(), "injected": self.injected}
         if self.mqtt is not None:
             out["mqtt"] = self.mqtt.stats.as_dict()
+        if self.hbn is not None:
+            out["hbn"] = {
+                "received": self.hbn.received,
+                "dropped": self.hbn.dropped,
+                "queries": self.hbn.queries,
+            }
         return out
 
     def _refresh_hbn(self) -> None:

@@ -61,6 +61,8 @@ def unwrap(wire: int, ref: int | None) -> int:
     return ref - ((ref - wire) & _M32)  # older, or equal (d == 0)
 
 
+MAX_SEEN = 4096  # source topics whose last payload hash is remembered (LRU beyond)
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS items (
     kind INTEGER NOT NULL,
@@ -74,7 +76,8 @@ CREATE TABLE IF NOT EXISTS items (
 );
 CREATE TABLE IF NOT EXISTS seen (
     source TEXT PRIMARY KEY,
-    hash TEXT NOT NULL
+    hash TEXT NOT NULL,
+    used INTEGER NOT NULL DEFAULT 0  -- monotonic counter, for least-recently-used eviction
 );
 CREATE TABLE IF NOT EXISTS command_slots (
     name TEXT PRIMARY KEY,
@@ -121,7 +124,10 @@ class VersionOverflow(RuntimeError):
 class VersionStore:
     """Versions and bodies of the gateway's items; ``path=None`` keeps them in memory."""
 
-    def __init__(self, path: str | Path | None = None) -> None:
+    def __init__(self, path: str | Path | None = None, *, max_seen: int = MAX_SEEN) -> None:
+        if max_seen < 1:
+            raise ValueError("max_seen must be >= 1")
+        self.max_seen = max_seen
         self.path = None if path is None else Path(path)
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -130,7 +136,12 @@ class VersionStore:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
+        cols = {r[1] for r in self._db.execute("PRAGMA table_info(seen)")}
+        if "used" not in cols:  # a store written before the bound existed
+            self._db.execute("ALTER TABLE seen ADD COLUMN used INTEGER NOT NULL DEFAULT 0")
         self._db.commit()
+        row = self._db.execute("SELECT COALESCE(MAX(used), 0) FROM seen").fetchone()
+        self._seen_tick = int(row[0])
 
     def close(self) -> None:
         self._db.close()
@@ -262,8 +273,23 @@ class VersionStore:
         return None if row is None else str(row[0])
 
     def set_seen(self, source: str, h: str) -> None:
+        """Remember ``h`` for ``source``; beyond ``max_seen`` sources the least
+        recently seen is forgotten (its next retained replay is applied again,
+        which is harmless: an equal definition makes no new version)."""
+        self._seen_tick += 1
         with self._db:
-            self._db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (source, h))
+            self._db.execute(
+                "INSERT OR REPLACE INTO seen VALUES (?, ?, ?)", (source, h, self._seen_tick)
+            )
+            if self.seen_count() > self.max_seen:
+                self._db.execute(
+                    "DELETE FROM seen WHERE source NOT IN "
+                    "(SELECT source FROM seen ORDER BY used DESC LIMIT ?)",
+                    (self.max_seen,),
+                )
+
+    def seen_count(self) -> int:
+        return int(self._db.execute("SELECT COUNT(*) FROM seen").fetchone()[0])
 
     # ----------------------------------------------------------------- command slots
 
