@@ -25,6 +25,7 @@ LAYERS = (
     "world",
     "radio",
     "runtime",
+    "security",
     "nodes",
     "gateway",
     "view",

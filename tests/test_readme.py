@@ -120,12 +120,15 @@ def test_readme_robot_client_gets_data(procs: list[subprocess.Popen[str]], tmp_p
             str(tmp_path / "state"),
         )
     )
-    m = gw.wait_for(r"embedded MQTT broker: mqtt://([\d.]+):(\d+)", timeout=30)
-    host, port = m.group(1), int(m.group(2))
+    m = gw.wait_for(r"embedded MQTT broker: mqtt://([\d.]+):(\d+) account '(\w+)'", timeout=30)
+    host, port, user = m.group(1), int(m.group(2)), m.group(3)
+    password = gw.wait_for(r"generated password (\S+) ", timeout=10).group(1)
 
     script = tmp_path / "robot.py"
     script.write_text(
-        readme_robot_client().replace("asyncio.run(main())", f"asyncio.run(main({host!r}, {port}))")
+        readme_robot_client().replace(
+            "asyncio.run(main())", f"asyncio.run(main({host!r}, {port}, {user!r}, {password!r}))"
+        )
     )
     client = subprocess.Popen(
         [sys.executable, "-u", str(script)],
