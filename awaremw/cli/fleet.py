@@ -79,6 +79,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="shared wall-clock start of emulated time (fleets on several hosts)",
     )
     p.add_argument(
+        "--zenoh-mode",
+        choices=("peer", "client"),
+        default="peer",
+        help="Zenoh mode: peer (default; links directly to the peers the router names) "
+        "or client (everything through the --connect router, e.g. across networks)",
+    )
+    p.add_argument(
         "--links-json",
         default=None,
         metavar="PATH",
@@ -157,6 +164,12 @@ def run_fleet(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"awaremw fleet: --part {args.part}: {e}", file=sys.stderr)
         return 2
+    if args.zenoh_mode == "client" and (not args.connect or args.listen or args.processes != 1):
+        print(
+            "awaremw fleet: --zenoh-mode client needs --connect, one process and no --listen",
+            file=sys.stderr,
+        )
+        return 2
     if args.part_filter is not None and args.processes != 1:
         print("awaremw fleet: --part and --processes do not combine", file=sys.stderr)
         return 2
@@ -234,6 +247,7 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
                 node_filter=_combine(args.part_filter, skip),
                 start_wall=args.start_at,
                 track_links=args.links_json is not None,
+                zenoh_mode=args.zenoh_mode,
             )
             await fleet.__aenter__()
         except zenoh.ZError as e:

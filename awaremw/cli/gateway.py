@@ -58,6 +58,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="ENDPOINT",
         help="Zenoh endpoint to listen on (repeatable)",
     )
+    p.add_argument(
+        "--zenoh-mode",
+        choices=("peer", "client"),
+        default="peer",
+        help="Zenoh mode: peer (default; links directly to the peers the router names) "
+        "or client (everything through the --connect router, e.g. across networks)",
+    )
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     p.add_argument(
         "--state-dir",
@@ -116,6 +123,9 @@ def run(args: argparse.Namespace) -> int:
     except BadMqttUrl as e:
         print(f"awaremw gateway: {e}", file=sys.stderr)
         return 2
+    if args.zenoh_mode == "client" and (not args.connect or args.listen):
+        print("awaremw gateway: --zenoh-mode client needs --connect and no --listen", file=sys.stderr)
+        return 2
     if args.speed <= 0 or args.buffer < 1:
         print("awaremw gateway: --speed must be > 0 and --buffer >= 1", file=sys.stderr)
         return 2
@@ -164,6 +174,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             node_filter=lambda s: s.kind == "gateway",
             name="gateway",
             autostart=False,
+            zenoh_mode=args.zenoh_mode,
         )
         await stack.enter_async_context(fleet)
         start_wall = args.start_wall

@@ -249,6 +249,7 @@ class Fleet:
         freeze_gc: bool = False,
         radio_model: RadioModel | None = None,
         track_links: bool = False,
+        zenoh_mode: Literal["peer", "client"] = "peer",
     ) -> None:
         self.deployment = deployment
         self.track_links = track_links
@@ -261,7 +262,9 @@ class Fleet:
         self.control = control
         self.freeze_gc = freeze_gc
         self.model = radio_model or deployment.radio_model()
-        self._settings = SessionSettings("peer", tuple(connect), tuple(listen))
+        self._settings = SessionSettings(
+            zenoh_mode, tuple(connect), () if zenoh_mode == "client" else tuple(listen)
+        )
         self._session = session
         self._own_session = session is None
         self._start_wall = start_wall

@@ -37,6 +37,15 @@ compose() {
     fi
 }
 
+# Stops and removes project PROJECT of compose FILE: containers, volumes and
+# networks (podman-compose 1.0 leaves networks, which would keep stale settings).
+compose_down() { # FILE PROJECT
+    compose -f "$1" -p "$2" down -v >/dev/null 2>&1 || true
+    local nets
+    nets="$("$ENGINE" network ls -q --filter "label=com.docker.compose.project=$2" 2>/dev/null || true)"
+    [ -z "$nets" ] || "$ENGINE" network rm $nets >/dev/null 2>&1 || true
+}
+
 # Installs the engine and the tools the tests use (Debian packages), once.
 install_tools() {
     local pkgs=()
@@ -155,6 +164,22 @@ build_project_image() {
     "$ENGINE" build -q "${BUILD_VOLUMES[@]}" --build-arg "PYTHON_IMAGE=$PYTHON_IMAGE" \
         -t "$AWAREMW_IMAGE" -f "$REPO/Dockerfile" "$REPO" >/dev/null \
         || die "building $AWAREMW_IMAGE failed"
+}
+
+# The container of SERVICE in compose project PROJECT (first replica).
+container_of() { # PROJECT SERVICE
+    "$ENGINE" ps -q --filter "label=com.docker.compose.project=$1" \
+        --filter "label=com.docker.compose.service=$2" | head -1
+}
+# Can SERVICE open a TCP connection to HOST:PORT? (exit status of the attempt)
+can_connect() { # PROJECT SERVICE HOST PORT
+    "$ENGINE" exec "$(container_of "$1" "$2")" python3 -c 'import socket, sys
+socket.create_connection((sys.argv[1], int(sys.argv[2])), timeout=3).close()' "$3" "$4" >/dev/null 2>&1
+}
+# The IP addresses of SERVICE's container, space-separated.
+addresses_of() { # PROJECT SERVICE
+    "$ENGINE" inspect -f '{{range .NetworkSettings.Networks}}{{.IPAddress}} {{end}}' \
+        "$(container_of "$1" "$2")"
 }
 
 # A free TCP port on the host's loopback.

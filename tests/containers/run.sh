@@ -33,7 +33,7 @@ teardown() {
         log "no record: the services' last log lines"
         compose -p "$PROJECT" logs --tail 25 >&2 2>&1 || true
     fi
-    compose -p "$PROJECT" down -v >/dev/null 2>&1 || true
+    compose_down "$REPO/docker-compose.yml" "$PROJECT"
     echo "records received: $N"
     if [ "$N" -eq 0 ] && [ "$code" -eq 0 ]; then code=1; fi
     exit "$code"
@@ -43,12 +43,14 @@ trap 'exit 130' INT TERM
 
 build_base_images
 build_project_image
+compose_down "$REPO/docker-compose.yml" "$PROJECT"   # leftovers of an interrupted run
 log "images ready in $((SECONDS - t0)) s"
 
 export AWARE_START_AT=$(( $(date +%s) + 8 ))
 log "up: router, broker, gateway, $AWARE_FLEETS fleets (broker on 127.0.0.1:$AWARE_MQTT_PORT)"
 UP=1
-compose -p "$PROJECT" up -d --no-build >/dev/null
+compose -p "$PROJECT" up -d --no-build > "$CACHE/$PROJECT-up.log" 2>&1 \
+    || { cat "$CACHE/$PROJECT-up.log" >&2; die "compose up failed"; }
 wait_status online 90 || die "the gateway never said online on aware/gateway/status"
 log "gateway online; defining group type 1 and channel 1 as the operator"
 mqtt_pub operator aware/def/group/1 \
