@@ -124,7 +124,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"awaremw gateway: {e}", file=sys.stderr)
         return 2
     if args.zenoh_mode == "client" and (not args.connect or args.listen):
-        print("awaremw gateway: --zenoh-mode client needs --connect and no --listen", file=sys.stderr)
+        print(
+            "awaremw gateway: --zenoh-mode client needs --connect and no --listen",
+            file=sys.stderr,
+        )
         return 2
     if args.speed <= 0 or args.buffer < 1:
         print("awaremw gateway: --speed must be > 0 and --buffer >= 1", file=sys.stderr)
