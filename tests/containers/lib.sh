@@ -132,6 +132,7 @@ build_base_images() {
         log "importing $BASE_IMAGE"
         tar -C "$CACHE/rootfs" --exclude=./.complete -c . \
             | "$ENGINE" import --change 'CMD ["/bin/bash"]' - "$BASE_IMAGE" >/dev/null
+        rm -rf "$CACHE/rootfs"   # the image is the cache from now on
     fi
     local ctx="$CACHE/python-context"
     rm -rf "$ctx" && mkdir -p "$ctx/ca"
