@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from awaremw.runtime.deployment import load
+from awaremw.runtime.fleet import stripes
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
 
 pytestmark = pytest.mark.zenoh
@@ -114,6 +116,42 @@ def test_router_runs_until_terminated() -> None:
         r.wait(timeout=20)
     assert r.returncode == 0
     assert run("router", "--listen", "nonsense").returncode == 2
+
+
+def test_two_client_mode_fleets_hear_each_other_through_the_router(tmp_path: Path) -> None:
+    """--zenoh-mode client: no direct link between fleets, the router carries every frame."""
+    ep = free_tcp_endpoint()
+    r = subprocess.Popen([*AWAREMW, "router", "--listen", ep], stdout=subprocess.PIPE, text=True)
+    fleets: list[subprocess.Popen[bytes]] = []
+    try:
+        assert r.stdout is not None and "listening" in r.stdout.readline()
+        start_at = f"{time.time() + 3.0:.3f}"
+        for part in ("1/2", "2/2"):
+            args = ["fleet", "grid_small", "--plain", "--hello", "--zenoh-mode", "client"]
+            args += ["--part", part, "--connect", ep, "--start-at", start_at, "--duration", "6"]
+            args += ["--links-json", str(tmp_path / f"{part[0]}.json")]
+            fleets.append(subprocess.Popen([*AWAREMW, *args], stdout=subprocess.DEVNULL))
+        for f in fleets:
+            assert f.wait(timeout=60) == 0
+    finally:
+        for proc in (*fleets, r):
+            if proc.poll() is None:
+                proc.terminate()
+                proc.wait(timeout=20)
+    dep = load("grid_small")
+    west = stripes(dep, 2)[0]
+    side = {n.id: ("1" if west(n) else "2") for n in dep.nodes}
+    for k in "12":
+        rows = json.loads((tmp_path / f"{k}.json").read_text())
+        assert all(side[dst] == k for _, dst, _ in rows)
+        assert any(side[src] != k for src, _, _ in rows), f"fleet {k} heard no other-side mote"
+
+
+def test_client_mode_needs_a_router() -> None:
+    p = run("fleet", "grid_small", "--zenoh-mode", "client")
+    assert p.returncode == 2 and "--zenoh-mode client needs --connect" in p.stderr
+    p = run("gateway", "grid_small", "--zenoh-mode", "client")
+    assert p.returncode == 2 and "--zenoh-mode client needs --connect" in p.stderr
 
 
 def test_bench_verb_registry_and_scale_json() -> None:

@@ -83,6 +83,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="shared wall-clock start of emulated time (fleets on several hosts)",
     )
     p.add_argument(
+        "--zenoh-mode",
+        choices=("peer", "client"),
+        default="peer",
+        help="Zenoh mode: peer (default; links directly to the peers the router names) "
+        "or client (everything through the --connect router, e.g. across networks)",
+    )
+    p.add_argument(
         "--links-json",
         default=None,
         metavar="PATH",
@@ -167,6 +174,12 @@ def run_fleet(args: argparse.Namespace) -> int:
         args.part_filter = _part_filter(args.part, dep)
     except ValueError as e:
         print(f"awaremw fleet: --part {args.part}: {e}", file=sys.stderr)
+        return 2
+    if args.zenoh_mode == "client" and (not args.connect or args.listen or args.processes != 1):
+        print(
+            "awaremw fleet: --zenoh-mode client needs --connect, one process and no --listen",
+            file=sys.stderr,
+        )
         return 2
     if args.part_filter is not None and args.processes != 1:
         print("awaremw fleet: --part and --processes do not combine", file=sys.stderr)
@@ -261,6 +274,8 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         settings = None
         if args.role_config is not None:
             settings = SessionSettings("client", tuple(args.connect), config_file=args.role_config)
+        elif args.zenoh_mode == "client":  # everything through the router (e.g. across networks)
+            settings = SessionSettings("client", tuple(args.connect))
         try:
             fleet = Fleet(
                 dep,

@@ -77,6 +77,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="ENDPOINT",
         help="Zenoh endpoint to listen on (repeatable)",
     )
+    p.add_argument(
+        "--zenoh-mode",
+        choices=("peer", "client"),
+        default="peer",
+        help="Zenoh mode: peer (default; links directly to the peers the router names) "
+        "or client (everything through the --connect router, e.g. across networks)",
+    )
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     p.add_argument(
         "--secrets",
@@ -156,6 +163,16 @@ def run(args: argparse.Namespace) -> int:
         except SecretsError as e:
             print(f"awaremw gateway: {e}", file=sys.stderr)
             return 2
+    elif args.zenoh_mode == "client":  # everything through the router (e.g. across networks)
+        if not args.connect or args.listen:
+            print(
+                "awaremw gateway: --zenoh-mode client needs --connect and no --listen",
+                file=sys.stderr,
+            )
+            return 2
+        from awaremw.runtime.zenoh_session import SessionSettings
+
+        args.session_settings = SessionSettings("client", tuple(args.connect))
     if args.speed <= 0 or args.buffer < 1:
         print("awaremw gateway: --speed must be > 0 and --buffer >= 1", file=sys.stderr)
         return 2
