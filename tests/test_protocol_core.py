@@ -76,3 +76,16 @@ def test_timerset_fires_in_time_order() -> None:
     assert t.next_deadline() == 1.0
     assert t.due(3.0) == ["a", "b"]
     assert t.next_deadline() == 5.0
+
+
+def test_unicode_digits_are_an_unknown_attribute_not_a_crash() -> None:
+    # str.isdigit() accepts "²" and "٣" while int() refuses them: the name must be
+    # refused as unknown (the specific error), not end in a ValueError traceback.
+    import pytest
+
+    from awaremw.protocol.attributes import UnknownAttribute, attribute_id
+
+    for name in ("rssi:²", "rssi:٣", "rssi:1²"):
+        with pytest.raises(UnknownAttribute):
+            attribute_id(name)
+    assert attribute_id("rssi:100") == attribute_id("rssi:0100")

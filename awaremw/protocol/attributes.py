@@ -52,7 +52,8 @@ def attribute_id(name: str) -> int:
         return STANDARD[name]
     if name.startswith("rssi:"):
         node = name[5:]
-        if node.isdigit() and 0 <= int(node) <= MAX_NODE_ID:
+        # isascii: str.isdigit() also accepts Unicode digits ("rssi:\u00b2") that int() refuses.
+        if node.isascii() and node.isdigit() and 0 <= int(node) <= MAX_NODE_ID:
             return RSSI_BASE | int(node)
         raise UnknownAttribute(f"{name!r}: rssi:<node id> needs a node id in 0..{MAX_NODE_ID}")
     known = ", ".join([*STANDARD, "rssi:<node id>"])
