@@ -192,8 +192,10 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         CoreFactory,
         Fleet,
         FleetLauncher,
+        FleetSettings,
         FleetSnapshot,
         LaunchError,
+        LauncherSettings,
         hello_core,
     )
 
@@ -224,30 +226,28 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), min(left, args.progress))
             if not stop.is_set() and left > args.progress:
-                show(fleet.snapshot())
+                show(fleet.stats.snapshot())
 
     skip = frozenset(args.without_kind)
     if args.processes == 1:
         try:
-            fleet = Fleet(
-                dep,
-                factory,
+            settings = FleetSettings(
                 speed=args.speed,
                 prefix=args.prefix,
-                connect=args.connect,
-                listen=listen,
-                freeze_gc=True,
-                node_filter=_combine(args.part_filter, skip),
+                connect=tuple(args.connect),
+                listen=tuple(listen),
                 start_wall=args.start_at,
+                freeze_gc=True,
                 track_links=args.links_json is not None,
             )
+            fleet = Fleet(dep, factory, settings, node_filter=_combine(args.part_filter, skip))
             await fleet.__aenter__()
         except zenoh.ZError as e:
             raise _StartError(f"cannot open the Zenoh session on {where}: {e}") from None
         try:
             await wait_end(fleet)
             fleet.raise_errors()
-            show(fleet.snapshot())
+            show(fleet.stats.snapshot())
             if args.links_json is not None:
                 links = fleet.medium.links or {}
                 with open(args.links_json, "w", encoding="utf-8") as f:
@@ -258,15 +258,17 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
 
     launcher = FleetLauncher(
         dep,
-        processes=args.processes,
-        core_factory=factory,
-        speed=args.speed,
-        prefix=args.prefix,
-        connect=args.connect,
-        listen=listen,
-        progress_s=args.progress,
+        factory,
+        LauncherSettings(
+            processes=args.processes,
+            speed=args.speed,
+            prefix=args.prefix,
+            connect=tuple(args.connect),
+            listen=tuple(listen),
+            progress_s=args.progress,
+            exclude_kinds=skip,
+        ),
         on_progress=show,
-        exclude_kinds=skip,
     )
     try:
         await launcher.__aenter__()
