@@ -218,3 +218,28 @@ def test_default_core_factory_builds_the_node_kinds() -> None:
     assert app is not None and app.node_id == spec.id and app.position(0.0) == spec.position
     hello = hello_core(spec, dep)
     assert isinstance(hello, HelloMote) and hello.node_id == spec.id
+
+
+def test_settings_are_frozen_picklable_data_with_clear_errors() -> None:
+    import dataclasses
+    import pickle
+
+    from awaremw.runtime.fleet import WorkerParams, XStripe
+
+    s = FleetSettings(connect=["tcp/127.0.0.1:7447"], speed=2.0)  # type: ignore[arg-type]
+    assert s.connect == ("tcp/127.0.0.1:7447",) and s.listen == ()
+    with pytest.raises(TypeError, match="not the string"):
+        FleetSettings(connect="tcp/127.0.0.1:7447")  # type: ignore[arg-type]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.speed = 3.0  # type: ignore[misc]
+    with pytest.raises(ValueError, match="processes must be >= 1"):
+        LauncherSettings(processes=0)
+    ls = LauncherSettings(processes=2, speed=4.0, exclude_kinds=["gateway"])  # type: ignore[arg-type]
+    w = ls.fleet("w1", ("tcp/127.0.0.1:9000",))
+    assert (w.name, w.speed, w.connect, w.autostart, w.freeze_gc) == (
+        "w1", 4.0, ("tcp/127.0.0.1:9000",), False, True,
+    )  # fmt: skip
+    dep = deployment([static(1, 10.0, 10.0)])
+    params = WorkerParams(dep, hello_core, w, XStripe(0.0, 50.0), ls.exclude_kinds)
+    back = pickle.loads(pickle.dumps(params))
+    assert back.settings == w and back.name == "w1" and back.exclude_kinds == {"gateway"}

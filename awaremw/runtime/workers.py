@@ -24,7 +24,8 @@ from awaremw.runtime.partition import IdModulo, XStripe
 log = logging.getLogger(__name__)
 
 WORKER_CMD = "from awaremw.runtime.fleet import worker_entry; worker_entry()"
-MAX_PENDING = 4096  # messages from workers not yet taken (progress is folded in)
+MAX_PENDING = 4096  # other messages from workers not yet taken (progress is folded in)
+_ESSENTIAL = frozenset({"ready", "result", "gone"})  # at most one each per worker
 
 
 class LaunchError(RuntimeError):
@@ -80,7 +81,8 @@ class WorkerPool:
     def __init__(self, on_message: Callable[[int, str, Any], bool] | None = None) -> None:
         self.procs: list[subprocess.Popen[bytes]] = []
         self._conns: list[multiprocessing.connection.Connection] = []
-        self._msgs: asyncio.Queue[Message] = asyncio.Queue(MAX_PENDING)
+        self._msgs: asyncio.Queue[Message] = asyncio.Queue()
+        self._others = 0  # queued messages not in _ESSENTIAL: bounded by MAX_PENDING
         self._on_message = on_message
 
     def __len__(self) -> int:
@@ -110,7 +112,10 @@ class WorkerPool:
 
     async def next(self, timeout: float) -> Message:
         """The next queued message; TimeoutError after ``timeout`` wall seconds."""
-        return await asyncio.wait_for(self._msgs.get(), timeout)
+        msg = await asyncio.wait_for(self._msgs.get(), timeout)
+        if msg[1] not in _ESSENTIAL:
+            self._others -= 1
+        return msg
 
     async def results(self, previous: list[WorkerResult], timeout: float) -> list[WorkerResult]:
         """Every worker's result (after ``stop``), one per worker in order;
@@ -161,11 +166,9 @@ class WorkerPool:
         self._put((k, kind, arg))
 
     def _put(self, msg: Message) -> None:
-        try:
-            self._msgs.put_nowait(msg)
-        except asyncio.QueueFull:  # nobody reads: keep the news that matters
-            if msg[1] in ("gone", "result", "ready"):
-                self._msgs.get_nowait()
-                self._msgs.put_nowait(msg)
-            else:
+        if msg[1] not in _ESSENTIAL:
+            if self._others >= MAX_PENDING:  # nobody reads them: drop, say so
                 log.warning("worker w%d: message %r dropped (queue full)", msg[0], msg[1])
+                return
+            self._others += 1
+        self._msgs.put_nowait(msg)
