@@ -172,3 +172,8 @@ def test_describe_events() -> None:
         "mote 1 handed group 7 over to mote 4"
     )
     assert describe(1, object(), 0.0) is None
+    from awaremw.runtime.events import MoteDown
+
+    assert describe(3, MoteDown("battery"), 4.0) == "mote 3 is down (battery)"
+    assert describe(3, MoteDown("stopped"), 4.0) is None  # the end of a run is no news
+    assert describe(3, type("MoteDown", (), {"reason": "killed"})(), 4.0) is None

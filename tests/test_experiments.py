@@ -27,6 +27,8 @@ from awaremw.protocol.groups import (
 )
 from awaremw.radio.model import CC2420, RadioModel
 from awaremw.runtime.deployment import DeploymentError, parse_deployment
+from awaremw.runtime.driver import MoteDown
+from awaremw.runtime.virtual import MoteDown as VirtualMoteDown
 from awaremw.world.fields import Keyframe, Source, World
 from awaremw.world.mobility import Path as MPath
 from awaremw.world.mobility import Static
@@ -96,9 +98,14 @@ def test_recorder_replays_memberships() -> None:
     assert rec.leaders_at(1, 3.0) == {77: 1}
     assert rec.group_ids(1, 0.0, 4.0) == {77}
     assert rec.group_ids(1, 4.0, 6.0) == {77, 88}
-    rec.on_event(1, type("MoteDown", (), {"reason": "killed"})(), 7.0)
+    # Dispatch is by type: a look-alike class named MoteDown is no mote down.
+    rec.on_event(1, type("MoteDown", (), {"reason": "killed"})(), 6.0)
+    assert rec.down == {} and set(rec.members_at(1, 6.0)) == {1, 2}
+    rec.on_event(1, VirtualMoteDown("killed"), 7.0)  # the virtual network's is the same type
     assert set(rec.members_at(1, 7.0)) == {2}
     assert rec.down == {1: 7.0}
+    rec.on_event(2, MoteDown("battery"), 8.0)
+    assert rec.members_at(1, 8.0) == {} and rec.down == {1: 7.0, 2: 8.0}
 
 
 def test_score_and_delivery() -> None:

@@ -20,6 +20,8 @@ from awaremw.runtime.driver import MoteDown, MoteUp
 from awaremw.runtime.fleet import (
     Fleet,
     FleetLauncher,
+    FleetSettings,
+    LauncherSettings,
     hello_core,
     stripes,
 )
@@ -72,9 +74,8 @@ async def test_two_processes_on_one_router_exchange_frames_only_within_range() -
     entries += [static(20 + i, 300.0 + 8.0 * i, 20.0) for i in range(3)]
     dep = deployment(entries)
     model = dep.radio_model()
-    async with FleetLauncher(
-        dep, processes=2, core_factory=hello_core, speed=4.0, track_links=True
-    ) as launcher:
+    settings = LauncherSettings(processes=2, speed=4.0, track_links=True)
+    async with FleetLauncher(dep, hello_core, settings) as launcher:
         assert launcher.motes_per_worker in ([4, 7], [5, 6], [6, 5], [7, 4])
         # Control plane: each request reaches both workers; exactly one acts.
         add = {"op": "add", "node": {"id": 50, "kind": "tmote", "position": [85.0, 30.0]}}
@@ -118,35 +119,35 @@ async def test_fleet_add_kill_positions_and_events() -> None:
         ]
     )
     events: list[tuple[int, object]] = []
-    async with Fleet(dep, hello_core, speed=10.0, control=False) as f:
+    async with Fleet(dep, hello_core, FleetSettings(speed=10.0, control=False)) as f:
         f.on_event(lambda n, e, t: events.append((n, e)))
         assert set(f.cores) == {1, 2, 3}
-        assert f.positions()[1] == (10.0, 10.0)
+        assert f.motes.positions(f.now())[1] == (10.0, 10.0)
         await f.wait_until(0.5)
-        x, y = f.positions()[3]
+        x, y = f.motes.positions(f.now())[3]
         assert 45.0 <= x <= 100.0 and y == 0.0
-        spec = f.parse_node(static(9, 30.0, 10.0))
-        f.add_mote(spec)
+        spec = f.control.parse_node(static(9, 30.0, 10.0))
+        f.motes.add(spec)
         assert 9 in f.cores and (9, MoteUp()) in events
         with pytest.raises(ValueError):
-            f.add_mote(spec)
-        assert f.kill(2)
-        assert not f.kill(2) and not f.kill(77)
+            f.motes.add(spec)
+        assert f.motes.kill(2)
+        assert not f.motes.kill(2) and not f.motes.kill(77)
         assert 2 not in f.cores and any(n == 2 and isinstance(e, MoteDown) for n, e in events)
         await wait_for(lambda: f.counters[9].frames_tx >= 1)
         tx2 = f.counters[2].frames_tx
         await f.wait_until(f.now() + 2.0)
         assert f.counters[2].frames_tx == tx2  # killed: silent, counters kept
-        f.add_mote(f.parse_node(static(2, 20.0, 12.0)))  # back again
+        f.motes.add(f.control.parse_node(static(2, 20.0, 12.0)))  # back again
         assert 2 in f.cores
 
 
 async def test_control_requests_are_answered_never_raised() -> None:
     dep = deployment([static(1, 10.0, 10.0)], area=100.0)
-    async with Fleet(dep, hello_core, control=False) as f:
+    async with Fleet(dep, hello_core, FleetSettings(control=False)) as f:
 
         def ask(req: object) -> dict[str, object]:
-            return f.control_request(json.dumps(req).encode() if req is not None else b"\xff")
+            return f.control.request(json.dumps(req).encode() if req is not None else b"\xff")
 
         assert ask(None)["ok"] is False
         assert ask({"nope": 1})["ok"] is False
@@ -166,7 +167,7 @@ async def test_battery_death_switches_the_mote_off() -> None:
     # Each Hello costs about 3 V * 17.4 mA * 0.77 ms = 0.04 mJ on the air.
     dep = deployment([static(1, 10.0, 10.0, battery_mj=0.1), static(2, 15.0, 10.0)])
     downs: list[tuple[int, str]] = []
-    async with Fleet(dep, hello_core, speed=20.0, control=False) as f:
+    async with Fleet(dep, hello_core, FleetSettings(speed=20.0, control=False)) as f:
         f.on_event(lambda n, e, t: downs.append((n, e.reason)) if isinstance(e, MoteDown) else None)
         await wait_for(lambda: bool(downs))
         assert downs == [(1, "battery")]
@@ -195,7 +196,7 @@ async def test_a_core_bug_is_contained_counted_and_stops_only_that_mote() -> Non
         cls = Broken if spec.id == 1 else HelloMote
         return cls(spec.id, 0.1, random.Random(1))
 
-    async with Fleet(dep, make, speed=10.0, control=False) as f:
+    async with Fleet(dep, make, FleetSettings(speed=10.0, control=False)) as f:
         f.on_event(lambda n, e, t: downs.append((n, e.reason)) if isinstance(e, MoteDown) else None)
         await f.run(3.0)  # raises FleetError if anything escaped into the loop
         assert not f.failed
@@ -217,3 +218,28 @@ def test_default_core_factory_builds_the_node_kinds() -> None:
     assert app is not None and app.node_id == spec.id and app.position(0.0) == spec.position
     hello = hello_core(spec, dep)
     assert isinstance(hello, HelloMote) and hello.node_id == spec.id
+
+
+def test_settings_are_frozen_picklable_data_with_clear_errors() -> None:
+    import dataclasses
+    import pickle
+
+    from awaremw.runtime.fleet import WorkerParams, XStripe
+
+    s = FleetSettings(connect=["tcp/127.0.0.1:7447"], speed=2.0)  # type: ignore[arg-type]
+    assert s.connect == ("tcp/127.0.0.1:7447",) and s.listen == ()
+    with pytest.raises(TypeError, match="not the string"):
+        FleetSettings(connect="tcp/127.0.0.1:7447")  # type: ignore[arg-type]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.speed = 3.0  # type: ignore[misc]
+    with pytest.raises(ValueError, match="processes must be >= 1"):
+        LauncherSettings(processes=0)
+    ls = LauncherSettings(processes=2, speed=4.0, exclude_kinds=["gateway"])  # type: ignore[arg-type]
+    w = ls.fleet("w1", ("tcp/127.0.0.1:9000",))
+    assert (w.name, w.speed, w.connect, w.autostart, w.freeze_gc) == (
+        "w1", 4.0, ("tcp/127.0.0.1:9000",), False, True,
+    )  # fmt: skip
+    dep = deployment([static(1, 10.0, 10.0)])
+    params = WorkerParams(dep, hello_core, w, XStripe(0.0, 50.0), ls.exclude_kinds)
+    back = pickle.loads(pickle.dumps(params))
+    assert back.settings == w and back.name == "w1" and back.exclude_kinds == {"gateway"}

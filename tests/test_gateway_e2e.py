@@ -50,7 +50,7 @@ from awaremw.protocol.core import MoteCore
 from awaremw.protocol.dissemination import ItemAdopted
 from awaremw.protocol.frames import ItemKind
 from awaremw.runtime.deployment import Deployment, NodeSpec, load
-from awaremw.runtime.fleet import Fleet
+from awaremw.runtime.fleet import Fleet, FleetSettings
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
@@ -139,10 +139,8 @@ async def sensor_fleet() -> AsyncIterator[Emulation]:
     async with Fleet(
         dep,
         logging_factory(dep, samples),
-        speed=SPEED,
-        listen=[ep],
+        FleetSettings(name="sensors", speed=SPEED, listen=(ep,)),
         node_filter=lambda s: s.kind != "gateway",
-        name="sensors",
     ) as fleet:
         emu = Emulation(dep, fleet, ep, samples)
         fleet.on_event(emu.on_event)
@@ -156,12 +154,14 @@ async def gateway(
     fleet = Fleet(
         emu.dep,
         KindsFactory(),
-        speed=SPEED,
-        connect=[emu.endpoint],
+        FleetSettings(
+            name="gateway",
+            speed=SPEED,
+            connect=(emu.endpoint,),
+            start_wall=emu.sensors.clock.start_wall,
+            control=False,
+        ),
         node_filter=lambda s: s.kind == "gateway",
-        name="gateway",
-        start_wall=emu.sensors.clock.start_wall,
-        control=False,
     )
     async with fleet:
         svc = attach_to_fleet(fleet, settings=GatewaySettings(state_dir=state_dir), mqtt=mqtt)

@@ -48,7 +48,7 @@ from awaremw.radio.faults import MAX_REASONS, FaultLog
 from awaremw.radio.model import RadioModel, cell_of, preset
 from awaremw.runtime.deployment import Deployment, load
 from awaremw.runtime.driver import LagStats
-from awaremw.runtime.fleet import Fleet
+from awaremw.runtime.fleet import Fleet, FleetSettings
 from awaremw.runtime.zenoh_session import (
     SessionSettings,
     close_quietly,
@@ -300,20 +300,20 @@ async def fleet_and_gateway() -> AsyncIterator[
     async with Fleet(
         dep,
         KindsFactory(),
-        speed=SPEED,
-        listen=[ep],
+        FleetSettings(name="sensors", speed=SPEED, listen=(ep,)),
         node_filter=lambda s: s.kind != "gateway",
-        name="sensors",
     ) as sensors:
         gw = Fleet(
             dep,
             KindsFactory(),
-            speed=SPEED,
-            connect=[ep],
+            FleetSettings(
+                name="gateway",
+                speed=SPEED,
+                connect=(ep,),
+                start_wall=sensors.clock.start_wall,
+                control=False,
+            ),
             node_filter=lambda s: s.kind == "gateway",
-            name="gateway",
-            start_wall=sensors.clock.start_wall,
-            control=False,
         )
         async with gw:
             svc = attach_to_fleet(gw, settings=GatewaySettings())
@@ -356,7 +356,7 @@ async def test_tx_power_1e5_on_a_radio_key_is_rejected_and_counted() -> None:
             close_quietly(client)
         assert not sensors.failed and not gw.failed  # both processes still run
         assert sensors.medium.faults.total == 0 and gw.medium.faults.total == 0
-        stats = sensors.control_request(json.dumps({"op": "stats"}).encode())["snapshot"]
+        stats = sensors.control.request(json.dumps({"op": "stats"}).encode())["snapshot"]
         assert stats["rejected"]["tx_power"] >= 3
 
 

@@ -22,7 +22,7 @@ from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, enc
 from awaremw.radio.model import _NORMAL, RadioModel, cell_of, packet_key
 from awaremw.radio.zenoh_medium import Handler
 from awaremw.runtime.deployment import Deployment, NodeSpec, parse_deployment
-from awaremw.runtime.fleet import Fleet
+from awaremw.runtime.fleet import Fleet, FleetSettings
 from awaremw.runtime.router import EmbeddedRouter
 from awaremw.runtime.zenoh_session import (
     SessionSettings,
@@ -136,8 +136,11 @@ def two_fleets(
 ) -> tuple[Fleet, Fleet]:
     """Fleet A runs ``a_ids``, fleet B the others; both joined through router ``ep``."""
     mk = factory(periods)
-    a = Fleet(dep, mk, connect=[ep], node_filter=lambda s: s.id in a_ids, name="a", speed=speed)
-    b = Fleet(dep, mk, connect=[ep], node_filter=lambda s: s.id not in a_ids, name="b", speed=speed)
+    # Not started on entry: joined() starts both together.
+    sa = FleetSettings(name="a", speed=speed, connect=(ep,), autostart=False)
+    sb = FleetSettings(name="b", speed=speed, connect=(ep,), autostart=False)
+    a = Fleet(dep, mk, sa, node_filter=lambda s: s.id in a_ids)
+    b = Fleet(dep, mk, sb, node_filter=lambda s: s.id not in a_ids)
     return a, b
 
 
@@ -156,7 +159,6 @@ async def routed(session: zenoh.Session, fleet: Fleet) -> None:
 
 async def joined(a: Fleet, b: Fleet) -> None:
     """Enter both fleets; start them together once each sees the other's subscriptions."""
-    a._autostart = b._autostart = False
     await a.__aenter__()
     await b.__aenter__()
     await routed(a.session, b)
@@ -348,7 +350,7 @@ async def test_unicast_inside_one_process_and_duplicates_on_a_lossy_link(router:
     model = RadioModel(base.preset, base.seed)
     d = _distance_for_prr(model, 1, 2, 8 * (7 + base.preset.phy_overhead_bytes), 0.6)
     dep = deployment([(1, 5.0, 5.0), (2, 5.0 + d, 5.0)], radio="cc1000")
-    async with Fleet(dep, factory({}), connect=[router], speed=10.0) as f:
+    async with Fleet(dep, factory({}), FleetSettings(speed=10.0, connect=(router,))) as f:
         s = core(f, 1)
         n = 40
         for _ in range(n):
@@ -375,7 +377,7 @@ async def test_garbage_on_a_radio_key_is_counted_malformed_and_changes_nothing_e
 ) -> None:
     # 1 and 2 stand in cell (0, 0); 3 stands three cells away.
     dep = deployment([(1, 5.0, 5.0), (2, 15.0, 5.0), (3, 250.0, 250.0)])
-    async with Fleet(dep, factory({}), connect=[router], handler=handler) as f:
+    async with Fleet(dep, factory({}), FleetSettings(connect=(router,), handler=handler)) as f:
         other = open_session(SessionSettings(connect=(router,)))
         try:
             await routed(other, f)
@@ -410,15 +412,17 @@ async def test_subscriptions_are_per_column_not_per_mote(router: str) -> None:
     # two beside it); a moving mote adds the columns it enters.
     nodes = [(i, 5.0 + (i % 5) * 8.0, 5.0 + (i // 5) * 50.0) for i in range(30)]
     dep = deployment(nodes)
-    async with Fleet(dep, factory({99: 0.05}), connect=[router], control=False) as f:
+    async with Fleet(
+        dep, factory({99: 0.05}), FleetSettings(connect=(router,), control=False)
+    ) as f:
         assert f.medium.stats.subscriptions == 3
         assert f.medium.columns == frozenset({-1, 0, 1})
-        spec = f.parse_node(
+        spec = f.control.parse_node(
             {"id": 99, "kind": "x", "path": [[5.0, 5.0], [300.0, 5.0]], "speed_mps": 2000.0}
         )
-        f.add_mote(spec)
+        f.motes.add(spec)
         await wait_for(lambda: 6 in f.medium.columns, timeout=5)  # it stands in column 5
-        x, _ = f.positions()[99]
+        x, _ = f.motes.positions(f.now())[99]
         assert x > 5 * f.model.cell_size_m
         # Its frames now go out on its new cell's key.
         radio = f.medium.radios[99]

@@ -211,7 +211,7 @@ async def end_to_end(
     from awaremw.nodes import KindsFactory, kind_names
     from awaremw.protocol.channels import RecordProduced
     from awaremw.runtime.deployment import load
-    from awaremw.runtime.fleet import Fleet
+    from awaremw.runtime.fleet import Fleet, FleetSettings
     from awaremw.runtime.zenoh_session import free_tcp_endpoint
 
     dep = load(deployment, kind_names())
@@ -232,23 +232,22 @@ async def end_to_end(
         sensors = Fleet(
             dep,
             factory,
-            speed=speed,
-            listen=[ep],
+            FleetSettings(name="bench-sensors", speed=speed, listen=(ep,), control=False),
             node_filter=lambda s: s.kind != "gateway",
-            name="bench-sensors",
-            control=False,
         )
         async with sensors:
             sensors.on_event(on_event)
             gw = Fleet(
                 dep,
                 factory,
-                speed=speed,
-                connect=[ep],
+                FleetSettings(
+                    name="bench-gateway",
+                    speed=speed,
+                    connect=(ep,),
+                    start_wall=sensors.clock.start_wall,
+                    control=False,
+                ),
                 node_filter=lambda s: s.kind == "gateway",
-                name="bench-gateway",
-                start_wall=sensors.clock.start_wall,
-                control=False,
             )
             async with gw:
                 svc = attach_to_fleet(

@@ -45,7 +45,13 @@ from awaremw.radio.model import CC2420, RadioModel, cell_of, packet_key, preset
 from awaremw.radio.zenoh_medium import Handler
 from awaremw.runtime.deployment import Deployment, NodeSpec
 from awaremw.runtime.driver import percentile
-from awaremw.runtime.fleet import Fleet, FleetLauncher, hello_core
+from awaremw.runtime.fleet import (
+    Fleet,
+    FleetLauncher,
+    FleetSettings,
+    LauncherSettings,
+    hello_core,
+)
 
 SPACING_M = 12.0  # CC2420 at 0 dBm: about ten neighbours hear each beacon
 
@@ -151,9 +157,8 @@ async def run_once(
     envelopes = 0
     t0 = time.perf_counter()
     if processes <= 1:
-        async with Fleet(
-            dep, hello_core, speed=speed, handler=h, control=False, freeze_gc=True
-        ) as fleet:
+        settings = FleetSettings(speed=speed, handler=h, control=False, freeze_gc=True)
+        async with Fleet(dep, hello_core, settings) as fleet:
             cpu0 = time.process_time()  # from the start, like the workers' figure
             await fleet.wait_until(warmup)
             assert fleet.lag is not None
@@ -169,11 +174,13 @@ async def run_once(
     else:
         async with FleetLauncher(
             dep,
-            processes=processes,
-            core_factory=hello_core,
-            speed=speed,
-            handler=h,
-            layout="interleaved" if layout == "interleaved" else "stripes",
+            hello_core,
+            LauncherSettings(
+                processes=processes,
+                speed=speed,
+                handler=h,
+                layout="interleaved" if layout == "interleaved" else "stripes",
+            ),
         ) as launcher:
             await launcher.run(warmup)
             launcher.reset_lag()

@@ -147,7 +147,7 @@ async def run_demo(
             return await run_demo(sc, duration, speed, broker.url, plain, robot_mqtt, secrets)
     from awaremw.experiments import metrics as M
     from awaremw.experiments.client import Received
-    from awaremw.experiments.realtime import RealtimeRun
+    from awaremw.experiments.realtime import RealtimeRun, RealtimeSettings, RunHooks
     from awaremw.experiments.snapshot import record_line as to_line
     from awaremw.experiments.snapshot import snapshot_of
     from awaremw.gateway.broker import mask_url
@@ -167,9 +167,10 @@ async def run_demo(
         view.log(r.t, "robot got " + record_line(to_line(r)))
 
     run = RealtimeRun(
-        sc, speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, on_tick=tick, on_event=event,
-        on_record=record, secrets=secrets,
-    )  # fmt: skip
+        sc,
+        RealtimeSettings(speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, secrets=secrets),
+        hooks=RunHooks(on_tick=tick, on_event=event, on_record=record),
+    )
     end = sc.duration if duration is None else duration
     view.log(0.0, f"demo {sc.name}: {len(sc.deployment.nodes)} motes, {end:g} s at speed "
                   f"{speed:g} (MQTT {mask_url(mqtt)})")  # fmt: skip

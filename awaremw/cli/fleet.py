@@ -232,8 +232,10 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         CoreFactory,
         Fleet,
         FleetLauncher,
+        FleetSettings,
         FleetSnapshot,
         LaunchError,
+        LauncherSettings,
         hello_core,
     )
 
@@ -265,38 +267,36 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), min(left, args.progress))
             if not stop.is_set() and left > args.progress:
-                show(fleet.snapshot())
+                show(fleet.stats.snapshot())
 
     skip = frozenset(args.without_kind)
     # With --secrets and no --connect the motes run behind an embedded router that
     # applies the access rules: the launcher's layout, even with one process.
     if args.processes == 1 and args.router_config is None:
-        settings = None
+        session = None
         if args.role_config is not None:
-            settings = SessionSettings("client", tuple(args.connect), config_file=args.role_config)
+            session = SessionSettings("client", tuple(args.connect), config_file=args.role_config)
         elif args.zenoh_mode == "client":  # everything through the router (e.g. across networks)
-            settings = SessionSettings("client", tuple(args.connect))
+            session = SessionSettings("client", tuple(args.connect))
         try:
-            fleet = Fleet(
-                dep,
-                factory,
+            settings = FleetSettings(
                 speed=args.speed,
                 prefix=args.prefix,
-                connect=args.connect,
-                listen=listen,
-                freeze_gc=True,
-                node_filter=_combine(args.part_filter, skip),
+                connect=tuple(args.connect),
+                listen=tuple(listen),
                 start_wall=args.start_at,
+                freeze_gc=True,
                 track_links=args.links_json is not None,
-                session_settings=settings,
+                session=session,
             )
+            fleet = Fleet(dep, factory, settings, node_filter=_combine(args.part_filter, skip))
             await fleet.__aenter__()
         except zenoh.ZError as e:
             raise _StartError(f"cannot open the Zenoh session on {where}: {e}") from None
         try:
             await wait_end(fleet)
             fleet.raise_errors()
-            show(fleet.snapshot())
+            show(fleet.stats.snapshot())
             if args.links_json is not None:
                 links = fleet.medium.links or {}
                 with open(args.links_json, "w", encoding="utf-8") as f:
@@ -307,17 +307,19 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
 
     launcher = FleetLauncher(
         dep,
-        processes=args.processes,
-        core_factory=factory,
-        speed=args.speed,
-        prefix=args.prefix,
-        connect=args.connect,
-        listen=listen,
-        progress_s=args.progress,
+        factory,
+        LauncherSettings(
+            processes=args.processes,
+            speed=args.speed,
+            prefix=args.prefix,
+            connect=tuple(args.connect),
+            listen=tuple(listen),
+            progress_s=args.progress,
+            exclude_kinds=skip,
+            router_config_file=args.router_config,
+            worker_config_file=args.role_config,
+        ),
         on_progress=show,
-        exclude_kinds=skip,
-        router_config_file=args.router_config,
-        worker_config_file=args.role_config,
     )
     try:
         await launcher.__aenter__()

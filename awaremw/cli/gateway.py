@@ -198,7 +198,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
     from awaremw.nodes import KindsFactory, kind_names, validate
     from awaremw.radio.zenoh_medium import DEFAULT_PREFIX
     from awaremw.runtime.deployment import DeploymentError, load
-    from awaremw.runtime.fleet import Fleet
+    from awaremw.runtime.fleet import Fleet, FleetSettings
 
     try:
         dep = load(args.deployment, kind_names())
@@ -237,14 +237,16 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         fleet = Fleet(
             dep,
             KindsFactory(),
-            speed=args.speed,
-            prefix=radio_prefix,
-            connect=args.connect,
-            listen=args.listen,
+            FleetSettings(
+                name="gateway",
+                speed=args.speed,
+                prefix=radio_prefix,
+                connect=tuple(args.connect),
+                listen=tuple(args.listen),
+                autostart=False,
+                session=args.session_settings,
+            ),
             node_filter=lambda s: s.kind == "gateway",
-            name="gateway",
-            autostart=False,
-            session_settings=args.session_settings,
         )
         await stack.enter_async_context(fleet)
         start_wall = args.start_wall

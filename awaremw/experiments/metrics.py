@@ -37,6 +37,7 @@ from awaremw.protocol.groups import (
     LeaderElected,
     LeaderYielded,
 )
+from awaremw.runtime.events import MoteDown
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
 
@@ -92,32 +93,33 @@ class Recorder:
 
     def on_event(self, node: int, event: object, t: float) -> None:
         """Feed one event of ``node`` at time ``t`` (VirtualNetwork.on_event signature)."""
-        name = type(event).__name__
+        name = type(event).__name__  # a statistic only; dispatch is by type
         self.event_counts[name] = self.event_counts.get(name, 0) + 1
-        if isinstance(event, GroupJoined):
-            self._set(event.node, event.group_type, t, event.group_id, False)
-        elif isinstance(event, LeaderElected):
-            self._set(event.node, event.group_type, t, event.group_id, True)
-            self.elections.append(
-                Election(t, event.node, event.group_type, event.group_id, event.cause.value)
-            )
-        elif isinstance(event, GroupLeft):
-            self._set(event.node, event.group_type, t, None, False)
-        elif isinstance(event, HandoverSent):
-            self.handovers.append((t, event.group_type, event.group_id, event.node, event.to))
-        elif isinstance(event, LeaderYielded):
-            self.yields.append((t, event.node, event.group_type, event.group_id, event.successor))
-        elif isinstance(event, RecordProduced):
-            r = event.record
-            self.produced.setdefault(_key(r), (t, r))
-        elif isinstance(event, Delivered):
-            if isinstance(event.payload, DataRecord):
-                self.on_record(t, event.payload, "root")
-        elif name == "MoteDown":
-            self.down.setdefault(node, t)
-            for (n, g), states in list(self.timeline.items()):
-                if n == node and states[-1].gid is not None:
-                    self._set(n, g, t, None, False)
+        match event:
+            case GroupJoined():
+                self._set(event.node, event.group_type, t, event.group_id, False)
+            case LeaderElected():
+                self._set(event.node, event.group_type, t, event.group_id, True)
+                self.elections.append(
+                    Election(t, event.node, event.group_type, event.group_id, event.cause.value)
+                )
+            case GroupLeft():
+                self._set(event.node, event.group_type, t, None, False)
+            case HandoverSent():
+                self.handovers.append((t, event.group_type, event.group_id, event.node, event.to))
+            case LeaderYielded():
+                self.yields.append(
+                    (t, event.node, event.group_type, event.group_id, event.successor)
+                )
+            case RecordProduced(record=r):
+                self.produced.setdefault(_key(r), (t, r))
+            case Delivered(payload=DataRecord() as r):
+                self.on_record(t, r, "root")
+            case MoteDown():
+                self.down.setdefault(node, t)
+                for (n, g), states in list(self.timeline.items()):
+                    if n == node and states[-1].gid is not None:
+                        self._set(n, g, t, None, False)
 
     def on_record(self, t: float, record: DataRecord, via: str = "mqtt") -> None:
         """A record reached the IP side (MQTT subscriber or a root's Delivered event)."""

@@ -55,39 +55,51 @@ class LiveState:
 Tick = Callable[[float, "RealtimeRun"], None]
 
 
+@dataclass(frozen=True, slots=True)
+class RealtimeSettings:
+    """How a real-time run goes: speed factor, MQTT broker and prefix, sampling."""
+
+    speed: float = 1.0
+    mqtt: str | None = None  # broker URL; None: start the embedded broker
+    robot_mqtt: str | None = None  # the client's own account (default: mqtt's)
+    prefix: str = "aware"
+    sample_dt: float = 0.5  # emulated seconds between ticks (RSSI samples, views)
+    # A secrets directory (`awaremw keys init`): an embedded router with its access
+    # rules; the motes and the gateway connect to it with their roles.
+    secrets: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.speed > 0:
+            raise ValueError(f"speed must be > 0, got {self.speed}")
+
+
+@dataclass(frozen=True, slots=True)
+class RunHooks:
+    """What the caller (a view, the demo) wants to hear about while the run goes on."""
+
+    on_tick: Tick | None = None  # every sample_dt, with the run
+    on_record: Callable[[Received], None] | None = None  # a record reached the robot
+    on_event: Callable[[int, object, float], None] | None = None  # every mote event
+
+
 class RealtimeRun:
     """Set up, run and tear down one real-time run of a scenario."""
 
     def __init__(
         self,
         sc: Scenario,
+        settings: RealtimeSettings | None = None,
         *,
-        speed: float = 1.0,
-        mqtt: str | None = None,
-        robot_mqtt: str | None = None,
         recorder: Recorder | None = None,
-        sample_dt: float = 0.5,
-        on_tick: Tick | None = None,
-        on_record: Callable[[Received], None] | None = None,
-        on_event: Callable[[int, object, float], None] | None = None,
-        prefix: str = "aware",
-        secrets: str | None = None,
+        hooks: RunHooks | None = None,
     ) -> None:
-        if not speed > 0:
-            raise ValueError(f"speed must be > 0, got {speed}")
         self.sc = sc
-        self.speed = speed
-        self.mqtt_url = mqtt
-        self.robot_mqtt_url = robot_mqtt  # the client's own account (default: mqtt's)
+        self.settings = s = settings or RealtimeSettings()
+        self.speed = s.speed
+        self.prefix = s.prefix
         self.recorder = recorder or Recorder(record_sources=("mqtt",))
-        self.sample_dt = sample_dt
-        self.on_tick = on_tick
-        self.on_record = on_record
-        self.on_event = on_event
-        self.prefix = prefix
-        # With a secrets directory (`awaremw keys init`): an embedded router with its
-        # access rules, the motes and the gateway connect to it with their roles.
-        self.secrets = secrets
+        self.hooks = hooks or RunHooks()
+        self.secrets = s.secrets
         self.live = LiveState()
         self.fleets: list[object] = []
         self.client: RobotClient | None = None
@@ -149,8 +161,8 @@ class RealtimeRun:
         now = self.now()
         self.live.records.append(r)
         self.recorder.on_record(now, r.record, "mqtt")
-        if self.on_record is not None:
-            self.on_record(r)
+        if self.hooks.on_record is not None:
+            self.hooks.on_record(r)
 
     def _got_group(self, g: GroupSeen) -> None:
         if g.state is None:
@@ -163,14 +175,14 @@ class RealtimeRun:
     async def run(self, duration: float | None = None) -> RunResult:
         from awaremw.gateway.broker import EmbeddedBroker
         from awaremw.gateway.service import GatewaySettings, attach_to_fleet
-        from awaremw.runtime.fleet import Fleet
+        from awaremw.runtime.fleet import Fleet, FleetSettings
 
         sc = self.sc
         d = sc.deployment
         end = sc.duration if duration is None else duration
         started = time.monotonic()
         async with contextlib.AsyncExitStack() as stack:
-            url = self.mqtt_url
+            url = self.settings.mqtt
             if url is None:
                 broker = await stack.enter_async_context(EmbeddedBroker())
                 url = broker.url
@@ -197,13 +209,20 @@ class RealtimeRun:
             for name, flt, listen, connect in groups:
                 if not any(flt(s) for s in d.nodes):
                     continue
-                f = Fleet(d, factory, speed=self.speed, listen=listen, connect=connect,
-                          node_filter=flt, name=name, autostart=False, control=False,
-                          session_settings=self._session_settings(name, endpoint))  # fmt: skip
+                settings = FleetSettings(
+                    name=name,
+                    speed=self.speed,
+                    listen=tuple(listen),
+                    connect=tuple(connect),
+                    autostart=False,
+                    control=False,
+                    session=self._session_settings(name, endpoint),
+                )
+                f = Fleet(d, factory, settings, node_filter=flt)
                 await stack.enter_async_context(f)
                 f.on_event(self.recorder.on_event)
-                if self.on_event is not None:
-                    f.on_event(self.on_event)
+                if self.hooks.on_event is not None:
+                    f.on_event(self.hooks.on_event)
                 fleets.append(f)
             self.fleets = list(fleets)
             gw_fleet = next(f for f in fleets if f.name == "gateway")
@@ -221,8 +240,8 @@ class RealtimeRun:
             for f in fleets:
                 f.start(start_wall)
             client_settings = (
-                MqttSettings.from_url(self.robot_mqtt_url, prefix=self.prefix)
-                if self.robot_mqtt_url is not None
+                MqttSettings.from_url(self.settings.robot_mqtt, prefix=self.prefix)
+                if self.settings.robot_mqtt is not None
                 else gw_mqtt
             )
             client_settings = replace(client_settings, client_id=f"awaremw-robot-{id(self):x}")
@@ -274,9 +293,9 @@ class RealtimeRun:
             await fleet.wait_until(t)
             now = fleet.now()
             self._sample(now)
-            if self.on_tick is not None:
-                self.on_tick(now, self)
-            t += self.sample_dt
+            if self.hooks.on_tick is not None:
+                self.hooks.on_tick(now, self)
+            t += self.settings.sample_dt
 
 
 def _energy_probe(fleet: object, d: Deployment, node: int) -> Callable[[], float]:
@@ -320,12 +339,8 @@ def run_realtime(
 
     rt = RealtimeRun(
         sc,
-        speed=speed,
-        mqtt=mqtt,
-        robot_mqtt=robot_mqtt,
-        on_tick=tick,
-        on_event=event,
-        secrets=secrets,
+        RealtimeSettings(speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, secrets=secrets),
+        hooks=RunHooks(on_tick=tick, on_event=event),
     )
     view.start()
     try:

@@ -307,7 +307,8 @@ class RadioModel:
     """Log-distance path loss, log-normal shadowing, PRR from SNR, seeded decisions.
 
     ``symmetric`` makes the static shadowing of a link the same in both
-    directions (per-packet fading never is).
+    directions (per-packet fading never is). Airtime and energy depend on the
+    preset alone: ``model.preset.airtime_s(n)``, ``.tx_energy_mj``, ``.rx_energy_mj``.
     """
 
     __slots__ = (
@@ -508,14 +509,3 @@ class RadioModel:
         """Seeded random MAC backoff before an attempt, in [0, mac_backoff_s)."""
         h = packet_hash(self.backoff_link_hash(src), packet_key(seq, attempt))
         return uniform(h) * self.preset.mac_backoff_s
-
-    # ---------------------------------------------------------------- energy
-
-    def airtime_s(self, frame_len: int) -> float:
-        return self.preset.airtime_s(frame_len)
-
-    def tx_energy_mj(self, frame_len: int, tx_power: float | None = None) -> float:
-        return self.preset.tx_energy_mj(frame_len, tx_power)
-
-    def rx_energy_mj(self, frame_len: int) -> float:
-        return self.preset.rx_energy_mj(frame_len)

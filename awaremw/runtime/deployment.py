@@ -212,102 +212,104 @@ class _Parser:
         self.file = str(path) if path is not None else "<deployment>"
         self.kinds = kinds
 
-    def fail(self, where: str, what: str) -> DeploymentError:
+    def _fail(self, where: str, what: str) -> DeploymentError:
         return DeploymentError(f"{self.file}: {where}: {what}" if where else f"{self.file}: {what}")
 
     # ------------------------------------------------------------ typed getters
 
-    def number(
+    def _number(
         self, where: str, t: Mapping[str, Any], key: str, default: float | None = None
     ) -> float:
         if key not in t:
             if default is None:
-                raise self.fail(where, f"missing key {key!r}")
+                raise self._fail(where, f"missing key {key!r}")
             return default
         v = t[key]
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise self.fail(where, f"{key!r} must be a number, got {v!r}")
+            raise self._fail(where, f"{key!r} must be a number, got {v!r}")
         return float(v)
 
-    def opt_number(self, where: str, t: Mapping[str, Any], key: str) -> float | None:
-        return self.number(where, t, key) if key in t else None
+    def _opt_number(self, where: str, t: Mapping[str, Any], key: str) -> float | None:
+        return self._number(where, t, key) if key in t else None
 
-    def integer(
+    def _integer(
         self, where: str, t: Mapping[str, Any], key: str, default: int | None = None
     ) -> int:
         if key not in t:
             if default is None:
-                raise self.fail(where, f"missing key {key!r}")
+                raise self._fail(where, f"missing key {key!r}")
             return default
         v = t[key]
         if isinstance(v, bool) or not isinstance(v, int):
-            raise self.fail(where, f"{key!r} must be an integer, got {v!r}")
+            raise self._fail(where, f"{key!r} must be an integer, got {v!r}")
         return v
 
-    def string(self, where: str, t: Mapping[str, Any], key: str, default: str | None = None) -> str:
+    def _string(
+        self, where: str, t: Mapping[str, Any], key: str, default: str | None = None
+    ) -> str:
         if key not in t:
             if default is None:
-                raise self.fail(where, f"missing key {key!r}")
+                raise self._fail(where, f"missing key {key!r}")
             return default
         v = t[key]
         if not isinstance(v, str) or not v:
-            raise self.fail(where, f"{key!r} must be a non-empty string, got {v!r}")
+            raise self._fail(where, f"{key!r} must be a non-empty string, got {v!r}")
         return v
 
-    def boolean(self, where: str, t: Mapping[str, Any], key: str, default: bool) -> bool:
+    def _boolean(self, where: str, t: Mapping[str, Any], key: str, default: bool) -> bool:
         v = t.get(key, default)
         if not isinstance(v, bool):
-            raise self.fail(where, f"{key!r} must be true or false, got {v!r}")
+            raise self._fail(where, f"{key!r} must be true or false, got {v!r}")
         return v
 
-    def point(self, where: str, v: Any, what: str) -> Point:
+    def _point(self, where: str, v: Any, what: str) -> Point:
         if (
             not isinstance(v, list)
             or len(v) != 2
             or any(isinstance(c, bool) or not isinstance(c, int | float) for c in v)
             or not all(math.isfinite(c) for c in v)
         ):
-            raise self.fail(where, f"{what} must be [x, y] in metres, got {v!r}")
+            raise self._fail(where, f"{what} must be [x, y] in metres, got {v!r}")
         return float(v[0]), float(v[1])
 
-    def table(self, where: str, v: Any) -> Mapping[str, Any]:
+    def _table(self, where: str, v: Any) -> Mapping[str, Any]:
         if not isinstance(v, dict):
-            raise self.fail(where, f"must be a table, got {type(v).__name__}")
+            raise self._fail(where, f"must be a table, got {type(v).__name__}")
         return v
 
     # ------------------------------------------------------------ checks
 
-    def check_kind(self, where: str, kind: str) -> None:
+    def _check_kind(self, where: str, kind: str) -> None:
         if self.kinds is not None and kind not in self.kinds:
             known = ", ".join(sorted(self.kinds))
-            raise self.fail(where, f"unknown kind {kind!r} (known: {known})")
+            raise self._fail(where, f"unknown kind {kind!r} (known: {known})")
 
-    def check_inside(self, where: str, p: Point, what: str) -> None:
+    def _check_inside(self, where: str, p: Point, what: str) -> None:
         w, h = self.area
         if not (0.0 <= p[0] <= w and 0.0 <= p[1] <= h):
-            raise self.fail(
+            raise self._fail(
                 where, f"{what} ({p[0]:g}, {p[1]:g}) is outside the area {w:g} x {h:g} m"
             )
 
-    def check_power(self, where: str, dbm: float | None) -> None:
+    def _check_power(self, where: str, dbm: float | None) -> None:
         if dbm is None:
             return
         try:
             self.preset.check_tx_power(dbm)
         except ValueError as e:
-            raise self.fail(where, str(e)) from None
+            raise self._fail(where, str(e)) from None
 
-    def check_id(self, where: str, node_id: int) -> None:
+    def _check_id(self, where: str, node_id: int) -> None:
         if not 0 <= node_id <= MAX_NODE_ID:
-            raise self.fail(where, f"id {node_id} is outside 0..{MAX_NODE_ID}")
+            raise self._fail(where, f"id {node_id} is outside 0..{MAX_NODE_ID}")
 
-    def check_battery(self, where: str, mj: float | None) -> None:
+    def _check_battery(self, where: str, mj: float | None) -> None:
         if mj is not None and not mj > 0:
-            raise self.fail(where, f"'battery_mj' must be > 0, got {mj:g}")
+            raise self._fail(where, f"'battery_mj' must be > 0, got {mj:g}")
 
-    def check_nonneg(self, where: str, key: str, v: float) -> None:
+    def _check_nonneg(self, where: str, key: str, v: float) -> None:
         if v < 0:
-            raise self.fail(where, f"{key!r} must be >= 0, got {v:g}")
+            raise self._fail(where, f"{key!r} must be >= 0, got {v:g}")
 
     # ------------------------------------------------------------ parse
 
@@ -320,56 +322,56 @@ class _Parser:
             if isinstance(v, dict):
                 extra[k] = v
             else:
-                raise self.fail("", f"unknown key {k!r}")
+                raise self._fail("", f"unknown key {k!r}")
         default_name = self.path.stem if self.path is not None else "deployment"
-        name = self.string("", d, "name", default_name)
+        name = self._string("", d, "name", default_name)
         description = d.get("description", "")
         if not isinstance(description, str):
-            raise self.fail("", "'description' must be a string")
-        radio = self.string("", d, "radio", DEFAULT_RADIO)
+            raise self._fail("", "'description' must be a string")
+        radio = self._string("", d, "radio", DEFAULT_RADIO)
         if radio not in PRESETS:
-            raise self.fail("", f"unknown radio preset {radio!r} (known: {', '.join(PRESETS)})")
+            raise self._fail("", f"unknown radio preset {radio!r} (known: {', '.join(PRESETS)})")
         self.preset = PRESETS[radio]
-        seed = self.integer("", d, "seed", 0)
-        tx_power = self.number("", d, "tx_power_dbm", self.preset.tx_power_dbm)
-        self.check_power("", tx_power)
+        seed = self._integer("", d, "seed", 0)
+        tx_power = self._number("", d, "tx_power_dbm", self.preset.tx_power_dbm)
+        self._check_power("", tx_power)
         if "area" not in d:
-            raise self.fail("", "missing key 'area' ([width, height] in metres)")
-        self.area = self.point("", d["area"], "'area'")
+            raise self._fail("", "missing key 'area' ([width, height] in metres)")
+        self.area = self._point("", d["area"], "'area'")
         if not (self.area[0] > 0 and self.area[1] > 0):
-            raise self.fail("", f"'area' must be positive, got {d['area']!r}")
+            raise self._fail("", f"'area' must be positive, got {d['area']!r}")
         self.seed = seed
 
         raw: dict[str, Any] = {}
         for key in _RAW_TABLES:
             v = d.get(key)
             if v is not None and not isinstance(v, dict | list):
-                raise self.fail("", f"{key!r} must be a table or an array of tables")
+                raise self._fail("", f"{key!r} must be a table or an array of tables")
             if key in ("world", "middleware") and v is not None and not isinstance(v, dict):
-                raise self.fail("", f"{key!r} must be a table ([{key}])")
+                raise self._fail("", f"{key!r} must be a table ([{key}])")
             raw[key] = v
 
         specs: dict[int, tuple[NodeSpec, str]] = {}
 
         def put(spec: NodeSpec, where: str) -> None:
             if spec.id in specs:
-                raise self.fail(where, f"duplicate id {spec.id} (also {specs[spec.id][1]})")
+                raise self._fail(where, f"duplicate id {spec.id} (also {specs[spec.id][1]})")
             specs[spec.id] = (spec, where.split(" (")[0])
 
         nodes = d.get("nodes", [])
         if not isinstance(nodes, list):
-            raise self.fail("", "'nodes' must be an array of tables ([[nodes]])")
+            raise self._fail("", "'nodes' must be an array of tables ([[nodes]])")
         for i, entry in enumerate(nodes):
-            spec, where = self.node(i, entry)
+            spec, where = self._node(i, entry)
             put(spec, where)
         grids = d.get("grid", [])
         if not isinstance(grids, list):
-            raise self.fail("", "'grid' must be an array of tables ([[grid]])")
+            raise self._fail("", "'grid' must be an array of tables ([[grid]])")
         for i, entry in enumerate(grids):
-            for spec, where in self.grid(i, entry):
+            for spec, where in self._grid(i, entry):
                 put(spec, where)
         if not specs:
-            raise self.fail("", "no nodes (add [[nodes]] or [[grid]] entries)")
+            raise self._fail("", "no nodes (add [[nodes]] or [[grid]] entries)")
 
         return Deployment(
             name=name,
@@ -387,45 +389,45 @@ class _Parser:
             path=self.path,
         )
 
-    def node(self, i: int, entry: Any) -> tuple[NodeSpec, str]:
+    def _node(self, i: int, entry: Any) -> tuple[NodeSpec, str]:
         where = f"nodes[{i}]"
-        t = self.table(where, entry)
-        node_id = self.integer(where, t, "id")
+        t = self._table(where, entry)
+        node_id = self._integer(where, t, "id")
         where = f"nodes[{i}] (id {node_id})"
-        self.check_id(where, node_id)
-        kind = self.string(where, t, "kind")
-        self.check_kind(where, kind)
+        self._check_id(where, node_id)
+        kind = self._string(where, t, "kind")
+        self._check_kind(where, kind)
         has_pos, has_path = "position" in t, "path" in t
         if has_pos == has_path:
-            raise self.fail(where, "give exactly one of 'position' or 'path'")
+            raise self._fail(where, "give exactly one of 'position' or 'path'")
         path: tuple[Point, ...] | None = None
         if has_path:
             raw = t["path"]
             if not isinstance(raw, list) or not raw:
-                raise self.fail(where, "'path' must be a non-empty array of [x, y] waypoints")
-            path = tuple(self.point(where, p, f"path[{k}]") for k, p in enumerate(raw))
+                raise self._fail(where, "'path' must be a non-empty array of [x, y] waypoints")
+            path = tuple(self._point(where, p, f"path[{k}]") for k, p in enumerate(raw))
             for k, p in enumerate(path):
-                self.check_inside(where, p, f"path[{k}]")
+                self._check_inside(where, p, f"path[{k}]")
             position = path[0]
         else:
             for key in _PATH_ONLY:
                 if key in t:
-                    raise self.fail(where, f"{key!r} only makes sense with a 'path'")
-            position = self.point(where, t["position"], "'position'")
-            self.check_inside(where, position, "position")
-        speed = self.number(where, t, "speed_mps", 1.0)
+                    raise self._fail(where, f"{key!r} only makes sense with a 'path'")
+            position = self._point(where, t["position"], "'position'")
+            self._check_inside(where, position, "position")
+        speed = self._number(where, t, "speed_mps", 1.0)
         if not speed > 0:
-            raise self.fail(where, f"'speed_mps' must be > 0, got {speed:g}")
-        start_s = self.number(where, t, "start_s", 0.0)
-        pause_s = self.number(where, t, "pause_s", 0.0)
-        boot_s = self.number(where, t, "boot_s", 0.0)
+            raise self._fail(where, f"'speed_mps' must be > 0, got {speed:g}")
+        start_s = self._number(where, t, "start_s", 0.0)
+        pause_s = self._number(where, t, "pause_s", 0.0)
+        boot_s = self._number(where, t, "boot_s", 0.0)
         for key, v in (("start_s", start_s), ("pause_s", pause_s), ("boot_s", boot_s)):
-            self.check_nonneg(where, key, v)
-        loop = self.boolean(where, t, "loop", False)
-        tx_power = self.opt_number(where, t, "tx_power_dbm")
-        self.check_power(where, tx_power)
-        battery = self.opt_number(where, t, "battery_mj")
-        self.check_battery(where, battery)
+            self._check_nonneg(where, key, v)
+        loop = self._boolean(where, t, "loop", False)
+        tx_power = self._opt_number(where, t, "tx_power_dbm")
+        self._check_power(where, tx_power)
+        battery = self._opt_number(where, t, "battery_mj")
+        self._check_battery(where, battery)
         extra = {k: v for k, v in t.items() if k not in _NODE_KEYS}
         spec = NodeSpec(
             id=node_id,
@@ -443,39 +445,39 @@ class _Parser:
         )
         return spec, where
 
-    def grid(self, i: int, entry: Any) -> list[tuple[NodeSpec, str]]:
+    def _grid(self, i: int, entry: Any) -> list[tuple[NodeSpec, str]]:
         where = f"grid[{i}]"
-        t = self.table(where, entry)
-        origin = self.point(where, t["origin"], "'origin'") if "origin" in t else (0.0, 0.0)
+        t = self._table(where, entry)
+        origin = self._point(where, t["origin"], "'origin'") if "origin" in t else (0.0, 0.0)
         if "spacing" not in t:
-            raise self.fail(where, "missing key 'spacing'")
+            raise self._fail(where, "missing key 'spacing'")
         sp = t["spacing"]
         if isinstance(sp, list):
-            spacing = self.point(where, sp, "'spacing'")
+            spacing = self._point(where, sp, "'spacing'")
         else:
-            s = self.number(where, t, "spacing")
+            s = self._number(where, t, "spacing")
             spacing = (s, s)
         if not (spacing[0] > 0 and spacing[1] > 0):
-            raise self.fail(where, f"'spacing' must be > 0, got {sp!r}")
-        cols = self.integer(where, t, "cols")
-        rows = self.integer(where, t, "rows")
+            raise self._fail(where, f"'spacing' must be > 0, got {sp!r}")
+        cols = self._integer(where, t, "cols")
+        rows = self._integer(where, t, "rows")
         if cols < 1 or rows < 1:
-            raise self.fail(where, f"'cols' and 'rows' must be >= 1, got {cols} x {rows}")
-        first = self.integer(where, t, "first_id")
+            raise self._fail(where, f"'cols' and 'rows' must be >= 1, got {cols} x {rows}")
+        first = self._integer(where, t, "first_id")
         last = first + cols * rows - 1
         where = f"grid[{i}] (ids {first}..{last})"
-        self.check_id(where, first)
-        self.check_id(where, last)
-        kind = self.string(where, t, "kind")
-        self.check_kind(where, kind)
-        jitter = self.number(where, t, "jitter_m", 0.0)
-        self.check_nonneg(where, "jitter_m", jitter)
-        tx_power = self.opt_number(where, t, "tx_power_dbm")
-        self.check_power(where, tx_power)
-        battery = self.opt_number(where, t, "battery_mj")
-        self.check_battery(where, battery)
-        boot_s = self.number(where, t, "boot_s", 0.0)
-        self.check_nonneg(where, "boot_s", boot_s)
+        self._check_id(where, first)
+        self._check_id(where, last)
+        kind = self._string(where, t, "kind")
+        self._check_kind(where, kind)
+        jitter = self._number(where, t, "jitter_m", 0.0)
+        self._check_nonneg(where, "jitter_m", jitter)
+        tx_power = self._opt_number(where, t, "tx_power_dbm")
+        self._check_power(where, tx_power)
+        battery = self._opt_number(where, t, "battery_mj")
+        self._check_battery(where, battery)
+        boot_s = self._number(where, t, "boot_s", 0.0)
+        self._check_nonneg(where, "boot_s", boot_s)
         extra = {k: v for k, v in t.items() if k not in _GRID_KEYS}
         # Jitter from the deployment's seed and the grid's index: the same
         # positions in every process that loads the file.
@@ -487,7 +489,7 @@ class _Parser:
                 node_id = first + r * cols + c
                 x = origin[0] + c * spacing[0]
                 y = origin[1] + r * spacing[1]
-                self.check_inside(where, (x, y), f"position of id {node_id}")
+                self._check_inside(where, (x, y), f"position of id {node_id}")
                 if jitter:
                     x = min(w, max(0.0, x + rng.uniform(-jitter, jitter)))
                     y = min(h, max(0.0, y + rng.uniform(-jitter, jitter)))

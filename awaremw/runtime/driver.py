@@ -24,12 +24,13 @@ import logging
 import math
 from array import array
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.zenoh_medium import Radio, ZenohMedium
+from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
+from awaremw.runtime.events import MoteUp as MoteUp
 from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
 
@@ -38,18 +39,6 @@ log = logging.getLogger(__name__)
 EventHook = Callable[[int, object, float], None]
 
 _MAX_FIRINGS_AT_ONE_TIME = 10_000
-
-
-@dataclass(frozen=True, slots=True)
-class MoteUp:
-    """Event (through ``on_event``): the mote booted and is on the air."""
-
-
-@dataclass(frozen=True, slots=True)
-class MoteDown:
-    """Event (through ``on_event``): the mote was switched off."""
-
-    reason: str  # "killed", "battery", "stopped" or "fault" (a contained core bug)
 
 
 LAG_WINDOW = 1 << 16  # samples kept (8 bytes each: 512 KiB per process)

@@ -25,7 +25,6 @@ import heapq
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import TypeVar
 
 from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
@@ -46,6 +45,7 @@ from awaremw.radio.model import (
     packet_key,
 )
 from awaremw.radio.neighbourhood import Neighbourhood, adjacent, hear, hear_link
+from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
 from awaremw.world.mobility import Mobility, Static
 
 log = logging.getLogger(__name__)
@@ -56,13 +56,6 @@ TransmitHook = Callable[[int, Transmission, float], None]
 
 _TIMER, _TX_END, _UC_DONE, _START, _CALL = range(5)
 _MAX_FIRINGS_AT_ONE_TIME = 100_000
-
-
-@dataclass(frozen=True, slots=True)
-class MoteDown:
-    """Event (through ``on_event``): the mote was switched off."""
-
-    reason: str  # "killed" or "battery"
 
 
 class _Node(LinkStation):

@@ -22,6 +22,7 @@ from awaremw.protocol.groups import (
     LeaderElected,
     LeaderYielded,
 )
+from awaremw.runtime.events import MoteDown
 from awaremw.view.render import render
 from awaremw.view.snapshot import RecordLine, Snapshot
 
@@ -38,27 +39,30 @@ class View(Protocol):
 
 def describe(node: int, event: object, t: float) -> str | None:
     """A one-line description of a notable middleware event (None: not notable)."""
-    if isinstance(event, LeaderElected):
-        return (
-            f"mote {event.node} leads group {event.group_id} (type {event.group_type}, "
-            f"{event.cause.value})"
-        )
-    if isinstance(event, GroupJoined):
-        return f"mote {event.node} joined group {event.group_id} (type {event.group_type})"
-    if isinstance(event, GroupLeft):
-        return (
-            f"mote {event.node} left group {event.group_id} (type {event.group_type}, "
-            f"{event.reason.value})"
-        )
-    if isinstance(event, HandoverSent):
-        return f"mote {event.node} handed group {event.group_id} over to mote {event.to}"
-    if isinstance(event, LeaderYielded):
-        return (
-            f"mote {event.node} yielded group {event.group_id} to heavier group {event.successor}"
-        )
-    if type(event).__name__ == "MoteDown":
-        reason = getattr(event, "reason", "?")
-        return None if reason == "stopped" else f"mote {node} is down ({reason})"
+    match event:
+        case LeaderElected():
+            return (
+                f"mote {event.node} leads group {event.group_id} (type {event.group_type}, "
+                f"{event.cause.value})"
+            )
+        case GroupJoined():
+            return f"mote {event.node} joined group {event.group_id} (type {event.group_type})"
+        case GroupLeft():
+            return (
+                f"mote {event.node} left group {event.group_id} (type {event.group_type}, "
+                f"{event.reason.value})"
+            )
+        case HandoverSent():
+            return f"mote {event.node} handed group {event.group_id} over to mote {event.to}"
+        case LeaderYielded():
+            return (
+                f"mote {event.node} yielded group {event.group_id} to heavier group "
+                f"{event.successor}"
+            )
+        case MoteDown(reason="stopped"):
+            return None  # the run ended: not news
+        case MoteDown(reason=reason):
+            return f"mote {node} is down ({reason})"
     return None
 
 

@@ -1,0 +1,110 @@
+"""Settings of a fleet (:class:`FleetSettings`) and of a launcher of worker
+processes (:class:`LauncherSettings`): plain frozen data, picklable, so a
+launcher hands a worker its fleet's settings as they are."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from awaremw.radio.zenoh_medium import DEFAULT_HANDLER, DEFAULT_PREFIX, Handler
+from awaremw.runtime.partition import Layout
+from awaremw.runtime.zenoh_session import SessionSettings
+
+
+def _endpoints(v: Iterable[str]) -> tuple[str, ...]:
+    """A tuple of endpoints (a caller may hand a list); a lone string is a bug."""
+    if isinstance(v, str):
+        raise TypeError(f"endpoints must be a sequence of strings, not the string {v!r}")
+    return tuple(v)
+
+
+@dataclass(frozen=True, slots=True)
+class FleetSettings:
+    """How one fleet runs (one process).
+
+    ``connect``/``listen``: endpoints of the session the fleet opens (peer
+    mode, multicast scouting off) when it is not given one. ``autostart``
+    False: ``async with`` only sets up; the caller calls ``start(start_wall)``
+    (a launcher's worker, a gateway joining a running emulation).
+    ``control``: declare the control queryable ``<prefix>/ctl/fleet/<name>``.
+    ``freeze_gc``: ``gc.freeze()`` after setup (CLI, workers, benchmarks).
+    ``track_links``: count deliveries per (src, dst) on the medium.
+    ``session``: full session settings instead of ``connect``/``listen`` (e.g.
+    a role's client settings with ``--secrets``, or client mode).
+    """
+
+    name: str = "main"
+    speed: float = 1.0
+    prefix: str = DEFAULT_PREFIX
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    handler: Handler = DEFAULT_HANDLER
+    start_wall: float | None = None
+    autostart: bool = True
+    control: bool = True
+    collect_lag: bool = True
+    freeze_gc: bool = False
+    track_links: bool = False
+    session: SessionSettings | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "connect", _endpoints(self.connect))
+        object.__setattr__(self, "listen", _endpoints(self.listen))
+
+
+@dataclass(frozen=True, slots=True)
+class LauncherSettings:
+    """How a :class:`~awaremw.runtime.fleet.FleetLauncher` runs its workers.
+
+    ``connect``: join that router (e.g. ``awaremw router``) instead of starting
+    an embedded one on ``listen`` (default: a free loopback port).
+    ``progress_s``: workers report a snapshot that often (wall seconds).
+    ``exclude_kinds``: kinds no worker runs (another process runs them).
+    ``layout``: "stripes" along x, or "interleaved" by id (benchmarks only).
+    ``router_config_file``: the embedded router starts from this Zenoh config
+    (``awaremw keys init``'s router.json5: authentication, access control);
+    ``worker_config_file``: a role's client config; the workers then join the
+    router in client mode with it.
+    """
+
+    processes: int = 1
+    speed: float = 1.0
+    prefix: str = DEFAULT_PREFIX
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    handler: Handler = DEFAULT_HANDLER
+    progress_s: float | None = None
+    collect_lag: bool = True
+    track_links: bool = False
+    exclude_kinds: frozenset[str] = field(default_factory=frozenset)
+    layout: Layout = "stripes"
+    ready_timeout_s: float = 120.0
+    start_delay_s: float = 0.3
+    router_config_file: str | None = None
+    worker_config_file: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.processes < 1:
+            raise ValueError("processes must be >= 1")
+        object.__setattr__(self, "connect", _endpoints(self.connect))
+        object.__setattr__(self, "listen", _endpoints(self.listen))
+        object.__setattr__(self, "exclude_kinds", frozenset(self.exclude_kinds))
+
+    def fleet(self, name: str, connect: tuple[str, ...]) -> FleetSettings:
+        """The settings of worker ``name``'s fleet, joined to ``connect``."""
+        return FleetSettings(
+            name=name,
+            speed=self.speed,
+            prefix=self.prefix,
+            connect=connect,
+            listen=("tcp/127.0.0.1:0",),  # lets peers link directly (gossip)
+            handler=self.handler,
+            autostart=False,
+            collect_lag=self.collect_lag,
+            freeze_gc=True,
+            track_links=self.track_links,
+            session=None
+            if self.worker_config_file is None
+            else SessionSettings("client", connect, config_file=self.worker_config_file),
+        )

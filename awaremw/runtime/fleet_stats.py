@@ -1,0 +1,101 @@
+"""A fleet's progress figures: :class:`FleetSnapshot` and the :class:`FleetStats`
+that takes them (totals of the per-mote counters, timer-lag percentiles)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from awaremw.radio.counters import MoteCounters
+from awaremw.runtime.driver import LagStats, percentile
+from awaremw.world.clock import EmulatedClock
+
+
+@dataclass(frozen=True, slots=True)
+class FleetSnapshot:
+    """Progress figures of one fleet (one process)."""
+
+    name: str
+    t: float  # emulated seconds
+    motes: int  # on the air
+    frames_tx: int
+    frames_rx: int
+    unicast_ok: int
+    unicast_failed: int
+    malformed: int
+    lag_p50_ms: float  # over the samples since the previous snapshot
+    lag_p99_ms: float
+
+    def line(self) -> str:
+        def ms(v: float) -> str:
+            return "-" if math.isnan(v) else f"{v:.1f}ms"
+
+        return (
+            f"[{self.name}] t={self.t:8.1f}s motes={self.motes} tx={self.frames_tx} "
+            f"rx={self.frames_rx} uc_ok={self.unicast_ok} uc_fail={self.unicast_failed} "
+            f"malformed={self.malformed} lag p50={ms(self.lag_p50_ms)} p99={ms(self.lag_p99_ms)}"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def merge_snapshots(snaps: Iterable[FleetSnapshot], name: str = "fleet") -> FleetSnapshot:
+    s = list(snaps)
+    return FleetSnapshot(
+        name=name,
+        t=max((x.t for x in s), default=0.0),
+        motes=sum(x.motes for x in s),
+        frames_tx=sum(x.frames_tx for x in s),
+        frames_rx=sum(x.frames_rx for x in s),
+        unicast_ok=sum(x.unicast_ok for x in s),
+        unicast_failed=sum(x.unicast_failed for x in s),
+        malformed=sum(x.malformed for x in s),
+        lag_p50_ms=max((x.lag_p50_ms for x in s if not math.isnan(x.lag_p50_ms)), default=0.0),
+        lag_p99_ms=max((x.lag_p99_ms for x in s if not math.isnan(x.lag_p99_ms)), default=0.0),
+    )
+
+
+class FleetStats:
+    """Takes a fleet's snapshots: counter totals so far, lag percentiles over
+    the samples since the previous snapshot."""
+
+    def __init__(
+        self,
+        name: str,
+        clock: EmulatedClock,
+        lag: LagStats | None,
+        counters: Callable[[], Mapping[int, MoteCounters]],
+        on_air: Callable[[], int],
+    ) -> None:
+        self.name = name
+        self.clock = clock
+        self.lag = lag
+        self._counters = counters
+        self._on_air = on_air
+        self._lag_mark = 0
+
+    def snapshot(self) -> FleetSnapshot:
+        """Totals so far; lag percentiles over the samples since the last snapshot."""
+        tot = MoteCounters()
+        for c in self._counters().values():
+            tot.add(c)
+        p50 = p99 = math.nan
+        if self.lag is not None:
+            recent = self.lag.since(self._lag_mark)  # bounded: LagStats keeps a ring
+            self._lag_mark = self.lag.count
+            p50, p99 = percentile(recent, 50), percentile(recent, 99)
+        return FleetSnapshot(
+            name=self.name,
+            t=self.clock.now(),
+            motes=self._on_air(),
+            frames_tx=tot.frames_tx,
+            frames_rx=tot.frames_rx,
+            unicast_ok=tot.unicast_ok,
+            unicast_failed=tot.unicast_failed,
+            malformed=tot.malformed,
+            lag_p50_ms=p50,
+            lag_p99_ms=p99,
+        )

@@ -1,0 +1,99 @@
+"""Class size (docs/architecture.md, "Class size: one job each"), read from the
+source with ``ast``: no class in ``awaremw/`` has more than 15 public methods or
+8 constructor arguments, except the records listed there as classes that hold
+data, and the two named as pending."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import awaremw
+
+ROOT = Path(awaremw.__file__).resolve().parent
+MAX_PUBLIC_METHODS = 15
+MAX_CTOR_ARGS = 8
+
+# Records (dataclasses holding data, not actors): see docs/architecture.md.
+HOLD_DATA = {
+    "protocol.config.MiddlewareConfig",
+    "protocol.groups._TypeState",
+    "protocol.channels.ChannelStats",
+    "protocol.collection.CollectionStats",
+    "protocol.groups.GroupStats",
+    "protocol.frames.DataRecord",
+    "radio.model.RadioPreset",
+    "radio.counters.MoteCounters",
+    "radio.envelope.Envelope",
+    "runtime.deployment.NodeSpec",
+    "runtime.deployment.Deployment",
+    "runtime.fleet_settings.FleetSettings",
+    "runtime.fleet_settings.LauncherSettings",
+    "runtime.fleet_stats.FleetSnapshot",
+    "runtime.workers.WorkerResult",
+    "world.fields.World",
+    "gateway.mqtt.MqttSettings",
+    "gateway.mqtt.MqttStats",
+    "gateway.bridge.BridgeStats",
+    "gateway.schema.Limits",
+}
+# Owned by work in progress (named in docs/architecture.md with the reason).
+PENDING = {"runtime.virtual.VirtualNetwork", "gateway.bridge.GatewayBridge"}
+
+
+def _is_dataclass(node: ast.ClassDef) -> bool:
+    for d in node.decorator_list:
+        f = d.func if isinstance(d, ast.Call) else d
+        if isinstance(f, ast.Name) and f.id == "dataclass":
+            return True
+        if isinstance(f, ast.Attribute) and f.attr == "dataclass":
+            return True
+    return False
+
+
+def sizes() -> dict[str, tuple[int, int, bool]]:
+    """``layer.module.Class`` -> (public methods, constructor arguments, dataclass)."""
+    out: dict[str, tuple[int, int, bool]] = {}
+    for path in sorted(ROOT.rglob("*.py")):
+        mod = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.ClassDef):
+                continue
+            funcs = [f for f in node.body if isinstance(f, ast.FunctionDef | ast.AsyncFunctionDef)]
+            public = sum(1 for f in funcs if not f.name.startswith("_"))
+            dc = _is_dataclass(node)
+            if dc:
+                args = sum(
+                    1
+                    for b in node.body
+                    if isinstance(b, ast.AnnAssign) and "ClassVar" not in ast.unparse(b.annotation)
+                )
+            else:
+                init = next((f for f in funcs if f.name == "__init__"), None)
+                args = 0 if init is None else len(init.args.args) - 1 + len(init.args.kwonlyargs)
+            out[f"{mod}.{node.name}"] = (public, args, dc)
+    return out
+
+
+def test_no_class_does_two_jobs() -> None:
+    too_big = {
+        name: (public, args)
+        for name, (public, args, dc) in sizes().items()
+        if (public > MAX_PUBLIC_METHODS or args > MAX_CTOR_ARGS)
+        and name not in PENDING
+        and not (dc and public <= MAX_PUBLIC_METHODS and name in HOLD_DATA)
+    }
+    assert too_big == {}, "split these (or list a record in docs/architecture.md)"
+
+
+def test_the_exceptions_name_real_classes() -> None:
+    known = sizes()
+    assert set(known) >= HOLD_DATA | PENDING
+    assert all(known[n][2] for n in HOLD_DATA)  # only dataclasses hold data
+
+
+def test_the_fleet_is_thin() -> None:
+    s = sizes()
+    assert s["runtime.fleet.Fleet"][0] <= MAX_PUBLIC_METHODS
+    assert s["runtime.fleet.Fleet"][1] <= 6
+    assert s["runtime.fleet.FleetLauncher"][1] <= 4
