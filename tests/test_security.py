@@ -155,7 +155,8 @@ def test_item_adopted_only_with_both_signature_parts_in_any_order() -> None:
     d.on_frame(DripItem(7, BROADCAST, ItemKind.CHANNEL, 2, 5, CHAN), -60.0, 0.1)
     assert d.version_of(ItemKind.CHANNEL, 2) is None  # pending: part 0 missing
     d.on_frame(p0, -60.0, 0.2)
-    assert d.items[(ItemKind.CHANNEL, 2)] == (5, CHAN, sig)
+    assert d.items[(ItemKind.CHANNEL, 2)] == (5, CHAN)
+    assert d.signature_of(ItemKind.CHANNEL, 2) == sig
     adopted = [e for e in ctx.event_list if isinstance(e, ItemAdopted)]
     assert [(e.item_id, e.version, e.source) for e in adopted] == [(2, 5, 7)]
 
@@ -170,7 +171,7 @@ def test_forwarded_item_carries_its_signature() -> None:
     frames = [decode(tx.frame) for tx in ctx.outbox]
     assert [type(f).__name__ for f in frames] == ["DripItem", "DripSig", "DripSig"]
     sig = b"".join(f.chunk for f in frames if isinstance(f, DripSig))
-    assert sig == d.items[(ItemKind.CHANNEL, 2)].sig
+    assert sig == d.signature_of(ItemKind.CHANNEL, 2)
 
 
 def test_bad_signature_refused_and_the_right_one_still_accepted_later() -> None:
@@ -240,7 +241,8 @@ def test_secured_network_spreads_signed_items_and_counts_the_overhead() -> None:
     net.run_until(80.0)
     for m in motes.values():
         it = m.dissemination.items.get((ItemKind.CHANNEL, 1))
-        assert it is not None and it.body == CHAN and it.sig is not None, m.node_id
+        assert it is not None and it.body == CHAN, m.node_id
+        assert m.dissemination.signature_of(ItemKind.CHANNEL, 1) is not None
         assert m.config.mtu == 88
     counters = net.counters.values()
     assert sum(c.refused for c in counters) == 0

@@ -97,12 +97,10 @@ def next_version(v: int) -> int:
 
 
 class Item(NamedTuple):
-    """What a mote holds for one key: a version, a body (None: deleted) and the
-    gateway's signature of both (None when items are not signed)."""
+    """What a mote holds for one key: a version and a body (None: deleted)."""
 
     version: int
     body: ItemBody | None
-    sig: bytes | None = None
 
 
 _MISSING = object()  # a pending item whose DripItem has not been heard yet
@@ -187,6 +185,7 @@ class Dissemination(Component):
         # Gateway motes only: signs what is injected (set by whoever holds the key).
         self.signer: ItemSigner | None = None
         self._pending: dict[ItemKey, _Pending] = {}  # bound: config.max_pending_items
+        self._sigs: dict[ItemKey, bytes] = {}  # the held version's signature (same keys)
 
     # ------------------------------------------------------------------ public API
 
@@ -202,6 +201,10 @@ class Dissemination(Component):
     def version_of(self, kind: ItemKind, item_id: int) -> int | None:
         it = self._items.get((kind, item_id))
         return None if it is None else it.version
+
+    def signature_of(self, kind: ItemKind, item_id: int) -> bytes | None:
+        """The gateway's signature of the held version (None: unsigned items)."""
+        return self._sigs.get((kind, item_id))
 
     def trickle(self, kind: ItemKind, item_id: int) -> Trickle | None:
         """The item's Trickle timer (for observers and tests; do not drive it)."""
@@ -295,12 +298,13 @@ class Dissemination(Component):
         trickle = self._trickles[key]
         if trickle.handle_timer(now):
             it = self._items[key]
+            sig = self._sigs.get(key)
             nid = self.ctx.node_id
             self.send(DripItem(nid, BROADCAST, key[0], key[1], it.version, it.body))
             self.item_tx += 1
-            if it.sig is not None:
+            if sig is not None:
                 for p in range(SIG_PARTS):
-                    chunk = it.sig[p * SIG_PART_BYTES : (p + 1) * SIG_PART_BYTES]
+                    chunk = sig[p * SIG_PART_BYTES : (p + 1) * SIG_PART_BYTES]
                     self.send(DripSig(nid, BROADCAST, key[0], key[1], it.version, p, chunk))
                     self.sig_tx += 1
         self._arm(key)
@@ -401,7 +405,11 @@ class Dissemination(Component):
         else:
             self._digest = (self._digest - digest_term(f.kind, f.item_id, cur.version)) & _M32
         self._digest = (self._digest + digest_term(f.kind, f.item_id, f.version)) & _M32
-        self._items[key] = Item(f.version, f.item, sig)
+        self._items[key] = Item(f.version, f.item)
+        if sig is None:
+            self._sigs.pop(key, None)
+        else:
+            self._sigs[key] = sig
         self._changed[key] = now
         trickle = self._trickles.get(key)
         if trickle is None:
@@ -435,6 +443,7 @@ class Dissemination(Component):
         old = self._items.pop(victim)
         self._digest = (self._digest - digest_term(victim[0], victim[1], old.version)) & _M32
         del self._trickles[victim], self._changed[victim]
+        self._sigs.pop(victim, None)
         self.timers.cancel(("item", *victim))
 
     def _arm(self, key: ItemKey) -> None:
