@@ -213,7 +213,6 @@ async def test_rogue_radio_replays_and_alterations_are_refused(mosquitto: Mosqui
     ):  # fmt: skip
         rogue = await asyncio.to_thread(open_session, SessionSettings(connect=(ep,)))
         try:
-
             capturing = [False]
 
             def capture(s: zenoh.Sample) -> None:
