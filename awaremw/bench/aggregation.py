@@ -28,7 +28,12 @@ JSON keys: ``lower_bound_ratio`` (measured / lower bound; target <= 1.5),
 ``completeness`` (mean record count / members), ``groups_seen`` (distinct
 group ids that produced records in the window), ``beacon_period_s``,
 ``channel_period_s``, ``motes``, ``seed``, ``preset``, ``spacing_m``,
-``sim_seconds``, ``wall_seconds``, ``meets_targets``.
+``sim_seconds``, ``wall_seconds``, ``meets_targets``; ``secure`` (``--secure``:
+throw-away keys, every frame sealed with a frame counter and an 8-byte MIC,
+definitions signed by the gateway), ``security_overhead_bytes`` (per frame),
+``payload_mtu``, ``bytes_per_epoch`` (radio bytes of the counted frames,
+overhead included) and ``energy_mj_per_epoch`` (radio energy of every mote,
+ACKs included).
 
 How beacons are paced to meet the targets: a leader beacon costs one frame per
 member (the leader's, and one re-broadcast per member), so beacons add
@@ -69,7 +74,9 @@ from awaremw.protocol.frames import (
     peek_header,
 )
 from awaremw.protocol.mote import AwareMote
+from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.model import RadioModel, preset
+from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.world.mobility import Static
 
@@ -108,6 +115,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--epochs", type=int, default=40, help="epochs measured")
     parser.add_argument("--radio", default="cc2420", help="radio preset")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--secure",
+        action="store_true",
+        help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
+    )
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -116,7 +128,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     cfg = MiddlewareConfig(beacon_period=period * float(args.beacon_factor))
     radio = preset(args.radio)
     seed = int(args.seed)
-    net = VirtualNetwork(RadioModel(radio, seed), seed)
+    secure = bool(getattr(args, "secure", False))
+    security, signer = None, None
+    if secure:
+        security, key = RadioSecurity.throwaway()
+        signer = ItemSigner(key)
+        cfg = dataclasses.replace(cfg, gateway_public_key=security.gateway_public_key)
+    net = VirtualNetwork(RadioModel(radio, seed), seed, security=security)
+    cfg = dataclasses.replace(cfg, mtu=net.payload_mtu)
     far = spacing * (side - 1)
     centre = (far - float(args.radius) * 0.9, far - float(args.radius) * 0.9)
     motes: dict[int, AwareMote] = {}
@@ -130,6 +149,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 members_truth.add(nid)
             c = MiddlewareConfig(**{**_fields(cfg), "is_root": nid == 0})
             mote = AwareMote(nid, app, c, random.Random(seed * 1_000_003 + nid))
+            if nid == 0:
+                mote.dissemination.signer = signer
             motes[nid] = mote
             net.add(mote, Static(x, y))
 
@@ -137,9 +158,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     records: list[DataRecord] = []
     window = [math.inf, math.inf]
 
+    overhead = 0 if security is None else security.overhead
+    nbytes = [0]
+
     def on_transmit(nid: int, tx: Transmission, t: float) -> None:
         if window[0] <= t < window[1]:
             by_type[FRAME_TYPES[peek_header(tx.frame)[0]].__name__] += 1
+            nbytes[0] += len(tx.frame) + overhead
 
     def on_event(nid: int, ev: object, t: float) -> None:
         if isinstance(ev, RecordProduced) and window[0] <= t < window[1]:
@@ -160,10 +185,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     end = start + int(args.epochs) * period
     net.run_until(start)
     acks0 = _acks(net)
+    energy0 = _energy(net)
     stats0 = _channel_stats(motes)
     window[0], window[1] = start, end
     net.run_until(end)
     acks = _acks(net) - acks0
+    energy = _energy(net) - energy0
     stats = _channel_stats(motes) - stats0
     wall = time.perf_counter() - t0
 
@@ -202,6 +229,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "spacing_m": spacing,
         "sim_seconds": end,
         "wall_seconds": wall,
+        "secure": secure,
+        "security_overhead_bytes": overhead,
+        "payload_mtu": net.payload_mtu,
+        "bytes_per_epoch": nbytes[0] / epochs,
+        "energy_mj_per_epoch": energy / epochs,
     }
     out["meets_targets"] = out["lower_bound_ratio"] <= 1.5 and out["no_aggregation_ratio"] >= 5
     return out
@@ -209,6 +241,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def _fields(cfg: MiddlewareConfig) -> dict[str, Any]:
     return {f: getattr(cfg, f) for f in cfg.__dataclass_fields__}
+
+
+def _energy(net: VirtualNetwork) -> float:
+    return sum(net.energy_mj(n) for n in net.ids())
 
 
 def _acks(net: VirtualNetwork) -> int:

@@ -22,7 +22,13 @@ JSON keys:
 * ``tx_per_mote_per_hour``: dissemination frames plus collection beacons per
   mote per hour in the window; ``drip_tx_per_mote_per_hour`` and
   ``ctp_beacons_per_mote_per_hour`` split it; ``window_s``;
-* ``wall_seconds``.
+* ``wall_seconds``;
+* ``secure`` (``--secure``: throw-away keys, every frame sealed with a
+  counter and an 8-byte MIC, items signed by the gateway and verified by every
+  mote; the signature travels in 2 DripSig frames, counted in the Drip
+  figures), ``security_overhead_bytes`` (per frame; 0 when off),
+  ``payload_mtu`` (the MTU the middleware's frames get),
+  ``bytes_tx_per_mote_per_hour`` (radio bytes in the window, overhead included).
 
 The scenario helpers (grid of motes with optional periodic traffic, route and
 connectivity checks) are shared with the tests.
@@ -47,13 +53,16 @@ from awaremw.protocol.frames import (
     CtpBeacon,
     DataRecord,
     DripItem,
+    DripSig,
     DripSummary,
     ItemBody,
     ItemKind,
     peek_header,
 )
 from awaremw.protocol.mote import AwareMote
+from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.model import RadioModel, preset
+from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.world.mobility import Static
 
@@ -137,20 +146,29 @@ def build_grid(
     first: float = 20.0,
     radio: str = "cc2420",
     overrides: dict[str, Any] | None = None,
+    security: RadioSecurity | None = None,
+    signer: ItemSigner | None = None,
 ) -> tuple[VirtualNetwork, dict[int, TrafficMote], list[Event]]:
     """``side`` x ``side`` TrafficMotes (ids row by row); returns the network, the
-    motes and the list the network's events are appended to."""
-    net = VirtualNetwork(RadioModel(preset(radio), seed), seed)
+    motes and the list the network's events are appended to. With ``security``
+    the radio is secured, the motes get the payload MTU and verify items with
+    its gateway public key, and the roots sign with ``signer``."""
+    net = VirtualNetwork(RadioModel(preset(radio), seed), seed, security=security)
     events: list[Event] = []
     net.on_event = lambda node, e, t: events.append((node, e, t))
     rng = random.Random(seed)
     root_set = set(roots)
-    base = MiddlewareConfig(mtu=preset(radio).mtu).with_overrides(overrides or {})
+    sec: dict[str, Any] = {"mtu": net.payload_mtu}
+    if security is not None:
+        sec["gateway_public_key"] = security.gateway_public_key
+    base = MiddlewareConfig().with_overrides({**sec, **(overrides or {})})
     motes: dict[int, TrafficMote] = {}
     for i in range(side * side):
         cfg = base.with_overrides({"is_root": i in root_set})
         p = None if i in root_set else period
         m = TrafficMote(i, cfg, p, first + rng.uniform(0.0, period or 0.0), seed)
+        if i in root_set:
+            m.dissemination.signer = signer
         motes[i] = m
         net.add(m, Static((i % side) * spacing, (i // side) * spacing))
     return net, motes, events
@@ -187,9 +205,7 @@ def hop_distances(
     return dist
 
 
-def mesh_connected(
-    net: VirtualNetwork, ids: Iterable[int], root: int, min_rssi: float
-) -> set[int]:
+def mesh_connected(net: VirtualNetwork, ids: Iterable[int], root: int, min_rssi: float) -> set[int]:
     """The motes among ``ids`` joined to ``root`` by links of mean RSSI >= ``min_rssi``."""
     return set(hop_distances(net, ids, root, min_rssi))
 
@@ -207,14 +223,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     side = int(args.side)
     seed = int(args.seed)
     t_wall = time.perf_counter()
-    net, motes, events = build_grid(side, float(args.spacing), (0,), seed, radio=args.radio)
+    secure = bool(getattr(args, "secure", False))
+    security, signer = None, None
+    if secure:
+        security, key = RadioSecurity.throwaway()
+        signer = ItemSigner(key)
+    net, motes, events = build_grid(
+        side, float(args.spacing), (0,), seed, radio=args.radio, security=security, signer=signer
+    )
     counts = {"drip": 0, "ctp": 0}
     counting = [False]
 
     def on_transmit(node: int, tx: Transmission, t: float) -> None:
         if counting[0]:
             ftype = peek_header(tx.frame)[0]
-            if ftype in (DripItem.TYPE, DripSummary.TYPE):
+            if ftype in (DripItem.TYPE, DripSummary.TYPE, DripSig.TYPE):
                 counts["drip"] += 1
             elif ftype == CtpBeacon.TYPE:
                 counts["ctp"] += 1
@@ -238,8 +261,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     net.run_until(t_inj + float(args.settle))
     counting[0] = True
     window = float(args.window)
+    bytes0 = sum(c.bytes_tx for c in net.counters.values())
     net.run_until(net.now + window)
     counting[0] = False
+    bytes_tx = sum(c.bytes_tx for c in net.counters.values()) - bytes0
     n = len(motes)
     per_hour = 3600.0 / window / n
     parent_changes = sum(1 for _, e, _ in events if isinstance(e, ParentChanged))
@@ -260,6 +285,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "drip_tx_per_mote_per_hour": round(counts["drip"] * per_hour, 3),
         "ctp_beacons_per_mote_per_hour": round(counts["ctp"] * per_hour, 3),
         "window_s": window,
+        "bytes_tx_per_mote_per_hour": round(bytes_tx * per_hour, 1),
+        "secure": secure,
+        "security_overhead_bytes": 0 if security is None else security.overhead,
+        "payload_mtu": net.payload_mtu,
         "parent_changes": parent_changes,
         "wall_seconds": round(time.perf_counter() - t_wall, 2),
     }
@@ -280,4 +309,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window", type=float, default=3600.0, help="s of steady state counted")
     parser.add_argument(
         "--hop-rssi", type=float, default=-93.0, help="dBm: a link counts as one hop above this"
+    )
+    parser.add_argument(
+        "--secure",
+        action="store_true",
+        help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
     )

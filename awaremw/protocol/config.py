@@ -73,6 +73,12 @@ class MiddlewareConfig:
     # Role
     is_root: bool = False  # a gateway mote: root of the collection tree
 
+    # Signed dissemination (docs/security.md, "Frames and items"): the gateway's raw
+    # 32-byte Ed25519 public key; items are verified before being applied or
+    # forwarded. None: items are not signed (security off).
+    gateway_public_key: bytes | None = None
+    max_pending_items: int = 4  # items waiting for their signature (evicts the oldest)
+
     def with_overrides(self, overrides: dict[str, Any]) -> MiddlewareConfig:
         """A copy with ``overrides`` applied. Unknown keys and values of the wrong
         type (checked against the annotations by msgspec, strictly: no bool for a

@@ -31,6 +31,16 @@ its own Trickles. A neighbour that holds *fewer* items than the summary's
 sender may be behind it: it answers with its own summary (rate-limited), so
 the sender resets its Trickles. See docs/protocol-dissemination.md.
 
+Signed items (``config.gateway_public_key`` set): every item version carries
+the gateway's Ed25519 signature (:mod:`awaremw.protocol.signing`), sent after
+the item in :data:`~awaremw.protocol.frames.SIG_PARTS` :class:`DripSig`
+frames. A mote holds a newer item heard from the radio *pending* (at most
+``max_pending_items``, the oldest evicted) until its signature parts are in,
+verifies it, and only then adopts it, applies it and passes it on (with its
+signature); a bad signature is an :class:`ItemRefused` event (``"bad
+signature"``). Versions and Trickle suppression work as before on DripItem
+frames.
+
 Bounds: a mote holds at most ``max_group_types`` group types,
 ``max_channels`` channels and ``max_command_slots`` commands, tombstones
 included. A new key on a full table evicts the tombstone of that kind changed
@@ -49,7 +59,10 @@ from typing import NamedTuple
 from awaremw.protocol.component import Component, MoteContext
 from awaremw.protocol.frames import (
     BROADCAST,
+    SIG_PART_BYTES,
+    SIG_PARTS,
     DripItem,
+    DripSig,
     DripSummary,
     Frame,
     FrameTooLarge,
@@ -57,6 +70,7 @@ from awaremw.protocol.frames import (
     ItemKind,
     encode,
 )
+from awaremw.protocol.signing import ItemSigner, ItemVerifier
 from awaremw.protocol.trickle import Trickle
 
 OnItem = Callable[[ItemKind, int, ItemBody | None, float], None]
@@ -87,6 +101,21 @@ class Item(NamedTuple):
 
     version: int
     body: ItemBody | None
+
+
+_MISSING = object()  # a pending item whose DripItem has not been heard yet
+
+
+class _Pending:
+    """A newer item version heard, waiting for its signature (or its body)."""
+
+    __slots__ = ("body", "parts", "source", "version")
+
+    def __init__(self, version: int, source: int) -> None:
+        self.version = version
+        self.body: object = _MISSING  # ItemBody | None once heard
+        self.parts: list[bytes | None] = [None] * SIG_PARTS
+        self.source = source
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,6 +179,13 @@ class Dissemination(Component):
         self.refused = 0  # counters for observers
         self.item_tx = 0
         self.summary_tx = 0
+        self.sig_tx = 0
+        key = ctx.config.gateway_public_key
+        self.verifier: ItemVerifier | None = None if key is None else ItemVerifier(key)
+        # Gateway motes only: signs what is injected (set by whoever holds the key).
+        self.signer: ItemSigner | None = None
+        self._pending: dict[ItemKey, _Pending] = {}  # bound: config.max_pending_items
+        self._sigs: dict[ItemKey, bytes] = {}  # the held version's signature (same keys)
 
     # ------------------------------------------------------------------ public API
 
@@ -165,6 +201,10 @@ class Dissemination(Component):
     def version_of(self, kind: ItemKind, item_id: int) -> int | None:
         it = self._items.get((kind, item_id))
         return None if it is None else it.version
+
+    def signature_of(self, kind: ItemKind, item_id: int) -> bytes | None:
+        """The gateway's signature of the held version (None: unsigned items)."""
+        return self._sigs.get((kind, item_id))
 
     def trickle(self, kind: ItemKind, item_id: int) -> Trickle | None:
         """The item's Trickle timer (for observers and tests; do not drive it)."""
@@ -187,14 +227,22 @@ class Dissemination(Component):
         return len(same) < self.capacity(kind) or any(it.body is None for it in same)
 
     def inject(
-        self, kind: ItemKind, item_id: int, version: int, item: ItemBody | None, now: float
+        self,
+        kind: ItemKind,
+        item_id: int,
+        version: int,
+        item: ItemBody | None,
+        now: float,
+        signature: bytes | None = None,
     ) -> bool:
         """Inject an item at this (gateway) mote. Versions not newer than the one held
         are ignored (returns False), so re-injecting is harmless.
 
-        Raises ValueError for a body of the wrong kind or out-of-range fields,
-        :class:`FrameTooLarge` if it cannot fit the MTU, :class:`ItemTableFull`
-        if the kind's table has no room (see :meth:`accepts`).
+        With signed items, ``signature`` is the gateway's (made by :attr:`signer`
+        when not given). Raises ValueError for a body of the wrong kind or
+        out-of-range fields, or a missing or wrong signature, :class:`FrameTooLarge`
+        if it cannot fit the MTU, :class:`ItemTableFull` if the kind's table has
+        no room (see :meth:`accepts`).
         """
         frame = DripItem(self.ctx.node_id, BROADCAST, kind, item_id, version, item)
         encode(frame, self.ctx.config.mtu)  # raises FrameTooLarge before we keep it
@@ -205,7 +253,20 @@ class Dissemination(Component):
             raise ItemTableFull(
                 f"{frame.kind.name} table full ({self.capacity(frame.kind)} live items)"
             )
-        self._adopt(frame, now, source=None)
+        sig = None
+        if self.verifier is not None:
+            sig = signature
+            if sig is None and self.signer is not None:
+                sig = self.signer.sign(frame.kind, item_id, version, item)
+            if sig is None:
+                raise ValueError(
+                    "signed dissemination: an injected item needs the gateway's signature"
+                )
+            if not self.verifier.verify(frame.kind, item_id, version, item, sig):
+                raise ValueError(
+                    "signed dissemination: the signature does not match the gateway key"
+                )
+        self._adopt(frame, now, source=None, sig=sig)
         return True
 
     # ------------------------------------------------------------------ Component hooks
@@ -221,6 +282,8 @@ class Dissemination(Component):
             self._on_item_frame(frame, now)
         elif isinstance(frame, DripSummary):
             self._on_summary(frame, now)
+        elif isinstance(frame, DripSig):
+            self._on_sig(frame, now)
 
     def on_timer(self, name: object, now: float) -> None:
         if name == "summary":
@@ -235,8 +298,15 @@ class Dissemination(Component):
         trickle = self._trickles[key]
         if trickle.handle_timer(now):
             it = self._items[key]
-            self.send(DripItem(self.ctx.node_id, BROADCAST, key[0], key[1], it.version, it.body))
+            sig = self._sigs.get(key)
+            nid = self.ctx.node_id
+            self.send(DripItem(nid, BROADCAST, key[0], key[1], it.version, it.body))
             self.item_tx += 1
+            if sig is not None:
+                for p in range(SIG_PARTS):
+                    chunk = sig[p * SIG_PART_BYTES : (p + 1) * SIG_PART_BYTES]
+                    self.send(DripSig(nid, BROADCAST, key[0], key[1], it.version, p, chunk))
+                    self.sig_tx += 1
         self._arm(key)
 
     # ------------------------------------------------------------------ internals
@@ -245,12 +315,59 @@ class Dissemination(Component):
         key = (f.kind, f.item_id)
         cur = self._items.get(key)
         if cur is None or newer(f.version, cur.version):
-            self._adopt(f, now, source=f.src)
+            if self.verifier is None:
+                self._adopt(f, now, source=f.src)
+            else:
+                pend = self._pending_for(key, f.version, f.src)
+                if pend is not None:
+                    pend.body = f.item
+                    self._try_complete(key, pend, now)
         elif f.version != cur.version:  # older (serial arithmetic): the sender is behind
             self._trickles[key].reset(now)
             self._arm(key)
         else:
             self._trickles[key].hear_consistent()
+
+    def _pending_for(self, key: ItemKey, version: int, src: int) -> _Pending | None:
+        """The pending entry of ``key`` at ``version`` (made if newer than a pending
+        one; None if an even newer version is pending already)."""
+        pend = self._pending.get(key)
+        if pend is not None:
+            if pend.version == version:
+                return pend
+            if not newer(version, pend.version):
+                return None
+            del self._pending[key]
+        if len(self._pending) >= self.ctx.config.max_pending_items:
+            del self._pending[next(iter(self._pending))]  # the oldest
+        pend = self._pending[key] = _Pending(version, src)
+        return pend
+
+    def _on_sig(self, f: DripSig, now: float) -> None:
+        if self.verifier is None:
+            return
+        key = (f.kind, f.item_id)
+        cur = self._items.get(key)
+        if cur is not None and not newer(f.version, cur.version):
+            return  # a signature of what we hold (or older)
+        pend = self._pending_for(key, f.version, f.src)
+        if pend is not None:
+            pend.parts[f.part] = f.chunk
+            self._try_complete(key, pend, now)
+
+    def _try_complete(self, key: ItemKey, pend: _Pending, now: float) -> None:
+        if pend.body is _MISSING or any(p is None for p in pend.parts):
+            return
+        del self._pending[key]
+        body: ItemBody | None = pend.body  # type: ignore[assignment]
+        sig = b"".join(p for p in pend.parts if p is not None)
+        assert self.verifier is not None
+        if not self.verifier.verify(key[0], key[1], pend.version, body, sig):
+            self.refused += 1
+            self.ctx.emit(ItemRefused(key[0], key[1], pend.version, pend.source, "bad signature"))
+            return
+        f = DripItem(self.ctx.node_id, BROADCAST, key[0], key[1], pend.version, body)
+        self._adopt(f, now, source=pend.source, sig=sig)
 
     def _on_summary(self, f: DripSummary, now: float) -> None:
         n = len(self._items)
@@ -274,7 +391,7 @@ class Dissemination(Component):
         n = min(len(self._items), 0xFFFF)
         self.send(DripSummary(self.ctx.node_id, BROADCAST, self._digest, n))
 
-    def _adopt(self, f: DripItem, now: float, source: int | None) -> None:
+    def _adopt(self, f: DripItem, now: float, source: int | None, sig: bytes | None = None) -> None:
         key = (f.kind, f.item_id)
         cur = self._items.get(key)
         if source is not None:
@@ -289,6 +406,10 @@ class Dissemination(Component):
             self._digest = (self._digest - digest_term(f.kind, f.item_id, cur.version)) & _M32
         self._digest = (self._digest + digest_term(f.kind, f.item_id, f.version)) & _M32
         self._items[key] = Item(f.version, f.item)
+        if sig is None:
+            self._sigs.pop(key, None)
+        else:
+            self._sigs[key] = sig
         self._changed[key] = now
         trickle = self._trickles.get(key)
         if trickle is None:
@@ -322,6 +443,7 @@ class Dissemination(Component):
         old = self._items.pop(victim)
         self._digest = (self._digest - digest_term(victim[0], victim[1], old.version)) & _M32
         del self._trickles[victim], self._changed[victim]
+        self._sigs.pop(victim, None)
         self.timers.cancel(("item", *victim))
 
     def _arm(self, key: ItemKey) -> None:

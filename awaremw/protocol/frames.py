@@ -465,6 +465,46 @@ class DripItem(Frame):
         return cls(src, dst, k, item_id, version, None if item is None else _BODY_OF[k](item))
 
 
+SIG_PARTS = 2  # an Ed25519 signature (64 B) travels in two frames of 32 B
+SIG_PART_BYTES = 32
+
+
+@dataclass(frozen=True, slots=True)
+class DripSig(Frame):
+    """One part of the gateway's signature of a Drip item ``(kind, item_id, version)``.
+
+    A 64-byte Ed25519 signature does not fit a CC1000 frame beside the item,
+    so it travels in :data:`SIG_PARTS` frames of its own (docs/security.md,
+    "Frames and items"); the largest encodes to 52 bytes."""
+
+    TYPE: ClassVar[int] = 16
+    kind: ItemKind = ItemKind.GROUP_TYPE
+    item_id: int = 0
+    version: int = 0
+    part: int = 0
+    chunk: bytes = b""
+
+    def __post_init__(self) -> None:
+        Frame.__post_init__(self)
+        if not isinstance(self.kind, ItemKind):
+            object.__setattr__(self, "kind", ItemKind(self.kind))
+        _u16("item_id", self.item_id)
+        _u32("version", self.version)
+        _int("part", self.part, 0, SIG_PARTS - 1)
+        if not isinstance(self.chunk, bytes) or len(self.chunk) != SIG_PART_BYTES:
+            raise ValueError(f"a signature part is {SIG_PART_BYTES} bytes")
+
+    def body(self) -> list[Any]:
+        return [int(self.kind), self.item_id, self.version, self.part, self.chunk]
+
+    @classmethod
+    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripSig:
+        kind, item_id, version, part, chunk = _arity(body, 5, "drip signature")
+        if not isinstance(kind, int) or kind not in ItemKind._value2member_map_:
+            raise BadField(f"item kind {kind!r}")
+        return cls(src, dst, ItemKind(kind), item_id, version, part, chunk)
+
+
 @dataclass(frozen=True, slots=True)
 class DripSummary(Frame):
     """Digest of everything a mote holds; a mismatch makes neighbours speak up."""
@@ -641,7 +681,17 @@ class Partial(Frame):
 
 FRAME_TYPES: dict[int, type[Frame]] = {
     t.TYPE: t
-    for t in (Hello, DripItem, DripSummary, CtpBeacon, CtpData, LeaderBeacon, Handover, Partial)
+    for t in (
+        Hello,
+        DripItem,
+        DripSummary,
+        CtpBeacon,
+        CtpData,
+        LeaderBeacon,
+        Handover,
+        Partial,
+        DripSig,
+    )
 }
 
 

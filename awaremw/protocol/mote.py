@@ -34,6 +34,7 @@ from awaremw.protocol.frames import (
     CtpBeacon,
     CtpData,
     DripItem,
+    DripSig,
     DripSummary,
     FrameError,
     Handover,
@@ -81,6 +82,7 @@ class AwareMote:
             Hello.TYPE: self.beacon,
             DripItem.TYPE: self.dissemination,
             DripSummary.TYPE: self.dissemination,
+            DripSig.TYPE: self.dissemination,
             CtpBeacon.TYPE: self.collection,
             CtpData.TYPE: self.collection,
             LeaderBeacon.TYPE: self.groups,
@@ -136,10 +138,17 @@ class AwareMote:
     # ----------------------------------------------------------------- API for the gateway
 
     def inject(
-        self, kind: ItemKind, item_id: int, version: int, item: ItemBody | None, now: float
+        self,
+        kind: ItemKind,
+        item_id: int,
+        version: int,
+        item: ItemBody | None,
+        now: float,
+        signature: bytes | None = None,
     ) -> None:
-        """Inject a definition, command or deletion (gateway motes)."""
-        self.dissemination.inject(kind, item_id, version, item, now)
+        """Inject a definition, command or deletion (gateway motes). With signed
+        items the signature is ``signature`` or made by ``dissemination.signer``."""
+        self.dissemination.inject(kind, item_id, version, item, now, signature)
 
     # ----------------------------------------------------------------- internals
 

@@ -32,6 +32,7 @@ class MoteCounters:
     acks_tx: int = 0
     acks_rx: int = 0
     duplicates: int = 0  # retried unicasts received again (not passed to the core)
+    refused: int = 0  # received but refused by link security (bad MIC, replay; radio/security.py)
 
     def energy_mj(self, preset: RadioPreset, tx_power_dbm: float | None = None) -> float:
         """Radio energy in mJ: V * I * airtime, for TX (frames + ACKs) and RX (same)."""

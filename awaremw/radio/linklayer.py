@@ -17,13 +17,16 @@ from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.model import RadioModel, RadioPreset, packet_key
 from awaremw.radio.neighbourhood import Station
+from awaremw.radio.security import FrameGuard
 from awaremw.world.mobility import Mobility
 
 
 class LinkStation(Station):
     """A mote's radio: where it is (:class:`Station`) and its link-layer state."""
 
-    __slots__ = ("battery", "busy", "cur", "cur_attempt", "cur_seq", "last_useq", "queue", "seq")
+    __slots__ = (
+        "air", "battery", "busy", "cur", "cur_attempt", "cur_seq", "last_useq", "queue", "seq",
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -43,6 +46,9 @@ class LinkStation(Station):
         self.cur: Transmission | None = None
         self.cur_seq = 0
         self.cur_attempt = 0
+        # The bytes of ``cur`` on the air: its frame, sealed (counter + MIC) when
+        # the medium has a FrameGuard (awaremw.radio.security), else the frame itself.
+        self.air = b""
         self.seq = 0  # 16-bit link sequence number of the next frame
         self.last_useq: dict[int, int] = {}  # src -> seq of the last unicast delivered
 
@@ -70,9 +76,11 @@ def check_transmission(st: LinkStation, tx: Transmission, mtu: int) -> None:
         raise ValueError(f"node {st.node_id}: bad destination {d}")
 
 
-def begin_next(st: LinkStation) -> Transmission:
+def begin_next(st: LinkStation, guard: FrameGuard | None = None) -> Transmission:
     """Rule 2: the next queued frame goes on the air with the next link sequence
-    number, attempt 0 (the caller schedules the attempt; the queue is not empty)."""
+    number, attempt 0 (the caller schedules the attempt; the queue is not empty).
+    With a ``guard`` the bytes on the air (``st.air``) are the frame sealed with
+    the sender's next frame counter and a MIC; retries send the same bytes."""
     tx = st.queue.popleft()
     seq = st.seq
     st.seq = (seq + 1) & 0xFFFF
@@ -80,6 +88,7 @@ def begin_next(st: LinkStation) -> Transmission:
     st.cur = tx
     st.cur_seq = seq
     st.cur_attempt = 0
+    st.air = tx.frame if guard is None else guard.seal(st.node_id, tx.dest, seq, tx.frame)
     return tx
 
 
@@ -130,6 +139,7 @@ def settle(st: LinkStation, acked: bool, max_retries: int) -> bool:
         c.unicast_failed += 1
     st.busy = False
     st.cur = None
+    st.air = b""
     return False
 
 
@@ -146,3 +156,4 @@ def silence(st: LinkStation) -> None:
     st.queue.clear()
     st.busy = False
     st.cur = None
+    st.air = b""

@@ -75,6 +75,7 @@ from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.model import RadioModel, cell_of, packet_key
 from awaremw.radio.neighbourhood import Cell, Neighbourhood, adjacent, hear
+from awaremw.radio.security import FrameGuard, RadioSecurity
 from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
 
@@ -150,7 +151,7 @@ class Radio(LinkStation):
         if not self.alive:
             return
         m = self.medium
-        mtu = m.preset.mtu
+        mtu = m.payload_mtu
         for tx in txs:
             linklayer.check_transmission(self, tx, mtu)
             self.queue.append(tx)
@@ -182,6 +183,7 @@ class ZenohMedium:
         prefix: str = DEFAULT_PREFIX,
         handler: Handler = DEFAULT_HANDLER,
         ack_wait_floor_s: float = DEFAULT_ACK_WAIT_FLOOR_S,
+        security: RadioSecurity | None = None,
     ) -> None:
         if "*" in prefix or prefix.endswith("/") or not prefix:
             raise ValueError(f"bad key prefix {prefix!r}")
@@ -213,6 +215,11 @@ class ZenohMedium:
         self._overhead = p.phy_overhead_bytes
         self.on_malformed: Callable[[str, str], None] | None = None  # (key, reason)
         self.limits = EnvelopeLimits.of(self.preset)
+        # Link-layer security (awaremw.radio.security): every frame sealed with
+        # the network key and a frame counter; refusals counted per reason in
+        # ``self.guard.refused`` and per mote in ``counters.refused``.
+        self.guard: FrameGuard | None = None if security is None else FrameGuard(security)
+        self.payload_mtu = p.mtu if security is None else security.payload_mtu(p.mtu)
         # Rejected envelopes by reason, and faults contained by the last guards
         # (an exception out of a Zenoh callback or a mote handler): counted,
         # logged at most once per reason every 10 s (awaremw.radio.faults).
@@ -477,6 +484,8 @@ class ZenohMedium:
         n = len(frame)
         bits = 8 * (n + self._overhead)
         key = packet_key(seq, 0)
+        g = self.guard
+        op = None if g is None else g.open(src, BROADCAST, seq, frame)  # once per frame
         nb = self._nb
         c = nb.sender(src, sx, sy, txp)
         links = self.links
@@ -496,7 +505,9 @@ class ZenohMedium:
                 rc.bytes_rx += n
                 if links is not None:
                     _tally(links, src, r.node_id)
-                r.sink.radio_receive(frame, rssi, now)
+                data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+                if data is not None:
+                    r.sink.radio_receive(data, rssi, now)
                 if r.battery is not None:
                     self._check_battery(r, now)
         if nb.moving:
@@ -516,7 +527,9 @@ class ZenohMedium:
                     continue
                 if links is not None:
                     _tally(links, src, r.node_id)
-                r.sink.radio_receive(frame, got, now)
+                data = frame if op is None else g.accept(r.node_id, r.counters, src, op)  # type: ignore[union-attr]
+                if data is not None:
+                    r.sink.radio_receive(data, got, now)
                 self._check_battery(r, now)
         if not heard:
             self.stats.ignored += 1
@@ -552,8 +565,16 @@ class ZenohMedium:
             return False
         if self.links is not None:
             _tally(self.links, src, r.node_id)
-        if linklayer.accept_unicast(r, src, seq):
-            r.sink.radio_receive(frame, rssi, now)
+        g = self.guard
+        op = None if g is None else g.open(src, r.node_id, seq, frame)
+        if op is not None and op.payload is None:
+            # Bad MIC: dropped before the duplicate filter (it cannot poison it);
+            # the hardware ACK goes out all the same (802.15.4 ACKs are not secured).
+            g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+        elif linklayer.accept_unicast(r, src, seq):
+            data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+            if data is not None:
+                r.sink.radio_receive(data, rssi, now)
         if not linklayer.send_ack(r):  # switched off by whoever handled the frame
             return False
         self._check_battery(r, now)
@@ -595,8 +616,8 @@ class ZenohMedium:
     def _start_next(self, r: Radio) -> None:
         if not r.queue or self._frozen or self._closed:
             return
-        tx = linklayer.begin_next(r)
-        self._schedule_attempt(r, len(tx.frame), r.cur_seq, 0)
+        linklayer.begin_next(r, self.guard)
+        self._schedule_attempt(r, len(r.air), r.cur_seq, 0)
 
     def _schedule_attempt(self, r: Radio, n: int, seq: int, attempt: int) -> None:
         backoff = self.model.backoff_s(r.node_id, seq, attempt)
@@ -610,7 +631,7 @@ class ZenohMedium:
             return
         seq = r.cur_seq
         attempt = r.cur_attempt
-        frame = tx.frame
+        frame = r.air  # sealed when the medium is secured
         n = len(frame)
         c = r.counters
         c.frames_tx += 1
@@ -655,7 +676,7 @@ class ZenohMedium:
         if not r.alive or tx is None or self._closed:
             return
         if linklayer.settle(r, acked, 0 if self._frozen else self.preset.max_retries):
-            self._schedule_attempt(r, len(tx.frame), r.cur_seq, r.cur_attempt)
+            self._schedule_attempt(r, len(r.air), r.cur_seq, r.cur_attempt)
             return
         now = self.clock.now()
         r.sink.radio_link_result(tx, acked, now)

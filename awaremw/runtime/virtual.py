@@ -45,6 +45,7 @@ from awaremw.radio.model import (
     packet_key,
 )
 from awaremw.radio.neighbourhood import Neighbourhood, adjacent, hear, hear_link
+from awaremw.radio.security import FrameGuard, Opened, RadioSecurity
 from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
 from awaremw.world.mobility import Mobility, Static
 
@@ -85,7 +86,9 @@ class _Node(LinkStation):
 class VirtualNetwork:
     """Motes on a virtual clock, talking through the in-memory medium."""
 
-    def __init__(self, model: RadioModel, seed: int | None = None) -> None:
+    def __init__(
+        self, model: RadioModel, seed: int | None = None, *, security: RadioSecurity | None = None
+    ) -> None:
         if seed is not None and seed != model.seed:
             raise ValueError(f"seed {seed} differs from the radio model's seed {model.seed}")
         self.model = model
@@ -114,13 +117,21 @@ class VirtualNetwork:
         self._overhead = p.phy_overhead_bytes
         self._byte_s = 8.0 / p.bitrate_bps
         self._backoff_max = p.mac_backoff_s
-        self._mtu = p.mtu
+        # Link-layer security (awaremw.radio.security): frames sealed on the air,
+        # opened and checked for replays off it; the cores get mtu - overhead bytes.
+        self.guard: FrameGuard | None = None if security is None else FrameGuard(security)
+        self._mtu = p.mtu if security is None else security.payload_mtu(p.mtu)
 
     # ------------------------------------------------------------------ public API
 
     @property
     def now(self) -> float:
         return self._now
+
+    @property
+    def payload_mtu(self) -> int:
+        """The largest frame a core may send (the preset's MTU less the security overhead)."""
+        return self._mtu
 
     @property
     def cores(self) -> dict[int, MoteCore]:
@@ -323,8 +334,8 @@ class VirtualNetwork:
     def _start_next(self, node: _Node) -> None:
         if not node.queue:
             return
-        tx = linklayer.begin_next(node)
-        self._schedule_attempt(node, len(tx.frame), node.cur_seq, 0)
+        linklayer.begin_next(node, self.guard)
+        self._schedule_attempt(node, len(node.air), node.cur_seq, 0)
 
     def _schedule_attempt(self, node: _Node, n: int, seq: int, attempt: int) -> None:
         h = packet_hash(node.backoff_h, (seq << 8) | (attempt << 1))  # packet_key(seq, attempt)
@@ -343,7 +354,7 @@ class VirtualNetwork:
         if tx is None or not s.alive:
             return  # switched off while on the air
         seq = s.cur_seq
-        frame = tx.frame
+        frame = s.air
         n = len(frame)
         c = s.counters
         c.frames_tx += 1
@@ -363,6 +374,9 @@ class VirtualNetwork:
             self._check_battery(s)
 
     def _broadcast(self, s: _Node, frame: bytes, n: int, key: int) -> None:
+        g = self.guard
+        op = None if g is None else g.open(s.node_id, BROADCAST, key >> 8, frame)
+        sid = s.node_id
         bits = 8 * (n + self._overhead)
         kg = (key * _GOLDEN) & _M64
         now = self._now
@@ -401,10 +415,12 @@ class VirtualNetwork:
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 core = r.core
-                try:
-                    core.receive(frame, rssi, now)
-                except Exception as e:
-                    self._contain(r, "receive", e)
+                data = frame if g is None else g.accept(r.node_id, rc, sid, op)  # type: ignore[arg-type]
+                if data is not None:
+                    try:
+                        core.receive(data, rssi, now)
+                    except Exception as e:
+                        self._contain(r, "receive", e)
                 # Inlined _after(r): usually nothing to send, no event, same deadline.
                 txs = core.drain()
                 evs = core.events()
@@ -415,15 +431,24 @@ class VirtualNetwork:
                     self._check_battery(r)
             if nb.moving:
                 for r in list(nb.moving):
-                    self._hear(s, r, frame, n, bits, key)
+                    self._hear(s, r, frame, n, bits, key, op)
         else:
             nb.locate(s, now)
             candidates = [r for lst in nb.cells_around(s.cell) for r in lst]
             candidates.extend(nb.moving)  # filtered by cell in _hear
             for r in candidates:
-                self._hear(s, r, frame, n, bits, key)
+                self._hear(s, r, frame, n, bits, key, op)
 
-    def _hear(self, s: _Node, r: _Node, frame: bytes, n: int, bits: int, key: int) -> None:
+    def _hear(
+        self,
+        s: _Node,
+        r: _Node,
+        frame: bytes,
+        n: int,
+        bits: int,
+        key: int,
+        op: Opened | None,
+    ) -> None:
         """One receiver of a broadcast, evaluated from scratch (moving motes)."""
         if r is s or not r.alive:
             return
@@ -437,10 +462,13 @@ class VirtualNetwork:
         )
         if rssi is None:
             return
-        try:
-            r.core.receive(frame, rssi, now)
-        except Exception as e:
-            self._contain(r, "receive", e)
+        g = self.guard
+        data = frame if g is None or op is None else g.accept(r.node_id, r.counters, s.node_id, op)
+        if data is not None:
+            try:
+                r.core.receive(data, rssi, now)
+            except Exception as e:
+                self._contain(r, "receive", e)
         self._after(r)
         self._check_battery(r)
 
@@ -456,12 +484,24 @@ class VirtualNetwork:
                 bits = 8 * (n + self._overhead)
                 rssi = hear_link(m, link, s.range_m, n, bits, packet_key(seq, a))
                 if rssi is not None:
-                    if linklayer.accept_unicast(r, s.node_id, seq):
-                        try:
-                            r.core.receive(frame, rssi, now)
-                        except Exception as e:
-                            self._contain(r, "receive", e)
-                        self._after(r)
+                    g = self.guard
+                    op = None if g is None else g.open(s.node_id, tx.dest, seq, frame)
+                    if op is not None and op.payload is None:
+                        # Bad MIC: dropped before the duplicate filter (it cannot
+                        # poison it); the hardware ACK goes out all the same.
+                        g.accept(r.node_id, r.counters, s.node_id, op)  # type: ignore[union-attr]
+                    elif linklayer.accept_unicast(r, s.node_id, seq):
+                        data = (
+                            frame
+                            if g is None or op is None
+                            else g.accept(r.node_id, r.counters, s.node_id, op)
+                        )
+                        if data is not None:
+                            try:
+                                r.core.receive(data, rssi, now)
+                            except Exception as e:
+                                self._contain(r, "receive", e)
+                            self._after(r)
                     if linklayer.send_ack(r):
                         # The hardware ACK, on the reverse link at the receiver's power.
                         d = link[1]
@@ -477,7 +517,7 @@ class VirtualNetwork:
         if tx is None or not s.alive:
             return
         if linklayer.settle(s, acked, self.preset.max_retries):
-            self._schedule_attempt(s, len(tx.frame), s.cur_seq, s.cur_attempt)
+            self._schedule_attempt(s, len(s.air), s.cur_seq, s.cur_attempt)
             return
         try:
             s.core.link_result(tx, acked, self._now)
