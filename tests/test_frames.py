@@ -242,3 +242,22 @@ def test_specific_errors() -> None:
         decode(msgpack.packb([1, 1, 2]))  # Hello without its seq
     with pytest.raises(FrameError):
         decode(msgpack.packb([1, 40000, 2, 0]))  # src out of range
+
+
+def test_float64_on_the_wire_decodes_as_the_float32_it_will_be_re_sent_as() -> None:
+    # Found by the mutation test: a foreign encoder sent a command argument as the
+    # float64 16777217.0; we decoded it as such, and re-encoding (float32) gave
+    # 16777216.0, so the frame a mote forwards differed from the one it adopted.
+    args = [["a", 16777217.0]]
+    body = [2, 1, 1, ["x", 0, 0, 0, args]]  # kind COMMAND, id, version, body
+    data = msgpack.packb([DripItem.TYPE, 1, BROADCAST, *body], use_single_float=False)
+    f = decode(data)
+    assert isinstance(f, DripItem) and isinstance(f.item, CommandDef)
+    assert f.item.args == (("a", 16777216.0),)
+    assert decode(encode(f)) == f
+    too_big = msgpack.packb(
+        [DripItem.TYPE, 1, BROADCAST, 2, 1, 1, ["x", 0, 0, 0, [["a", 1e300]]]],
+        use_single_float=False,
+    )
+    with pytest.raises(FrameError):
+        decode(too_big)

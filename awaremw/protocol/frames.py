@@ -15,6 +15,7 @@ and nothing else (a remote fault, to be counted and reported, never a crash).
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -86,6 +87,22 @@ def _u32(name: str, v: object) -> None:
 def _real(name: str, v: object) -> None:
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
         raise ValueError(f"{name}={v!r} is not a finite number")
+
+
+_F32 = struct.Struct("<f")
+
+
+def _wire_real(name: str, v: Any) -> Any:
+    """A number read off the wire, as the wire carries it: floats go on the air as
+    float32, so a float (a foreign encoder may send float64) is rounded to float32,
+    and one that float32 cannot hold is refused. The decoded frame then equals its
+    canonical re-encoding. Anything else is returned for the field's own check."""
+    if isinstance(v, float):
+        try:
+            return float(_F32.unpack(_F32.pack(v))[0])
+        except (OverflowError, struct.error):
+            raise BadField(f"{name}={v!r} does not fit a float32") from None
+    return v
 
 
 def _node(name: str, v: object) -> None:
@@ -176,7 +193,7 @@ class Condition:
         a, o, v = _arity(w, 3, "condition")
         if not isinstance(o, int) or o not in Op._value2member_map_:
             raise BadField(f"condition operator {o!r}")
-        return cls(a, Op(o), v)
+        return cls(a, Op(o), _wire_real("value", v))
 
 
 @dataclass(frozen=True, slots=True)
@@ -201,7 +218,7 @@ class GroupTypeDef:
         conds, hyst = _arity(w, 2, "group type")
         if not isinstance(conds, list):
             raise BadField("conditions is not an array")
-        return cls(tuple(Condition.from_wire(c) for c in conds), hyst)
+        return cls(tuple(Condition.from_wire(c) for c in conds), _wire_real("hysteresis", hyst))
 
 
 @dataclass(frozen=True, slots=True)
@@ -271,7 +288,10 @@ class CommandDef:
             raise BadField(f"command target kind {tk!r}")
         if not isinstance(args, list):
             raise BadField("command args is not an array")
-        pairs = tuple((p[0], p[1]) for p in (_arity(x, 2, "command arg") for x in args))
+        pairs = tuple(
+            (p[0], _wire_real("command arg", p[1]))
+            for p in (_arity(x, 2, "command arg") for x in args)
+        )
         return cls(name, TargetKind(tk), a, b, pairs)
 
 
@@ -374,7 +394,8 @@ def _payload_from_wire(w: Any) -> Payload:
         raise BadField("collection payload is not a tagged array")
     tag, *rest = w
     if tag == DataRecord.TAG:
-        return DataRecord(*_arity(rest, 8, "data record"))
+        ch, gt, gid, epoch, agg, value, count, leader = _arity(rest, 8, "data record")
+        return DataRecord(ch, gt, gid, epoch, agg, _wire_real("value", value), count, leader)
     if tag == GroupReport.TAG:
         g = _arity(rest, 7, "group report")
         if not isinstance(g[5], int) or g[5] not in GroupStatus._value2member_map_:
@@ -676,7 +697,17 @@ class Partial(Frame):
         ch, gt, gid, epoch, agg, count, state = _arity(body, 7, "partial")
         if not isinstance(state, list):
             raise BadField("partial state is not an array")
-        return cls(src, dst, ch, gt, gid, epoch, agg, count, tuple(state))
+        return cls(
+            src,
+            dst,
+            ch,
+            gt,
+            gid,
+            epoch,
+            agg,
+            count,
+            tuple(_wire_real("state", v) for v in state),
+        )
 
 
 FRAME_TYPES: dict[int, type[Frame]] = {
