@@ -36,10 +36,7 @@ import math
 import re
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
-from typing import Annotated, Any, ClassVar, Literal, TypeVar
-
-import msgspec
-from msgspec import UNSET, Meta, UnsetType
+from typing import Any, ClassVar
 
 from awaremw.protocol.attributes import UnknownAttribute, attribute_id, attribute_name
 from awaremw.protocol.config import MiddlewareConfig
@@ -52,6 +49,7 @@ from awaremw.protocol.frames import (
     MAX_CONDITIONS,
     MAX_NODE_ID,
     AggId,
+    ArgValue,
     ChannelDef,
     CommandDef,
     Condition,
@@ -66,7 +64,7 @@ from awaremw.protocol.frames import (
 )
 
 AGG_NAMES: Mapping[str, int] = {a.name.lower(): int(a) for a in AggId}
-ANY: Literal["*"] = "*"
+ANY = "*"
 MAX_VERSION = 0xFFFFFFFF
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
@@ -228,76 +226,10 @@ class Command:
 
 
 # --------------------------------------------------------------------------- payload helpers
-# The JSON shapes as msgspec types: decoding checks object shape (unknown and
-# missing fields), JSON types, the fixed ranges and lengths; the checks no
-# static schema expresses (limits of the deployment, attribute names, the shape
-# of a command target, the MTU, the motes' table sizes) follow by hand.
-
-_GroupId = (
-    Annotated[int, Meta(ge=1, lt=ANY_GROUP_ID)] | Annotated[float, Meta(ge=1, lt=ANY_GROUP_ID)]
-)
-_NodeId = Annotated[int, Meta(ge=0, le=MAX_NODE_ID)] | Annotated[float, Meta(ge=0, le=MAX_NODE_ID)]
-_Args = dict[str, bool | int | float | str]
-
-
-class _Object(msgspec.Struct, forbid_unknown_fields=True):
-    pass
-
-
-class _Condition(_Object):
-    attr: str
-    op: str
-    value: float
-
-
-class _GroupDoc(_Object):
-    conditions: Annotated[list[_Condition], Meta(min_length=1, max_length=MAX_CONDITIONS)]
-    hysteresis: Annotated[float, Meta(ge=0)] = 0.0
-
-
-class _ChannelDoc(_Object):
-    attr: str
-    period_s: float
-    group_type: int | float | Literal["*"] = ANY  # range: Limits.max_group_type
-    group_id: _GroupId | Literal["*"] = ANY
-    agg: str = "avg"
-
-
-class _Target(_Object):
-    node: _NodeId | UnsetType = UNSET
-    group_type: int | float | UnsetType = UNSET
-    group_id: _GroupId | Literal["*"] | UnsetType = UNSET
-
-
-class _CommandDoc(_Object):
-    target: Literal["all"] | _Target = "all"
-    args: Annotated[_Args, Meta(max_length=MAX_COMMAND_ARGS)] = {}
-
-
-_Doc = TypeVar("_Doc", _GroupDoc, _ChannelDoc, _CommandDoc)
 
 
 _STRINGS = re.compile(r'"(?:[^"\\]|\\.)*"')
 _NOT_BRACKETS = re.compile(r"[^\[\]{}]+")
-_ERROR = re.compile(r"(?P<msg>.*?)(?: - at `\$\.?(?P<path>.*)`)?", re.S)
-_TYPE_NAMES = {"str": "string", "int": "integer", "float": "number", "bool": "boolean"}
-_EXPECTED = {
-    "int | float": "an integer",
-    "int | float | str": 'an integer or "*"',
-    "bool | int | float | str": "a number, string or boolean",
-    "object": "a JSON object",
-    "array": "an array",
-    "float": "a number",
-    "str": "a string",
-}
-_WHAT = {_GroupDoc: "group definition", _ChannelDoc: "channel definition", _CommandDoc: "command"}
-_SHAPES: Mapping[str, type[_Object]] = {"conditions[]": _Condition, "target": _Target}
-_RANGE_CODES: Mapping[str, type[SchemaError]] = {
-    "group_id": GroupIdOutOfRange,
-    "args": BadCommand,
-    "target.node": UnknownTarget,
-    "target.group_id": UnknownTarget,
-}
 
 
 def is_empty(payload: bytes, limits: Limits) -> bool:
@@ -317,8 +249,12 @@ def json_depth(text: str) -> int:
     return deepest
 
 
-def _checked_text(payload: bytes, limits: Limits) -> str:
-    """Size, UTF-8 and depth checks, before any parser sees the payload."""
+def decode_payload(payload: bytes, limits: Limits) -> Any:
+    """Size, UTF-8, depth and JSON checks; returns the JSON value.
+
+    The caller handles the empty payload (:func:`is_empty`) first: here it is
+    not JSON. A JSON ``null`` comes back as None, for the caller to refuse.
+    """
     if len(payload) > limits.max_payload_bytes:
         raise PayloadTooLarge(
             f"payload of {len(payload)} bytes exceeds the limit of {limits.max_payload_bytes}"
@@ -332,14 +268,9 @@ def _checked_text(payload: bytes, limits: Limits) -> str:
         raise PayloadTooDeep(
             f"payload nests arrays/objects {depth} deep, more than the limit of {limits.max_depth}"
         )
-    return text
-
-
-def decode_payload(payload: bytes, limits: Limits) -> Any:
-    """Size, UTF-8, depth and JSON checks; returns the JSON value (None for ``null``)."""
     try:
-        return json.loads(_checked_text(payload, limits), parse_constant=_no_constant)
-    except (json.JSONDecodeError, ValueError) as e:
+        return json.loads(text, parse_constant=_no_constant)
+    except (json.JSONDecodeError, ValueError, RecursionError) as e:
         raise InvalidJson(f"payload is not JSON: {e}") from None
 
 
@@ -347,70 +278,55 @@ def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not allowed")
 
 
-def _decode(payload: bytes, limits: Limits, doc_type: type[_Doc]) -> _Doc:
-    text = _checked_text(payload, limits)
-    try:
-        return msgspec.json.decode(text, type=doc_type)
-    except msgspec.ValidationError as e:
-        raise _refusal(str(e), doc_type, text) from None
-    except msgspec.DecodeError as e:
-        raise InvalidJson(f"payload is not JSON: {e}") from None
-
-
-def _refusal(error: str, root: type[_Object], text: str) -> SchemaError:
-    """msgspec's message (``... - at `$.conditions[0].op```) -> the specific refusal."""
-    m = _ERROR.fullmatch(error)
-    assert m is not None
-    msg, path = m["msg"], m["path"] or ""
-    where, shape, quoted = path or _WHAT[root], re.sub(r"\[\d+\]", "[]", path), msg.split("`")
-    if path == "target":
-        target = json.dumps(_value_at(text, path))[:80]
-        return UnknownTarget(
-            f'unknown command target {target}; use "all", {{"node": ID}} or '
-            '{"group_type": T, "group_id": G or "*"}'
-        )
-    if path == "args[...]":
-        key, v = next((k, v) for k, v in json.loads(text)["args"].items() if not _scalar(v))
-        return WrongType(f"args.{key} must be a number, string or boolean, got {_kind(v)}")
-    if msg.startswith("Object contains unknown field"):
-        allowed = ", ".join(sorted(_SHAPES.get(shape, root).__struct_fields__))
-        return UnknownField(f"{where}: unknown field {quoted[1]!r}; allowed: {allowed}")
-    if msg.startswith("Object missing required field"):
-        return MissingField(f"{where}: missing field {quoted[1]!r}")
-    if msg.startswith("Expected") and ", got " in msg:
-        expected = _EXPECTED.get(quoted[1], quoted[1])
-        return WrongType(f"{where} must be {expected}, got {_TYPE_NAMES.get(quoted[3], quoted[3])}")
-    value = _value_at(text, path)
-    if msg.startswith("Invalid enum value"):  # the literal "*" of a group type or id
-        return WrongType(f'{where} must be an integer or "*", got {value!r}')
-    why = "finite" if msg.startswith("Number out of range") else msg.split("` ", 1)[1]
-    got = f"{len(value)} items" if isinstance(value, list | dict) else f"{value!r}"
-    return _RANGE_CODES.get(shape, BadValue)(f"{where} must be {why}, got {got}")
-
-
-def _value_at(text: str, path: str) -> Any:
-    value = json.loads(text)
-    for key, index in re.findall(r"([^.\[\]]+)|\[(\d+)\]", path):
-        value = value[int(index)] if index else value[key]
-    return value
-
-
-def _scalar(v: object) -> bool:
-    return isinstance(v, int | str) or (isinstance(v, float) and math.isfinite(v))
-
-
-def _kind(v: object) -> str:
+def _type_name(v: object) -> str:
     if v is None:
         return "null"
-    return {float: "number", list: "array", dict: "object"}.get(type(v), type(v).__name__)
+    return {
+        bool: "boolean",
+        int: "integer",
+        float: "number",
+        str: "string",
+        list: "array",
+        dict: "object",
+    }.get(type(v), type(v).__name__)
 
 
-def _whole(v: object, what: str) -> int:
-    """An integer field (JSON Schema ``integer`` admits ``513.0``), as an int."""
+def _object(
+    v: object, what: str, allowed: Collection[str], required: Collection[str]
+) -> dict[str, Any]:
+    if not isinstance(v, dict):
+        raise WrongType(f"{what} must be a JSON object, got {_type_name(v)}")
+    extra = sorted(set(v) - set(allowed))
+    if extra:
+        raise UnknownField(
+            f"{what}: unknown field {extra[0]!r}; allowed: {', '.join(sorted(allowed))}"
+        )
+    missing = [k for k in required if k not in v]
+    if missing:
+        raise MissingField(f"{what}: missing field {missing[0]!r}")
+    return v
+
+
+def _number(v: object, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise WrongType(f"{what} must be a number, got {_type_name(v)}")
+    if not math.isfinite(v):
+        raise BadValue(f"{what} must be finite")
+    return float(v)
+
+
+def _integer(v: object, what: str, *, or_any: bool = False) -> int:
     if isinstance(v, float) and v.is_integer():
-        return int(v)
-    if not isinstance(v, int):
-        raise WrongType(f"{what} must be an integer, got {v!r}")
+        v = int(v)
+    if isinstance(v, bool) or not isinstance(v, int):
+        kind = 'an integer or "*"' if or_any else "an integer"
+        raise WrongType(f"{what} must be {kind}, got {_type_name(v)}")
+    return v
+
+
+def _string(v: object, what: str) -> str:
+    if not isinstance(v, str):
+        raise WrongType(f"{what} must be a string, got {_type_name(v)}")
     return v
 
 
@@ -464,16 +380,29 @@ def parse_group_type(
     gtype = group_type_id(type_text, limits)
     if is_empty(payload, limits):
         return Definition(ItemKind.GROUP_TYPE, gtype, None, None)
-    doc = _decode(payload, limits, _GroupDoc)
+    doc = decode_payload(payload, limits)
+    obj = _object(doc, "group definition", ("conditions", "hysteresis"), ("conditions",))
+    conds_doc = obj["conditions"]
+    if not isinstance(conds_doc, list):
+        raise WrongType(f"conditions must be an array, got {_type_name(conds_doc)}")
+    if not 1 <= len(conds_doc) <= MAX_CONDITIONS:
+        raise BadValue(f"a group needs 1..{MAX_CONDITIONS} conditions, got {len(conds_doc)}")
     conds: list[Condition] = []
-    for i, c in enumerate(doc.conditions):
-        attr = _attribute(c.attr, f"conditions[{i}]")
+    for i, c in enumerate(conds_doc):
+        what = f"conditions[{i}]"
+        co = _object(c, what, ("attr", "op", "value"), ("attr", "op", "value"))
+        attr = _attribute(_string(co["attr"], f"{what}.attr"), what)
+        op_text = _string(co["op"], f"{what}.op")
         try:
-            op = Op.from_symbol(c.op)
+            op = Op.from_symbol(op_text)
         except ValueError as e:
-            raise BadOperator(f"conditions[{i}]: {e}") from None
-        conds.append(Condition(attr, op, c.value))
-    body = GroupTypeDef(tuple(conds), doc.hysteresis)
+            raise BadOperator(f"{what}: {e}") from None
+        value = _number(co["value"], f"{what}.value")
+        conds.append(Condition(attr, op, value))
+    hyst = _number(obj.get("hysteresis", 0.0), "hysteresis")
+    if hyst < 0:
+        raise BadValue(f"hysteresis must be >= 0, got {hyst}")
+    body = GroupTypeDef(tuple(conds), hyst)
     check_fits(ItemKind.GROUP_TYPE, gtype, body, limits)
     if gtype not in defined and len(set(defined)) >= limits.max_group_types:
         raise TooManyDefinitions(
@@ -514,21 +443,30 @@ def parse_channel(
     ch = channel_id(id_text, limits)
     if is_empty(payload, limits):
         return Definition(ItemKind.CHANNEL, ch, None, None)
-    doc = _decode(payload, limits, _ChannelDoc)
-    attr = _attribute(doc.attr, "")
-    if doc.group_type == ANY:
+    doc = decode_payload(payload, limits)
+    keys = ("attr", "group_type", "group_id", "period_s", "agg")
+    obj = _object(doc, "channel definition", keys, ("attr", "period_s"))
+    attr = _attribute(_string(obj["attr"], "attr"), "")
+    gt_doc = obj.get("group_type", ANY)
+    if gt_doc == ANY:
         gtype = ANY_GROUP_TYPE
     else:
-        gtype = _whole(doc.group_type, "group_type")
+        gtype = _integer(gt_doc, "group_type", or_any=True)
         if not 0 <= gtype <= limits.max_group_type:
             raise GroupTypeOutOfRange(f"group_type {gtype} out of range 0..{limits.max_group_type}")
-    gid = ANY_GROUP_ID if doc.group_id == ANY else _whole(doc.group_id, "group_id")
-    period = doc.period_s
+    gid_doc = obj.get("group_id", ANY)
+    if gid_doc == ANY:
+        gid = ANY_GROUP_ID
+    else:
+        gid = _integer(gid_doc, "group_id", or_any=True)
+        if not 1 <= gid < ANY_GROUP_ID:
+            raise GroupIdOutOfRange(f"group_id {gid} out of range 1..{ANY_GROUP_ID - 1}")
+    period = _number(obj["period_s"], "period_s")
     if not limits.min_period_s <= period <= limits.max_period_s:
         raise PeriodOutOfRange(
             f"period_s {period:g} out of range {limits.min_period_s:g}..{limits.max_period_s:g}"
         )
-    agg_text = doc.agg.lower()
+    agg_text = _string(obj.get("agg", "avg"), "agg").lower()
     if agg_text not in AGG_NAMES:
         raise UnknownAggregation(f"unknown agg {agg_text!r}; use one of {', '.join(AGG_NAMES)}")
     body = ChannelDef(attr, gtype, gid, round(period * 1000), AGG_NAMES[agg_text])
@@ -566,35 +504,54 @@ def parse_command(
             f"command name {name!r} must be 1..{MAX_COMMAND_NAME} characters of "
             "letters, digits, '_', '-', '.'"
         )
-    doc = _CommandDoc() if is_empty(payload, limits) else _decode(payload, limits, _CommandDoc)
-    tk, ta, tb, tjson = _parse_target(doc.target, limits, group_types)
-    body = CommandDef(name, tk, ta, tb, tuple(doc.args.items()))
+    doc = {} if is_empty(payload, limits) else decode_payload(payload, limits)
+    obj = _object(doc, "command", ("target", "args"), ())
+    target = obj.get("target", "all")
+    tk, ta, tb, tjson = _parse_target(target, limits, group_types)
+    args_doc = obj.get("args", {})
+    if not isinstance(args_doc, dict):
+        raise WrongType(f"args must be a JSON object, got {_type_name(args_doc)}")
+    if len(args_doc) > MAX_COMMAND_ARGS:
+        raise BadCommand(f"at most {MAX_COMMAND_ARGS} command arguments, got {len(args_doc)}")
+    args: list[tuple[str, ArgValue]] = []
+    for k, v in args_doc.items():
+        if not isinstance(v, int | float | str | bool) or (
+            isinstance(v, float) and not math.isfinite(v)
+        ):
+            raise WrongType(f"args.{k} must be a number, string or boolean, got {_type_name(v)}")
+        args.append((k, v))
+    body = CommandDef(name, tk, ta, tb, tuple(args))
     check_fits(ItemKind.COMMAND, 0, body, limits)
-    return Command(name, body, {"target": tjson, "args": dict(doc.args)})
+    return Command(name, body, {"target": tjson, "args": dict(args)})
 
 
 def _parse_target(
-    target: Literal["all"] | _Target, limits: Limits, group_types: Collection[int] | None
+    target: object, limits: Limits, group_types: Collection[int] | None
 ) -> tuple[TargetKind, int, int, Any]:
     if target == "all":
         return TargetKind.ALL, 0, 0, "all"
-    given = {f for f in _Target.__struct_fields__ if getattr(target, f) is not UNSET}
-    if given == {"node"}:
-        node = _whole(target.node, "target.node")
+    if isinstance(target, dict) and set(target) == {"node"}:
+        node = _integer(target["node"], "target.node")
+        if not 0 <= node <= MAX_NODE_ID:
+            raise UnknownTarget(f"target node {node} out of range 0..{MAX_NODE_ID}")
         if limits.known_nodes is not None and node not in limits.known_nodes:
             raise UnknownTarget(f"target node {node} is not in the deployment")
         return TargetKind.NODE, node, 0, {"node": node}
-    if given == {"group_type", "group_id"}:
-        gt = _whole(target.group_type, "target.group_type")
-        any_id = target.group_id == ANY
-        gid = ANY_GROUP_ID if any_id else _whole(target.group_id, "target.group_id")
+    if isinstance(target, dict) and set(target) == {"group_type", "group_id"}:
+        gt = _integer(target["group_type"], "target.group_type")
+        any_id = target["group_id"] == ANY
+        gid = (
+            ANY_GROUP_ID if any_id else _integer(target["group_id"], "target.group_id", or_any=True)
+        )
         if not 0 <= gt <= limits.max_group_type:
             raise UnknownTarget(f"target group_type {gt} out of range 0..{limits.max_group_type}")
+        if not any_id and not 1 <= gid < ANY_GROUP_ID:
+            raise UnknownTarget(f"target group_id {gid} out of range 1..{ANY_GROUP_ID - 1}")
         if group_types is not None and gt not in group_types:
             raise UnknownTarget(f"target group_type {gt} is not defined")
         return TargetKind.GROUP, gt, gid, {"group_type": gt, "group_id": ANY if any_id else gid}
     raise UnknownTarget(
-        f'unknown command target {msgspec.json.encode(target).decode()[:80]}; use "all", '
+        f'unknown command target {json.dumps(target)[:80]}; use "all", '
         '{"node": ID} or {"group_type": T, "group_id": G or "*"}'
     )
 
