@@ -259,3 +259,37 @@ def test_any_bytes_are_parsed_or_refused(data: bytes) -> None:
     for kind in ("group", "channel", "command"):
         with contextlib.suppress(SchemaError):
             _parse(kind, "1", data)
+
+
+# Edge cases where a schema library's defaults differ from the contract (found while
+# measuring a msgspec version, benchmarks/schema_speed.py): each keeps its code.
+EDGES: list[tuple[str, bytes, str]] = [
+    ("channel", j({"attr": "x", "period_s": 2, "group_id": 513.0}), "ok"),  # JSON integer
+    ("channel", j({"attr": "x", "period_s": 2, "group_id": 1.5}), "wrong_type"),
+    ("channel", j({"attr": "x", "period_s": 2, "group_type": True}), "wrong_type"),
+    ("channel", j({"attr": "x", "period_s": 2, "agg": "MAX"}), "ok"),  # case-insensitive
+    ("channel", j({"attr": "x", "period_s": 2, "group_id": 1e300}), "group_id_out_of_range"),
+    ("group", b'{"conditions": [{"attr": "x", "op": ">", "value": 1e999}]}', "bad_value"),
+    ("group", j({"conditions": [{"attr": "x", "op": ">", "value": 1}] * 9}), "bad_value"),
+    ("group", j({"conditions": [{"attr": "x", "op": ">", "value": 1, "q": 2}]}), "unknown_field"),
+    ("command", j({"target": {"node": 7.0}}), "ok"),
+    ("command", j({"target": {"node": "7"}}), "wrong_type"),
+    ("command", j({"target": 5}), "unknown_target"),
+    ("command", j({"target": {"group_type": 1}}), "unknown_target"),
+    ("command", j({"target": {"node": 1, "group_type": 1}}), "unknown_target"),
+    ("command", j({"target": {"group_type": 1, "group_id": 0}}), "unknown_target"),
+    ("command", b'{"args": {"a": 1e999}}', "wrong_type"),
+    ("command", j({"args": {"a": None}}), "wrong_type"),
+    ("command", j({"args": {str(i): i for i in range(9)}}), "bad_command"),
+]
+
+
+@pytest.mark.parametrize(("kind", "payload", "code"), EDGES)
+def test_edge_payloads_keep_their_code(kind: str, payload: bytes, code: str) -> None:
+    try:
+        _parse(kind, "blink" if kind == "command" else "1", payload)
+        got = "ok"
+    except SchemaError as e:
+        got = e.code
+        assert str(e)
+    assert got == code
