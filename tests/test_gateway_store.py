@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from awaremw.gateway.bridge import GatewayBridge, Inject
+from awaremw.gateway.bridge import BridgePolicy, GatewayBridge, Inject
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore
 from awaremw.protocol.frames import (
@@ -87,7 +87,7 @@ def test_command_slots_reuse_least_recently_used(tmp_path: Path) -> None:
 
 
 def bridge(store: VersionStore | None = None, **kw: Any) -> GatewayBridge:
-    return GatewayBridge(store or VersionStore(), Limits(), **kw)
+    return GatewayBridge(store or VersionStore(), Limits(), BridgePolicy(**kw))
 
 
 def test_definition_accepted_then_unchanged_then_changed() -> None:

@@ -114,7 +114,7 @@ def test_range_cells_and_rssi_follow_the_model() -> None:
     frames = [encode(Hello(0, BROADCAST, k)) for k in range(20)]
     for f in frames:
         send(net, cores[0], f)
-        net.run_for(0.1)
+        net.run_until(net.now + 0.1)
     c = net.counters
     assert c[0].frames_tx == 20 and c[0].bytes_tx == sum(map(len, frames))
     assert c[1].frames_rx == 20 and [g[0] for g in cores[1].got] == frames

@@ -244,7 +244,7 @@ def _fields(cfg: MiddlewareConfig) -> dict[str, Any]:
 
 
 def _energy(net: VirtualNetwork) -> float:
-    return sum(net.energy_mj(n) for n in net.ids())
+    return sum(net.energy_mj(n) for n in net.cores)
 
 
 def _acks(net: VirtualNetwork) -> int:

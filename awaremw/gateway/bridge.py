@@ -198,7 +198,20 @@ def data_topic(channel: int, group_type: int, group_id: int) -> str:
     return f"data/{channel}/{group_type}/{group_id}"
 
 
-@dataclass
+@dataclass(frozen=True, slots=True)
+class BridgePolicy:
+    """The bridge's tunables: how often leaders report their group (emulated
+    seconds) and after how many silent report periods a group is taken as gone;
+    command slots the motes keep; the de-duplication window of records; the
+    bound of the live-groups table."""
+
+    report_period_s: float = 10.0
+    expiry_periods: float = 3.0
+    command_slots: int = 16
+    dedupe_window: int = 4096
+    max_groups: int = MAX_GROUPS
+
+
 class GatewayBridge:
     """Validation, versions and the IP-side view of the WSN, without I/O.
 
@@ -210,20 +223,27 @@ class GatewayBridge:
     would reach clients as the clearing alone), then it is cleared.
     """
 
-    store: VersionStore
-    limits: Limits = field(default_factory=Limits)
-    report_period_s: float = 10.0
-    expiry_periods: float = 3.0
-    command_slots: int = 16
-    dedupe_window: int = 4096
-    max_groups: int = MAX_GROUPS
-    refusal_log: RateLimitedLog = field(default_factory=lambda: RateLimitedLog(log))
-    groups: dict[tuple[int, int], GroupState] = field(default_factory=dict)
-    # key -> since: groups that merged, cleared after a report period (at most max_groups)
-    merged: dict[tuple[int, int], float] = field(default_factory=dict)
-    stats: BridgeStats = field(default_factory=BridgeStats)
-    _recent: OrderedDict[DataRecord, None] = field(default_factory=OrderedDict)
-    _defined_here: set[tuple[ItemKind, int]] = field(default_factory=set)
+    def __init__(
+        self,
+        store: VersionStore,
+        limits: Limits | None = None,
+        policy: BridgePolicy | None = None,
+        refusal_log: RateLimitedLog | None = None,
+    ) -> None:
+        self.store = store
+        self.limits = limits or Limits()
+        self.policy = policy or BridgePolicy()
+        self.refusal_log = refusal_log or RateLimitedLog(log)
+        self.groups: dict[tuple[int, int], GroupState] = {}
+        # key -> since: groups that merged, cleared after a report period (at most max_groups)
+        self.merged: dict[tuple[int, int], float] = {}
+        self.stats = BridgeStats()
+        self._recent: OrderedDict[DataRecord, None] = OrderedDict()
+        self._defined_here: set[tuple[ItemKind, int]] = set()
+
+    @property
+    def report_period_s(self) -> float:
+        return self.policy.report_period_s
 
     # ----------------------------------------------------------------- IP -> WSN
 
@@ -299,7 +319,7 @@ class GatewayBridge:
             c = parse_command(
                 parts[1], payload, self.limits, self.store.defined_ids(ItemKind.GROUP_TYPE)
             )
-            slot = self.store.command_slot(c.name, self.command_slots)
+            slot = self.store.command_slot(c.name, self.policy.command_slots)
             item = self.store.bump(ItemKind.COMMAND, slot, c.body, {"name": c.name, **c.json})
             self.stats.accepted += 1
             self._defined_here.add((ItemKind.COMMAND, slot))
@@ -369,7 +389,7 @@ class GatewayBridge:
             self.stats.duplicate_records += 1
             return []
         self._recent[r] = None
-        if len(self._recent) > self.dedupe_window:
+        if len(self._recent) > self.policy.dedupe_window:
             self._recent.popitem(last=False)
         self.stats.records += 1
         g = self.groups.get((r.group_type, r.group_id))
@@ -401,7 +421,7 @@ class GatewayBridge:
             if not r.successor:
                 return [Publish(group_topic(*key), b"", retain=True)]
             # A merge: the retained state names the successor until expire() clears it.
-            if len(self.merged) >= self.max_groups:
+            if len(self.merged) >= self.policy.max_groups:
                 del self.merged[min(self.merged, key=self.merged.__getitem__)]
             self.merged[key] = now
             doc = {"group_type": r.group_type, "group_id": r.group_id,
@@ -412,7 +432,7 @@ class GatewayBridge:
             r.group_type, r.group_id, r.leader, r.weight, r.readings, now, now, r.successor
         )
         out = []
-        if key not in self.groups and len(self.groups) >= self.max_groups:
+        if key not in self.groups and len(self.groups) >= self.policy.max_groups:
             oldest = min(self.groups, key=lambda k: self.groups[k].last_heard)
             del self.groups[oldest]
             self.stats.groups_evicted += 1
@@ -423,7 +443,7 @@ class GatewayBridge:
 
     def expire(self, now: float) -> list[Publish]:
         """Clear the groups not heard from for ``expiry_periods`` report periods."""
-        limit = self.expiry_periods * self.report_period_s
+        limit = self.policy.expiry_periods * self.report_period_s
         out = []
         for key, since in list(self.merged.items()):
             if now - since >= self.report_period_s:
@@ -439,7 +459,7 @@ class GatewayBridge:
 
     def next_expiry(self) -> float | None:
         """Emulated time at which :meth:`expire` may next clear a group."""
-        limit = self.expiry_periods * self.report_period_s
+        limit = self.policy.expiry_periods * self.report_period_s
         times = [g.last_heard + limit for g in self.groups.values()]
         times += [since + self.report_period_s for since in self.merged.values()]
         return min(times, default=None)

@@ -29,7 +29,7 @@ from typing import Any
 
 import zenoh
 
-from awaremw.gateway.bridge import GatewayBridge, Inject, Outcome, Publish
+from awaremw.gateway.bridge import BridgePolicy, GatewayBridge, Inject, Outcome, Publish
 from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSettings
 from awaremw.gateway.schema import Limits
@@ -110,9 +110,11 @@ class GatewayService:
         self.bridge = GatewayBridge(
             self.store,
             limits,
-            report_period_s=self.config.report_every_beacons * self.config.beacon_period,
-            expiry_periods=s.expiry_periods,
-            command_slots=self.config.max_command_slots,
+            BridgePolicy(
+                report_period_s=self.config.report_every_beacons * self.config.beacon_period,
+                expiry_periods=s.expiry_periods,
+                command_slots=self.config.max_command_slots,
+            ),
         )
         self.mqtt: MqttBridge | None = None
         if mqtt is not None:

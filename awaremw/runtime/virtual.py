@@ -144,9 +144,6 @@ class VirtualNetwork:
         self._nb.flush_all()
         return self._counters
 
-    def ids(self) -> list[int]:
-        return list(self._nodes)
-
     def add(
         self,
         core: MoteCore,
@@ -242,9 +239,6 @@ class VirtualNetwork:
         if t < self._now:
             raise ValueError(f"time {t} is in the past (now {self._now})")
         self._push(t, _CALL, None, callback)
-
-    def run_for(self, dt: float) -> None:
-        self.run_until(self._now + dt)
 
     def run_until(self, t: float) -> None:
         """Process every event up to and including virtual time ``t``."""
