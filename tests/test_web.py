@@ -239,7 +239,7 @@ def _browser() -> Any:
     except ImportError:
         if REQUIRE_BROWSER:
             raise
-        pytest.skip("playwright not installed (pip install -e '.[browser]')")
+        pytest.skip("playwright not installed (pip install -e '.[test]')")
     if not Path(CHROMIUM).exists():
         if REQUIRE_BROWSER:
             raise AssertionError(f"{CHROMIUM} missing (apt-get install chromium)")
