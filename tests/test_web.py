@@ -230,6 +230,24 @@ async def test_view_shows_a_system_known_only_through_mqtt(tmp_path: Path) -> No
             log.close()
 
 
+def test_busy_or_bad_address_is_a_one_line_error() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run(
+            [sys.executable, "-m", "awaremw", "view", "--web", f"127.0.0.1:{port}",
+             "--mqtt", "mqtt://127.0.0.1:1", "--duration", "5"],
+            capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+    assert r.returncode == 2
+    assert r.stderr.strip().startswith("awaremw view: cannot serve the dashboard on")
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = subprocess.run([sys.executable, "-m", "awaremw", "demo", "--web", "localhost", "--plain"],
+                       capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert r.returncode == 2 and "expected HOST:PORT" in r.stderr
+
+
 # --------------------------------------------------------------------------- browser
 
 

@@ -109,6 +109,7 @@ def main(args: argparse.Namespace) -> int:
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
     from awaremw.gateway.broker import BrokerError
+    from awaremw.view.web import DashboardError
 
     try:
         summary = asyncio.run(
@@ -128,7 +129,7 @@ def main(args: argparse.Namespace) -> int:
     except BrokerError as e:
         print(f"awaremw demo: {e}", file=sys.stderr)
         return 2
-    except OSError as e:  # the dashboard's address is taken or not ours
+    except DashboardError as e:
         print(f"awaremw demo: {e}", file=sys.stderr)
         return 2
     print_summary(summary, plain=plain)

@@ -50,7 +50,7 @@ def main(args: argparse.Namespace) -> int:
     from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
     from awaremw.nodes import world_of
     from awaremw.runtime.deployment import DeploymentError, load
-    from awaremw.view.web import dashboard_for, parse_host_port, run_view
+    from awaremw.view.web import DashboardError, dashboard_for, parse_host_port, run_view
 
     try:
         dep = load(args.deployment)
@@ -81,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         asyncio.run(serve())
-    except OSError as e:
+    except DashboardError as e:
         print(f"awaremw view: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -68,6 +68,10 @@ NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,32}$")
 UNIT_LABELS = {"degC": "°C"}
 
 
+class DashboardError(RuntimeError):
+    """The dashboard cannot serve (its address is taken or not this host's)."""
+
+
 def unit_of(attr: str | None, agg: str | None = None) -> str:
     """The unit of a channel's values: ``°C``, ``%RH``, ``lx``, ``m``, ``V``, ``ppm``,
     ``dBm`` for ``rssi:<node>``; COUNT counts motes."""
@@ -435,7 +439,12 @@ class Dashboard:
         )
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.host, self.port)
-        await site.start()
+        try:
+            await site.start()
+        except OSError as e:
+            await self._runner.cleanup()
+            raise DashboardError(f"cannot serve the dashboard on {self.host}:{self.port}: "
+                                 f"{e.strerror or e}") from None  # fmt: skip
         if self.port == 0:
             server = site._server
             socks = getattr(server, "sockets", None) or []
