@@ -58,6 +58,12 @@ def register(sub: Any) -> None:
         help="let the embedded broker accept clients without an account",
     )
     p.add_argument("--plain", action="store_true", help="log lines instead of the live view")
+    p.add_argument(
+        "--web",
+        default=None,
+        metavar="HOST:PORT",
+        help="also serve the web dashboard there (e.g. 127.0.0.1:8080; docs/dashboard.md)",
+    )
     p.set_defaults(func=main)
 
 
@@ -89,12 +95,21 @@ def main(args: argparse.Namespace) -> int:
             except BadMqttUrl as e:
                 print(f"awaremw demo: {e}", file=sys.stderr)
                 return 2
+    if args.web is not None:
+        from awaremw.view.web import parse_host_port
+
+        try:
+            parse_host_port(args.web)
+        except ValueError as e:
+            print(f"awaremw demo: {e}", file=sys.stderr)
+            return 2
     if not sc.deployment.of_kind("gateway"):
         print(f"awaremw demo: {sc.name} has no gateway mote", file=sys.stderr)
         return 2
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
     from awaremw.gateway.broker import BrokerError
+    from awaremw.view.web import DashboardError
 
     try:
         summary = asyncio.run(
@@ -108,9 +123,13 @@ def main(args: argparse.Namespace) -> int:
                 args.secrets,
                 mqtt_port=args.mqtt_port,
                 mqtt_anonymous=args.mqtt_anonymous,
+                web=args.web,
             )
         )
     except BrokerError as e:
+        print(f"awaremw demo: {e}", file=sys.stderr)
+        return 2
+    except DashboardError as e:
         print(f"awaremw demo: {e}", file=sys.stderr)
         return 2
     print_summary(summary, plain=plain)
@@ -128,6 +147,7 @@ async def run_demo(
     *,
     mqtt_port: int | None = 0,
     mqtt_anonymous: bool = False,
+    web: str | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the summary figures.
 
@@ -144,7 +164,8 @@ async def run_demo(
             )  # fmt: skip
             print(f"embedded MQTT broker: mqtt://{broker.host}:{broker.port} {account}",
                   flush=True)  # fmt: skip
-            return await run_demo(sc, duration, speed, broker.url, plain, robot_mqtt, secrets)
+            return await run_demo(sc, duration, speed, broker.url, plain, robot_mqtt, secrets,
+                                  web=web)  # fmt: skip
     from awaremw.experiments import metrics as M
     from awaremw.experiments.client import Received
     from awaremw.experiments.realtime import RealtimeRun, RealtimeSettings, RunHooks
@@ -154,9 +175,22 @@ async def run_demo(
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
 
     view: View = PlainLog(every=10.0) if plain else LiveView()
+    dash = None
+    if web is not None:
+        from awaremw.view.web import dashboard_for
+
+        dash = dashboard_for(sc.deployment, sc.world, robot_mqtt or mqtt, web, sc.name,
+                             sc.tracking_group if sc.group_json else None)  # fmt: skip
+        await dash.__aenter__()
+        print(f"web dashboard: {dash.url}", flush=True)
 
     def tick(now: float, run: RealtimeRun) -> None:
-        view.update(snapshot_of(sc, run.recorder, now, run.live, run.traffic()))
+        snap = snapshot_of(sc, run.recorder, now, run.live, run.traffic())
+        view.update(snap)
+        if dash is not None:
+            from awaremw.view.web import field_of
+
+            dash.update_field(now, field_of(snap.motes, run.cores()))
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)
@@ -179,6 +213,8 @@ async def run_demo(
         result = await run.run(end)
     finally:
         view.stop()
+        if dash is not None:
+            await dash.__aexit__(None, None, None)
     rec = result.recorder
     gtype = sc.tracking_group if sc.group_json else None
     traffic = M.traffic(result.traffic, sc.sensors)

@@ -1,0 +1,89 @@
+"""``awaremw view --web HOST:PORT --mqtt URL [--deployment NAME] [--connect ENDPOINT]``
+
+The web dashboard of a system started elsewhere (``awaremw fleet`` and
+``awaremw gateway``, containers, other hosts). It reads the public MQTT
+contract (``aware/#``: definitions, group states, data, errors, the gateway's
+status) and publishes the page's definitions and commands with the account of
+``--mqtt`` (use one with the operator's rights). Mote positions come from the
+deployment (mobility at the emulated time the messages carry), or, with
+``--connect``, from the fleets themselves (their ``<prefix>/ctl/fleet/*``
+queryable, so motes added or killed at run time show). The public contract
+names each group's leader but not its members: this view marks leaders and
+colours them by group; ``awaremw demo --web`` shows every member and the
+collection tree. Details: docs/dashboard.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "view",
+        help="web dashboard of a running system (MQTT contract, optional Zenoh fleet positions)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--web", default="127.0.0.1:8080", metavar="HOST:PORT",
+                   help="where to serve the page (default 127.0.0.1:8080)")  # fmt: skip
+    p.add_argument("--mqtt", required=True, help="broker mqtt[s]://[user:pass@]host:port")
+    p.add_argument("--deployment", default="romeo4r", help="deployment name or path (the field)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint of the router or a fleet: live positions")  # fmt: skip
+    p.add_argument("--secrets", default=None, metavar="DIR",
+                   help="with --connect: the operator's Zenoh account (keys init DIR)")  # fmt: skip
+    p.add_argument("--prefix", default="aware", help="MQTT and Zenoh key prefix")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="the fleet's speed factor (moves mobile motes)")  # fmt: skip
+    p.add_argument("--group-type", type=int, default=None,
+                   help="the group type the map colours (default: the lowest seen)")  # fmt: skip
+    p.add_argument("--duration", type=float, default=None, help="wall seconds to serve")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
+    from awaremw.nodes import world_of
+    from awaremw.runtime.deployment import DeploymentError, load
+    from awaremw.view.web import DashboardError, dashboard_for, parse_host_port, run_view
+
+    try:
+        dep = load(args.deployment)
+        parse_host_port(args.web)
+        MqttSettings.from_url(args.mqtt)
+    except (DeploymentError, BadMqttUrl, ValueError) as e:
+        print(f"awaremw view: {e}", file=sys.stderr)
+        return 2
+    if not args.speed > 0:
+        print("awaremw view: --speed must be > 0", file=sys.stderr)
+        return 2
+    config_file = None
+    if args.secrets is not None:
+        from awaremw.security.zenoh_acl import SecretsError, role_config_path
+
+        try:
+            config_file = str(role_config_path(Path(args.secrets), "operator"))
+        except SecretsError as e:
+            print(f"awaremw view: {e}", file=sys.stderr)
+            return 2
+    dash = dashboard_for(dep, world_of(dep), args.mqtt, args.web, dep.name, args.group_type,
+                         prefix=args.prefix)  # fmt: skip
+
+    async def serve() -> None:
+        await run_view(dash, dep, speed=args.speed, duration=args.duration,
+                       connect=args.connect or None, prefix=args.prefix,
+                       config_file=config_file, announce=True)  # fmt: skip
+
+    try:
+        asyncio.run(serve())
+    except DashboardError as e:
+        print(f"awaremw view: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0

@@ -1,0 +1,736 @@
+"""The web dashboard: the field, the groups, live plots of every channel, the
+definitions, and a form that defines groups and channels and sends commands.
+
+One :class:`Dashboard` per run, in the caller's asyncio loop:
+
+* an aiohttp server (``GET /`` the page, ``GET /api/state`` the JSON state,
+  ``GET /api/events`` Server-Sent Events, ``POST``/``DELETE /api/def/...`` and
+  ``POST /api/cmd/<name>`` that publish on the public MQTT contract on the
+  user's behalf);
+* an MQTT subscriber to ``<prefix>/#`` (:class:`MqttFeed`): definitions
+  (retained ``def/...``), group states (retained ``groups/...``), data records,
+  refusals (``errors``) and the gateway's status; the same client publishes the
+  page's definitions and commands, so the gateway validates them as it does any
+  other client's and its refusals come back on ``<prefix>/errors``;
+* the field: positions and, where the caller has the motes in its process
+  (``awaremw demo``), every mote's group memberships and collection-tree parent
+  read from the cores (:meth:`Dashboard.update_field`). Without the cores
+  (``awaremw view``) positions come from the deployment's mobility (or from the
+  fleets' control queryable) and group membership from the public contract,
+  which names each group's leader but not its members.
+
+Every buffer is bounded: plot history per channel (:data:`SERIES_POINTS`), the
+number of channels and groups kept, the errors, the trail, the SSE clients and
+their queues (a client that does not keep up is dropped).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import re
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any
+
+import aiohttp
+import aiomqtt
+import zenoh
+from aiohttp import web
+
+from awaremw.gateway.mqtt import MqttSettings
+from awaremw.protocol.attributes import STANDARD, UNITS
+from awaremw.protocol.core import MoteCore
+from awaremw.protocol.mote import AwareMote
+from awaremw.runtime.deployment import Deployment
+from awaremw.view.snapshot import MoteDot
+from awaremw.world.fields import World
+
+log = logging.getLogger(__name__)
+
+SERIES_POINTS = 300  # plotted records kept per channel (ring)
+MAX_CHANNELS = 64  # channels with a plot; the least recently fed is dropped beyond
+MAX_GROUPS = 1024  # group states kept from the MQTT contract
+MAX_ERRORS = 50  # refusals shown
+MAX_DEFS = 256  # definitions of each kind kept
+TRAIL_POINTS = 240  # positions kept per mobile mote (the robot's trail)
+MAX_CLIENTS = 32  # SSE clients at once; beyond, 503
+CLIENT_QUEUE = 64  # events queued per SSE client; a client that falls behind is dropped
+MAX_BODY = 4096  # bytes of a definition or command the page may post
+STATE_INTERVAL_S = 0.5  # wall seconds between pushed state updates (at most)
+NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,32}$")
+
+UNIT_LABELS = {"degC": "°C"}
+
+
+class DashboardError(RuntimeError):
+    """The dashboard cannot serve (its address is taken or not this host's)."""
+
+
+def unit_of(attr: str | None, agg: str | None = None) -> str:
+    """The unit of a channel's values: ``°C``, ``%RH``, ``lx``, ``m``, ``V``, ``ppm``,
+    ``dBm`` for ``rssi:<node>``; COUNT counts motes."""
+    if agg == "count":
+        return "motes"
+    if attr is None:
+        return ""
+    if attr.startswith("rssi:"):
+        return "dBm"
+    u = UNITS.get(STANDARD.get(attr, -1), "")
+    return UNIT_LABELS.get(u, u)
+
+
+@dataclass(slots=True)
+class MoteView:
+    id: int
+    kind: str
+    x: float
+    y: float
+    alive: bool = True
+    groups: dict[int, tuple[int, bool]] = field(default_factory=dict)  # type -> (gid, leader)
+    parent: int | None = None  # collection tree
+
+
+@dataclass(frozen=True, slots=True)
+class FieldMote:
+    """One mote as the caller sees it: where it is, and (when known) its groups."""
+
+    id: int
+    kind: str
+    x: float
+    y: float
+    alive: bool = True
+    groups: Mapping[int, tuple[int, bool]] | None = None  # None: unknown here
+    parent: int | None = None
+
+
+class DashboardState:
+    """What the page shows; fed by the field source and the MQTT feed. Bounded."""
+
+    def __init__(
+        self,
+        area: tuple[float, float],
+        title: str = "awaremw",
+        group_type: int | None = None,
+        world: World | None = None,
+    ) -> None:
+        self.area = area
+        self.title = title
+        self.group_type = group_type  # the type the map colours by default
+        self.world = world
+        self.t = 0.0  # emulated time of the field shown
+        self.heard_t = 0.0  # latest emulated time stamped on a message heard
+        self.motes: dict[int, MoteView] = {}
+        self.members_known = False  # memberships come from the cores (else leaders only)
+        self.tree_known = False
+        self.trails: dict[int, deque[tuple[float, float]]] = {}
+        self.group_states: dict[tuple[int, int], dict[str, Any]] = {}
+        self.defs: dict[str, dict[str, Any]] = {"group": {}, "channel": {}}
+        self.series: dict[int, deque[list[float]]] = {}  # channel -> [t, value, gid]
+        self.series_info: dict[int, dict[str, Any]] = {}
+        self.errors: deque[dict[str, Any]] = deque(maxlen=MAX_ERRORS)
+        self.gateway_status = "unknown"
+        self.mqtt_connected = False
+        self.records = 0
+        self.dropped_clients = 0
+        self.version = 0  # bumped on every change
+
+    # ------------------------------------------------------------------ field
+
+    def set_field(self, now: float, motes: Iterable[FieldMote]) -> None:
+        self.t = now
+        seen: set[int] = set()
+        for m in motes:
+            seen.add(m.id)
+            v = self.motes.get(m.id)
+            if v is None:
+                v = self.motes[m.id] = MoteView(m.id, m.kind, m.x, m.y)
+            v.x, v.y, v.alive, v.kind = m.x, m.y, m.alive, m.kind
+            if m.groups is not None:
+                self.members_known = True
+                v.groups = dict(m.groups)
+                v.parent = m.parent
+                self.tree_known = True
+            if m.kind == "robot" or (m.id in self.trails):
+                tr = self.trails.setdefault(m.id, deque(maxlen=TRAIL_POINTS))
+                if not tr or (abs(tr[-1][0] - m.x) + abs(tr[-1][1] - m.y)) > 0.05:
+                    tr.append((round(m.x, 2), round(m.y, 2)))
+        for gone in set(self.motes) - seen:
+            del self.motes[gone]
+            self.trails.pop(gone, None)
+        self.version += 1
+
+    # ------------------------------------------------------------------ MQTT
+
+    def on_message(self, rel: str, payload: bytes) -> str | None:
+        """One message under the prefix (``rel`` without it); returns the kind of
+        change (``"record"``, ``"error"``, ``"state"``) or None if ignored."""
+        parts = rel.split("/")
+        try:
+            doc: Any = json.loads(payload) if payload else None
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            doc = None
+            if parts[0] not in ("gateway",):
+                log.info("dashboard: not JSON on %s", rel)
+                return None
+        if parts[:2] == ["gateway", "status"]:
+            self.gateway_status = payload.decode(errors="replace")[:20]
+        elif len(parts) == 3 and parts[0] == "def" and parts[1] in ("group", "channel"):
+            defs = self.defs[parts[1]]
+            if doc is None:
+                defs.pop(parts[2], None)
+            elif len(defs) < MAX_DEFS or parts[2] in defs:
+                defs[parts[2]] = doc
+            if parts[1] == "channel" and isinstance(doc, dict):
+                self._channel_info(_int(parts[2]), doc.get("attr"), doc.get("agg"))
+        elif len(parts) == 3 and parts[0] == "groups":
+            key = (_int(parts[1]), _int(parts[2]))
+            if key[0] < 0 or key[1] < 0:
+                return None
+            if not isinstance(doc, dict) or "merged_into" in doc:
+                self.group_states.pop(key, None)
+            else:
+                if key not in self.group_states and len(self.group_states) >= MAX_GROUPS:
+                    oldest = min(self.group_states, key=lambda k: self.group_states[k]["t"])
+                    del self.group_states[oldest]
+                self.group_states[key] = {
+                    "leader": _int(doc.get("leader")), "weight": doc.get("weight"),
+                    "readings": doc.get("readings"), "t": _float(doc.get("t")),
+                }  # fmt: skip
+                self._clock(_float(doc.get("t")))
+        elif len(parts) == 4 and parts[0] == "data" and isinstance(doc, dict):
+            ch, gt, gid = (_int(p) for p in parts[1:])
+            value, t = _float(doc.get("value")), _float(doc.get("t"))
+            if ch < 0 or value != value:
+                return None
+            self._channel_info(ch, doc.get("attr"), doc.get("agg"), gt)
+            ring = self.series.get(ch)
+            if ring is None:
+                if len(self.series) >= MAX_CHANNELS:
+                    stale = min(self.series, key=lambda c: self.series[c][-1][0])
+                    del self.series[stale]
+                ring = self.series[ch] = deque(maxlen=SERIES_POINTS)
+            ring.append([round(t, 3), value, gid])
+            self.records += 1
+            self._clock(t)
+            self.version += 1
+            return "record"
+        elif parts == ["errors"]:
+            self.errors.append(doc if isinstance(doc, dict) else {"error": str(doc)[:300]})
+            self.version += 1
+            return "error"
+        else:
+            return None
+        self.version += 1
+        return "state"
+
+    def _clock(self, t: float) -> None:
+        if t == t and t > self.heard_t:
+            self.heard_t = t
+
+    def _channel_info(self, ch: int, attr: Any, agg: Any, gtype: int | None = None) -> None:
+        if ch < 0:
+            return
+        info = self.series_info.setdefault(ch, {})
+        if len(self.series_info) > MAX_CHANNELS * 2:
+            self.series_info.pop(next(iter(self.series_info)))
+        if isinstance(attr, str):
+            info["attr"] = attr[:40]
+        if isinstance(agg, str):
+            info["agg"] = agg[:10]
+        if gtype is not None:
+            info["group_type"] = gtype
+        info["unit"] = unit_of(info.get("attr"), info.get("agg"))
+
+    # ------------------------------------------------------------------ views
+
+    def leaders(self) -> dict[int, tuple[int, int]]:
+        """Leader mote -> (type, gid), from the group states (view without cores)."""
+        return {int(s["leader"]): k for k, s in self.group_states.items()}
+
+    def groups(self) -> list[dict[str, Any]]:
+        out: dict[tuple[int, int], dict[str, Any]] = {}
+        if self.members_known:
+            for m in self.motes.values():
+                for gt, (gid, lead) in m.groups.items():
+                    g = out.setdefault((gt, gid), {"type": gt, "id": gid, "leader": None,
+                                                   "members": []})  # fmt: skip
+                    g["members"].append(m.id)
+                    if lead:
+                        g["leader"] = m.id
+        for (gt, gid), s in self.group_states.items():
+            if (gt, gid) not in out:
+                if self.members_known:
+                    continue  # reported but no longer on the air
+                out[(gt, gid)] = {"type": gt, "id": gid, "leader": s["leader"], "members": None}
+            out[(gt, gid)].update(
+                weight=s["weight"], readings=s["readings"], reported_t=s["t"]
+            )
+        return [out[k] for k in sorted(out)]
+
+    def state(self) -> dict[str, Any]:
+        leaders = {} if self.members_known else self.leaders()
+        gtype = self.group_type
+        if gtype is None:
+            types = sorted({k[0] for k in self.group_states} | {
+                t for m in self.motes.values() for t in m.groups})  # fmt: skip
+            gtype = types[0] if types else None
+        motes = []
+        for m in sorted(self.motes.values(), key=lambda m: m.id):
+            groups = dict(m.groups)
+            if not self.members_known and m.id in leaders:
+                gt, gid = leaders[m.id]
+                groups[gt] = (gid, True)
+            g = groups.get(gtype) if gtype is not None else None
+            motes.append({
+                "id": m.id, "kind": m.kind, "x": round(m.x, 3), "y": round(m.y, 3),
+                "alive": m.alive, "group": None if g is None else g[0],
+                "leader": bool(g and g[1]),
+                "groups": {str(t): {"id": gid, "leader": lead}
+                           for t, (gid, lead) in sorted(groups.items())},
+                "parent": m.parent,
+            })  # fmt: skip
+        fires = []
+        if self.world is not None:
+            for f in self.world.fires:
+                s = f.state(self.t)
+                if s is not None:
+                    fires.append({"name": f.name, "x": s.x, "y": s.y,
+                                  "radius": s.radius + f.edge})  # fmt: skip
+        return {
+            "title": self.title,
+            "t": round(self.t, 2),
+            "area": list(self.area),
+            "group_type": gtype,
+            "members_known": self.members_known,
+            "tree_known": self.tree_known,
+            "motes": motes,
+            "groups": self.groups(),
+            "trails": {str(k): list(v) for k, v in self.trails.items()},
+            "fires": fires,
+            "definitions": self.defs,
+            "channels": {str(c): i for c, i in sorted(self.series_info.items())},
+            "errors": list(self.errors),
+            "gateway": self.gateway_status,
+            "mqtt": self.mqtt_connected,
+            "records": self.records,
+        }
+
+    def series_doc(self) -> dict[str, Any]:
+        return {str(c): list(r) for c, r in self.series.items()}
+
+
+def _int(v: Any) -> int:
+    try:
+        return int(v)
+    except (TypeError, ValueError):
+        return -1
+
+
+def _float(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+class MqttFeed:
+    """Subscribes to ``<prefix>/#`` and publishes on the page's behalf; reconnects."""
+
+    def __init__(self, settings: MqttSettings, on_message: Callable[[str, bytes], None],
+                 on_connected: Callable[[bool], None]) -> None:  # fmt: skip
+        self.settings = settings
+        self.on_message = on_message
+        self.on_connected = on_connected
+        self._client: aiomqtt.Client | None = None
+        self._stop = asyncio.Event()
+
+    async def run(self) -> None:
+        s = self.settings
+        delay = 0.2
+        while not self._stop.is_set():
+            try:
+                async with aiomqtt.Client(
+                    hostname=s.host, port=s.port, username=s.username, password=s.password,
+                    identifier=s.client_id, protocol=aiomqtt.ProtocolVersion.V311,
+                    tls_context=_tls(s), tls_insecure=s.tls_insecure if s.tls else None,
+                    max_queued_incoming_messages=1000,
+                ) as client:  # fmt: skip
+                    self._client = client
+                    await client.subscribe(f"{s.prefix}/#", qos=1)
+                    self.on_connected(True)
+                    delay = 0.2
+                    n = len(s.prefix) + 1
+                    async for msg in client.messages:
+                        payload = msg.payload if isinstance(msg.payload, bytes) else (
+                            str(msg.payload or "").encode())  # fmt: skip
+                        self.on_message(str(msg.topic)[n:], payload)
+            except aiomqtt.MqttError as e:
+                log.warning("dashboard MQTT %s: %s (retrying)", s.url, e)
+            finally:
+                self._client = None
+                self.on_connected(False)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), delay)
+            delay = min(delay * 2, 5.0)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    async def publish(self, rel: str, payload: bytes, retain: bool) -> None:
+        if self._client is None:
+            raise ConnectionError(f"not connected to the MQTT broker {self.settings.url}")
+        await self._client.publish(f"{self.settings.prefix}/{rel}", payload, qos=1, retain=retain)
+
+
+def _tls(s: MqttSettings) -> Any:
+    if not s.tls:
+        return None
+    import ssl
+
+    return ssl.create_default_context(cafile=s.ca_file)
+
+
+class Dashboard:
+    """The dashboard server. ``async with Dashboard(...)`` serves until the block ends."""
+
+    def __init__(
+        self,
+        state: DashboardState,
+        mqtt: MqttSettings,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+    ) -> None:
+        self.state = state
+        self.host = host
+        self.port = port
+        self.feed = MqttFeed(mqtt, self._on_mqtt, self._on_connected)
+        self._clients: set[asyncio.Queue[bytes | None]] = set()
+        self._runner: web.AppRunner | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._pushed_version = -1
+        self._wake = asyncio.Event()
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}/"
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def __aenter__(self) -> Dashboard:
+        app = web.Application(client_max_size=MAX_BODY * 2)
+        app.add_routes([
+            web.get("/", self._index),
+            web.get("/static/{name}", self._static),
+            web.get("/api/state", self._api_state),
+            web.get("/api/series", self._api_series),
+            web.get("/api/events", self._events),
+            web.post("/api/def/{kind}/{id}", self._define),
+            web.delete("/api/def/{kind}/{id}", self._define),
+            web.post("/api/cmd/{name}", self._command),
+        ])  # fmt: skip
+        self._runner = web.AppRunner(
+            app, access_log=None, handle_signals=False, shutdown_timeout=1.0
+        )
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port)
+        try:
+            await site.start()
+        except OSError as e:
+            await self._runner.cleanup()
+            raise DashboardError(f"cannot serve the dashboard on {self.host}:{self.port}: "
+                                 f"{e.strerror or e}") from None  # fmt: skip
+        if self.port == 0:
+            server = site._server
+            socks = getattr(server, "sockets", None) or []
+            if socks:
+                self.port = int(socks[0].getsockname()[1])
+        self._tasks = [
+            asyncio.create_task(self.feed.run(), name="dashboard-mqtt"),
+            asyncio.create_task(self._pusher(), name="dashboard-push"),
+        ]
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.feed.stop()
+        for q in list(self._clients):
+            _offer(q, None)
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await t
+        if self._runner is not None:
+            await self._runner.cleanup()
+
+    # ------------------------------------------------------------------ feeding
+
+    def update_field(self, now: float, motes: Iterable[FieldMote]) -> None:
+        self.state.set_field(now, motes)
+        self._wake.set()
+
+    def _on_mqtt(self, rel: str, payload: bytes) -> None:
+        kind = self.state.on_message(rel, payload)
+        if kind == "record":
+            ch = rel.split("/")[1]
+            last = self.state.series.get(_int(ch))
+            if last:
+                info = self.state.series_info.get(_int(ch), {})
+                self._broadcast("record", {"channel": ch, "point": last[-1], "info": info})
+        elif kind is not None:
+            self._wake.set()
+
+    def _on_connected(self, up: bool) -> None:
+        self.state.mqtt_connected = up
+        self.state.version += 1
+        self._wake.set()
+
+    def _broadcast(self, event: str, doc: Any) -> None:
+        msg = f"event: {event}\ndata: {json.dumps(doc, separators=(',', ':'))}\n\n".encode()
+        for q in list(self._clients):
+            if not _offer(q, msg):
+                self._clients.discard(q)  # a slow client: dropped, its stream ends
+                self.state.dropped_clients += 1
+                _offer(q, None, force=True)
+
+    async def _pusher(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            if self._clients and self.state.version != self._pushed_version:
+                self._pushed_version = self.state.version
+                self._broadcast("state", self.state.state())
+            await asyncio.sleep(STATE_INTERVAL_S)  # rate limit, not synchronisation
+
+    # ------------------------------------------------------------------ handlers
+
+    async def _index(self, request: web.Request) -> web.StreamResponse:
+        return web.Response(body=_asset("index.html"), content_type="text/html", charset="utf-8")
+
+    async def _static(self, request: web.Request) -> web.StreamResponse:
+        name = request.match_info["name"]
+        types = {"js": "text/javascript", "css": "text/css"}
+        ext = name.rsplit(".", 1)[-1]
+        if name not in ("dashboard.js", "dashboard.css"):
+            raise web.HTTPNotFound()
+        return web.Response(body=_asset(name), content_type=types[ext], charset="utf-8")
+
+    async def _api_state(self, request: web.Request) -> web.StreamResponse:
+        return web.json_response(self.state.state())
+
+    async def _api_series(self, request: web.Request) -> web.StreamResponse:
+        return web.json_response(self.state.series_doc())
+
+    async def _events(self, request: web.Request) -> web.StreamResponse:
+        if len(self._clients) >= MAX_CLIENTS:
+            raise web.HTTPServiceUnavailable(text="too many dashboard clients")
+        resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
+                                           "Cache-Control": "no-cache"})  # fmt: skip
+        await resp.prepare(request)
+        q: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=CLIENT_QUEUE)
+        first = {"state": self.state.state(), "series": self.state.series_doc()}
+        await resp.write(f"event: hello\ndata: {json.dumps(first)}\n\n".encode())
+        self._clients.add(q)
+        try:
+            while True:
+                msg = await q.get()
+                if msg is None:
+                    break
+                await resp.write(msg)
+        except (ConnectionResetError, aiohttp.ClientConnectionResetError):
+            pass
+        finally:
+            self._clients.discard(q)
+        return resp
+
+    async def _body(self, request: web.Request) -> bytes:
+        raw = await request.read()
+        if len(raw) > MAX_BODY:
+            raise web.HTTPRequestEntityTooLarge(max_size=MAX_BODY, actual_size=len(raw))
+        try:
+            doc = json.loads(raw)
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise web.HTTPBadRequest(text=f"not JSON: {e}") from None
+        if not isinstance(doc, dict):
+            raise web.HTTPBadRequest(text="expected a JSON object")
+        return json.dumps(doc).encode()
+
+    async def _publish(self, rel: str, payload: bytes, retain: bool) -> web.StreamResponse:
+        try:
+            await self.feed.publish(rel, payload, retain)
+        except (ConnectionError, aiomqtt.MqttError) as e:
+            raise web.HTTPBadGateway(text=str(e)) from None
+        return web.json_response({"topic": f"{self.feed.settings.prefix}/{rel}"}, status=202)
+
+    async def _define(self, request: web.Request) -> web.StreamResponse:
+        kind, ident = request.match_info["kind"], request.match_info["id"]
+        if kind not in ("group", "channel"):
+            raise web.HTTPNotFound(text=f"no definition kind {kind!r}: group or channel")
+        if not ident.isdigit() or not 0 < int(ident) <= 0xFFFF:
+            raise web.HTTPBadRequest(text=f"{kind} id must be an integer in 1..65535")
+        payload = b"" if request.method == "DELETE" else await self._body(request)
+        return await self._publish(f"def/{kind}/{int(ident)}", payload, retain=True)
+
+    async def _command(self, request: web.Request) -> web.StreamResponse:
+        name = request.match_info["name"]
+        if not NAME_RE.match(name):
+            raise web.HTTPBadRequest(text="command name: 1-32 letters, digits, '_', '-', '.'")
+        return await self._publish(f"cmd/{name}", await self._body(request), retain=False)
+
+
+def _offer(q: asyncio.Queue[bytes | None], msg: bytes | None, force: bool = False) -> bool:
+    try:
+        q.put_nowait(msg)
+        return True
+    except asyncio.QueueFull:
+        if force:
+            with contextlib.suppress(asyncio.QueueEmpty):
+                q.get_nowait()
+            q.put_nowait(msg)
+        return False
+
+
+def field_of(dots: Iterable[MoteDot], cores: Mapping[int, MoteCore]) -> list[FieldMote]:
+    """The field from a view snapshot's dots plus the cores of the motes in this
+    process: every mote's memberships (all group types) and collection parent."""
+    out = []
+    for d in dots:
+        core = cores.get(d.node)
+        groups: dict[int, tuple[int, bool]] | None = None
+        parent = None
+        if isinstance(core, AwareMote):
+            groups = {t: (m.group_id, m.is_leader) for t, m in core.groups.memberships().items()}
+            parent = core.collection.parent
+        out.append(FieldMote(d.node, d.kind, d.x, d.y, d.alive, groups, parent))
+    return out
+
+
+def deployment_field(dep: Deployment, now: float) -> list[FieldMote]:
+    """The field of a deployment at emulated time ``now`` (positions by mobility)."""
+    return [FieldMote(s.id, s.kind, *s.mobility().position(now), alive=s.boot_s <= now)
+            for s in dep.nodes]  # fmt: skip
+
+
+def _asset(name: str) -> bytes:
+    return resources.files("awaremw.view").joinpath("static", name).read_bytes()
+
+
+def wall_clock_estimate(state: DashboardState, speed: float) -> Callable[[], float]:
+    """Emulated time for a view without cores: the latest stamp heard, advanced by
+    the wall clock times ``speed`` since it was heard."""
+    seen = {"t": state.heard_t, "wall": time.monotonic()}
+
+    def now() -> float:
+        if state.heard_t != seen["t"]:
+            seen["t"], seen["wall"] = state.heard_t, time.monotonic()
+        return seen["t"] + (time.monotonic() - seen["wall"]) * speed
+
+    return now
+
+
+def parse_host_port(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:8080`` for IPv6); port 0 picks a free one."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"bad --web address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8080")
+    return host, int(port)
+
+
+def dashboard_for(
+    dep: Deployment,
+    world: World | None,
+    mqtt_url: str,
+    web: str,
+    title: str,
+    group_type: int | None = None,
+    prefix: str = "aware",
+) -> Dashboard:
+    """A dashboard of a deployment, listening on ``web`` (HOST:PORT), reading and
+    publishing through the broker at ``mqtt_url`` (its account's rights apply)."""
+    host, port = parse_host_port(web)
+    settings = MqttSettings.from_url(mqtt_url, client_id=f"awaremw-web-{id(dep):x}",
+                                      prefix=prefix)  # fmt: skip
+    state = DashboardState(dep.area, f"awaremw {title}", group_type, world)
+    state.set_field(0.0, deployment_field(dep, 0.0))
+    return Dashboard(state, settings, host, port)
+
+
+FLEET_POLL_S = 2.0  # wall seconds between position queries to the fleets (view --connect)
+
+
+def fleet_positions(
+    connect: list[str], prefix: str, config_file: str | None, timeout: float = 2.0
+) -> tuple[float, dict[int, tuple[float, float]]]:
+    """Ask every fleet (``<prefix>/ctl/fleet/*``, op ``list``) where its motes are;
+    blocking (run it in a thread). Returns (their emulated time, positions)."""
+    from awaremw.runtime.zenoh_session import SessionSettings, close_quietly, open_session
+
+    session = open_session(SessionSettings("client", tuple(connect), connect_timeout_s=timeout,
+                                           config_file=config_file))  # fmt: skip
+    t = float("nan")
+    out: dict[int, tuple[float, float]] = {}
+    try:
+        for reply in session.get(f"{prefix}/ctl/fleet/*", payload=b'{"op": "list"}',
+                                 timeout=timeout, target=zenoh.QueryTarget.ALL):  # fmt: skip
+            ok = reply.ok
+            if ok is None:
+                continue
+            try:
+                d = json.loads(ok.payload.to_bytes())
+                for k, (x, y) in d.get("motes", {}).items():
+                    out[int(k)] = (float(x), float(y))
+                t = max(float(d.get("t", t)), t) if t == t else float(d.get("t", t))
+            except (ValueError, TypeError, AttributeError) as e:
+                log.info("dashboard: bad fleet list reply: %s", e)
+    finally:
+        close_quietly(session)
+    return t, out
+
+
+async def run_view(
+    dash: Dashboard,
+    dep: Deployment,
+    *,
+    speed: float = 1.0,
+    duration: float | None = None,
+    connect: list[str] | None = None,
+    prefix: str = "aware",
+    config_file: str | None = None,
+    announce: bool = False,
+) -> None:
+    """Serve a dashboard of a system running elsewhere until ``duration`` wall
+    seconds pass (None: until cancelled). Positions come from the fleets'
+    control queryable when ``connect`` is given, else from the deployment's
+    mobility at the emulated time the messages carry (advanced by ``speed``)."""
+    kinds = {s.id: s.kind for s in dep.nodes}
+    clock = wall_clock_estimate(dash.state, speed)
+    stop_at = None if duration is None else time.monotonic() + duration
+    positions: dict[int, tuple[float, float]] | None = None
+    polled = 0.0
+    async with dash:
+        if announce:
+            print(f"web dashboard: {dash.url} (MQTT {dash.feed.settings.url})", flush=True)
+        while stop_at is None or time.monotonic() < stop_at:
+            if connect and time.monotonic() - polled >= FLEET_POLL_S:
+                polled = time.monotonic()
+                try:
+                    t, positions = await asyncio.to_thread(
+                        fleet_positions, connect, prefix, config_file)  # fmt: skip
+                    if t == t:
+                        dash.state.heard_t = max(dash.state.heard_t, t)
+                except (zenoh.ZError, OSError) as e:  # the router is away: keep the last field
+                    log.warning("dashboard: cannot ask the fleets on %s: %s", connect, e)
+            now = clock()
+            if positions:
+                field = [FieldMote(i, kinds.get(i, "mote"), x, y) for i, (x, y) in
+                         sorted(positions.items())]  # fmt: skip
+            else:
+                field = deployment_field(dep, now)
+            dash.update_field(now, field)
+            await asyncio.sleep(0.5)  # refresh period of the positions
