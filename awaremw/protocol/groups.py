@@ -26,10 +26,14 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
 * a leader that stops qualifying unicasts a Handover (id, weight, seq) to a
   member it knows; the new leader continues the id; a candidate that cannot
   take the group sends the Handover back (a refusal) and the next is tried;
-* members that hear no new beacon for ``leader_timeout_periods`` beacon periods
-  drop the group and, still qualifying, run the creation backoff again: the
-  first to fire creates a group with a NEW id (so the part of a split that lost
-  the leader gets a new id, as the paper requires).
+* members that heard the leader directly and lose it claim the group with its
+  id (failover); the others, after ``leader_timeout_periods`` beacon periods
+  and one more period of patience, drop the group and, still qualifying, run a
+  wider creation backoff: the first to fire creates a group with a NEW id (the
+  paper's split rule), or takes back the id of the group it left by a merge
+  less than ``unmerge_window_periods`` ago (the merge did not hold);
+* a mote joining a group from its table of nearby groups announces it (one
+  re-broadcast of the remembered beacon).
 """
 
 from __future__ import annotations
