@@ -129,3 +129,23 @@ def test_aggregation_bench_smoke() -> None:
         assert key in out
     assert out["members"] == out["members_expected"] > 0 and out["leaders"] == 1
     assert out["records"] == 5 and out["by_frame_per_epoch"]["Partial"] >= out["members"] - 1
+    # The values, not only the keys: the bound and the ratios follow from the counts.
+    assert out["lower_bound_per_epoch"] == out["members"] + out["leader_hops"]
+    by_frame = out["by_frame_per_epoch"]
+    assert out["measured_per_epoch"] == pytest.approx(sum(by_frame.values()))
+    assert out["lower_bound_ratio"] == pytest.approx(
+        out["measured_per_epoch"] / out["lower_bound_per_epoch"]
+    )
+    assert out["no_aggregation_ratio"] == pytest.approx(
+        out["no_aggregation_per_epoch"] / out["measured_per_epoch"]
+    )
+    assert out["no_aggregation_per_epoch"] >= out["members"]  # every member at least 1 hop
+    # Every member sampled every epoch; in-network merging folded all but the
+    # leader's own partials (one record per epoch), and nearly all readings arrived.
+    cs = out["channel_stats"]
+    assert cs["samples"] == out["members"] * out["records"]
+    assert cs["records"] == out["records"] and cs["partials_received"] <= cs["partials_sent"]
+    assert 0.9 <= out["completeness"] <= 1.0
+    assert out["meets_targets"] is (
+        out["lower_bound_ratio"] <= 1.5 and out["no_aggregation_ratio"] >= 5
+    )

@@ -143,3 +143,37 @@ def test_commands_reach_targets_over_the_network_once() -> None:
     assert [c.name for c, _ in late.app.commands] == ["beep"]
     execs = [(n, e) for n, e, _ in events if isinstance(e, CommandExecuted)]
     assert len(execs) == len(motes) + 2  # every mote, plus 35's led, plus the late mote
+
+
+def test_group_commands_run_on_the_members_of_real_groups() -> None:
+    """Two groups formed by the protocol (two hot discs): a command aimed at one
+    group id runs on exactly that group's members, one aimed at any id of the type
+    on the members of both, and never on a mote outside them."""
+    from scenarios import Scenario, in_disc, indicator
+
+    from awaremw.protocol.attributes import TEMPERATURE
+    from awaremw.protocol.frames import Condition, GroupTypeDef, Op
+
+    def hot(p: tuple[float, float], t: float) -> bool:
+        return in_disc(24, 24, 14)(p) or in_disc(96, 24, 14)(p)
+
+    sc = Scenario(seed=4)
+    sc.grid(10, 5, {TEMPERATURE: indicator(hot)})
+    sc.run_until(1.0)
+    sc.define_group(1, GroupTypeDef((Condition(TEMPERATURE, Op.GT, 50.0),)))
+    sc.run_until(30.0)
+    members = sc.memberships(1)
+    by_gid: dict[int, set[int]] = {}
+    for n, m in members.items():
+        by_gid.setdefault(m.group_id, set()).add(n)
+    assert len(by_gid) == 2 and all(len(v) >= 3 for v in by_gid.values())
+    left = next(g for g, ns in by_gid.items() if all(sc.position(n)[0] < 60 for n in ns))
+    sc.define(CMD, 0, CommandDef("sample", TargetKind.GROUP, 1, left), everywhere=False, at=[1])
+    sc.define(CMD, 1, CommandDef("blink", TargetKind.GROUP, 1, ANY_GROUP_ID), everywhere=False,
+              at=[1])  # fmt: skip
+    sc.run_until(60.0)
+    ran = {name: {n for n, app in sc.apps.items() if any(c.name == name for c, _ in app.commands)}
+           for name in ("sample", "blink")}  # fmt: skip
+    assert ran["sample"] == by_gid[left]
+    assert ran["blink"] == set(members)
+    assert len(sc.motes) - len(members) >= 30  # most motes are outside both groups

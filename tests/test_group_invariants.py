@@ -19,7 +19,13 @@ from scenarios import LOSSLESS, Point, Scenario, ScriptedApp, in_disc, indicator
 
 from awaremw.protocol.attributes import TEMPERATURE, rssi_attribute
 from awaremw.protocol.frames import ANY_GROUP_ID, AggId, ChannelDef, Condition, GroupTypeDef, Op
-from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected, Role
+from awaremw.protocol.groups import (
+    ElectionCause,
+    HandoverSent,
+    LeaderElected,
+    LeaderYielded,
+    Role,
+)
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import PRESETS, RadioPreset
 from awaremw.world.mobility import Path
@@ -273,3 +279,44 @@ def test_robot_tracking_on_the_realistic_radio() -> None:
         sc, leaders = _robot_run(seed, PRESETS["cc2420"])
         assert sum(n == 1 for n in leaders) >= 0.85 * len(leaders), seed
         assert len({e.group_id for _, _, e in sc.of_type(LeaderElected)}) <= 4, seed
+
+
+# --------------------------------------------------------------------------- merges by weight
+
+
+def _weights(sc: Scenario) -> dict[int, int]:
+    """group id -> weight, as its leader holds it."""
+    out = {}
+    for gid, leader in sc.leaders(1).items():
+        m = sc.motes[leader].groups.membership(1)
+        assert m is not None
+        out[gid] = m.weight
+    return out
+
+
+def test_merge_follows_weight_the_heavier_id_survives_even_when_lower() -> None:
+    """The paper's merge rule: weight first, the id only breaks ties. The older
+    (left) group aggregated for longer, so it is heavier; the seed is one where it
+    also has the LOWER id, so a merge decided by id would keep the other one."""
+
+    def region(p: Point, t: float) -> bool:
+        left = in_disc(30, 40, 22)(p)
+        right = t > 30 and in_disc(120, 40, 22)(p)
+        bridge = t > 60 and 30 <= p[0] <= 120 and abs(p[1] - 40) <= 8
+        return left or right or bridge
+
+    sc = build(region, 14, 7, seed=SEED_LOWER_HEAVIER)
+    sc.run_until(59.0)
+    assert sc.group_problems(1, qualifying(sc, region)) == []
+    w = _weights(sc)
+    assert len(w) == 2
+    heavy, light = sorted(w, key=lambda g: w[g], reverse=True)
+    assert w[heavy] > w[light] > 0 and heavy < light  # id order and weight order disagree
+    sc.run_until(80.0)
+    assert sc.group_problems(1, qualifying(sc, region)) == []
+    assert set(sc.leaders(1)) == {heavy}
+    yields = [e for _, _, e in sc.of_type(LeaderYielded, since=59.0)]
+    assert [(y.group_id, y.successor) for y in yields] == [(light, heavy)]
+
+
+SEED_LOWER_HEAVIER = 3

@@ -24,6 +24,7 @@ from awaremw.protocol.frames import (
     decode,
 )
 from awaremw.protocol.groups import (
+    ELECTION_BACKOFF_FACTOR,
     ElectionCause,
     GroupJoined,
     GroupLeft,
@@ -222,7 +223,10 @@ def test_joins_a_group_heard_recently_instead_of_creating() -> None:
     assert not m.is_leader
     evs = h.events()
     assert [type(e) for e in evs] == [GroupJoined]
-    assert h.sent() == []  # that beacon was old news: not forwarded
+    # It announces the group once (the remembered seq, its own hop count), so that a
+    # waiting mote out of the leader's reach adopts it rather than creating a contender.
+    sent = [(f.group_id, f.leader, f.seq, f.hops) for f in h.sent() if isinstance(f, LeaderBeacon)]
+    assert sent == [(500, 2, 9, 3)]
 
 
 def test_group_heard_too_long_ago_is_not_joined() -> None:
@@ -648,14 +652,29 @@ def test_members_elect_a_new_group_when_a_distant_leader_is_lost() -> None:
     h.hear(beacon(src=3, gid=500, leader=2, weight=40, seq=17, hops=1))
     h.events()
     timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
-    h.advance(timeout - 0.01)
-    assert h.g.membership(1) is not None
-    h.advance(timeout + 0.01)
+    # Hysteresis in time on the split route: one more beacon period as a member.
+    patience = timeout + h.cfg.beacon_period
+    h.advance(patience - 0.01)
+    assert h.g.membership(1) is not None and h.events(GroupLeft) == []
+    h.advance(patience + 0.01)
     (left,) = h.events(GroupLeft)
     assert left.reason is LeaveReason.LEADER_LOST
-    h.advance(timeout + h.cfg.create_backoff + 0.02)
+    h.advance(patience + ELECTION_BACKOFF_FACTOR * h.cfg.create_backoff + 0.02)
     (e,) = h.events(LeaderElected)
     assert e.cause is ElectionCause.ELECTION and e.group_id != 500 and e.weight == 0
+
+
+def test_a_beacon_during_the_patience_keeps_the_member_in_its_group() -> None:
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=3, gid=500, leader=2, weight=40, seq=17, hops=1))
+    timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
+    h.advance(timeout + 0.5 * h.cfg.beacon_period)
+    h.hear(beacon(src=3, gid=500, leader=2, weight=44, seq=18, hops=1))  # the bridge is back
+    h.advance(2 * timeout)
+    m = h.g.membership(1)
+    assert m is not None and m.group_id == 500 and m.weight == 44
+    assert h.events(GroupLeft) == [] and h.events(LeaderElected) == []
 
 
 def test_orphan_joins_a_new_group_heard_meanwhile() -> None:
@@ -666,7 +685,7 @@ def test_orphan_joins_a_new_group_heard_meanwhile() -> None:
     h.advance(timeout - 1)
     h.hear(beacon(src=3, gid=600, leader=3, weight=0, seq=1))  # a lighter new group
     assert h.g.membership(1).group_id == 500  # type: ignore[union-attr]
-    h.advance(timeout + 0.01)
+    h.advance(timeout + h.cfg.beacon_period + 0.01)
     m = h.g.membership(1)
     assert m is not None and m.group_id == 600 and not m.is_leader
 
@@ -749,3 +768,40 @@ def test_two_claimants_converge_on_the_heavier_then_higher_node() -> None:
     h3.advance(h3.now + h3.cfg.beacon_period + 0.01)
     b = [f for f in h3.sent() if isinstance(f, LeaderBeacon) and f.leader == 10]
     assert b and b[-1].seq > 30
+
+
+def _merged_then_lost(gap: float) -> tuple[H, float]:
+    """A member of group 600 (weight 10) swept into the heavier 500 (weight 40),
+    whose distant leader is then lost ``gap`` s after the merge."""
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=3, gid=600, leader=3, weight=10, seq=5, hops=0))
+    h.advance(1.0)
+    h.hear(beacon(src=4, gid=500, leader=2, weight=40, seq=17, hops=1))  # the merge
+    m = h.g.membership(1)
+    assert m is not None and m.group_id == 500
+    for k in range(int(gap // h.cfg.beacon_period)):
+        h.advance(h.now + h.cfg.beacon_period)
+        h.hear(beacon(src=4, gid=500, leader=2, weight=40 + k, seq=18 + k, hops=1))
+    h.events()
+    timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
+    lost = h.now + timeout + h.cfg.beacon_period
+    h.advance(lost + ELECTION_BACKOFF_FACTOR * h.cfg.create_backoff + 0.02)
+    return h, lost
+
+
+def test_a_part_that_loses_the_merged_group_soon_takes_its_former_id_back() -> None:
+    h, _ = _merged_then_lost(gap=4.0)
+    (e,) = h.events(LeaderElected)
+    assert e.cause is ElectionCause.ELECTION and e.group_id == 600 and e.weight == 0
+
+
+def test_a_split_long_after_the_merge_gets_a_new_id() -> None:
+    h, _ = _merged_then_lost(gap=h_window() + 2.0)
+    (e,) = h.events(LeaderElected)
+    assert e.cause is ElectionCause.ELECTION and e.group_id not in (500, 600)
+
+
+def h_window() -> float:
+    cfg = H().cfg
+    return cfg.unmerge_window_periods * cfg.beacon_period

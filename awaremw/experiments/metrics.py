@@ -204,6 +204,15 @@ def lasting_group_ids(
     return {g: s for g, s in sorted(alive.items()) if s >= min_s}
 
 
+def led_group_ids(rec: Recorder, gtype: int) -> set[int]:
+    """Group ids of type ``gtype`` whose leader produced at least one data record.
+
+    A group that never led a record is a contender the merge rule absorbed before
+    its first epoch closed (a spontaneous leader at a fringe or at a split): it
+    never carried data to a client (docs/experiments.md, "data ids")."""
+    return {k[2] for k in rec.produced if k[1] == gtype}
+
+
 def _key(r: DataRecord) -> RecordKey:
     return (r.channel, r.group_type, r.group_id, r.epoch)
 
@@ -382,6 +391,8 @@ def run_metrics(
         "distinct_group_ids": len(ids),
         "group_ids": sorted(ids),
         "lasting_group_ids": list(lasting_group_ids(rec, gtype, t0, t_end + settle, 2 * settle)),
+        "data_group_ids": sorted(data_ids := ids & led_group_ids(rec, gtype)),
+        "distinct_data_group_ids": len(data_ids),
         "handovers": handover_count(rec, gtype, t0, t_end + settle),
         "elections": len([e for e in rec.elections if e.group_type == gtype]),
         "first_record_s": None if first is None else first.t - t0,

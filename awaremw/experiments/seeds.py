@@ -158,6 +158,8 @@ def mean_ci(values: Sequence[float]) -> dict[str, float | int | None]:
 def summarise(name: str, per_seed: Sequence[dict[str, Any]]) -> dict[str, Any]:
     ideal = ideal_ids(name)
     ids = [int(m["distinct_group_ids"]) for m in per_seed]
+    key = "distinct_data_group_ids"
+    data_ids = [int(m[key]) for m in per_seed if key in m]
     n = len(per_seed)
     s: dict[str, Any] = {
         "experiment": name,
@@ -172,6 +174,19 @@ def summarise(name: str, per_seed: Sequence[dict[str, Any]]) -> dict[str, Any]:
         ),
         "seeds_not_ideal": [
             m["seed"] for m in per_seed if ideal is not None and m["distinct_group_ids"] != ideal
+        ],
+        # The same over the ids that led at least one data record (absorbed
+        # contenders left out; docs/experiments.md, "data ids").
+        "data_ids_histogram": {str(k): v for k, v in sorted(Counter(data_ids).items())},
+        "ideal_data_ids_fraction": (
+            None
+            if ideal is None or not data_ids
+            else round(sum(i == ideal for i in data_ids) / len(data_ids), 4)
+        ),
+        "seeds_not_ideal_data": [
+            m["seed"]
+            for m in per_seed
+            if ideal is not None and m.get("distinct_data_group_ids", ideal) != ideal
         ],
         "elections": mean_ci([m["elections"] for m in per_seed]),
         "delivery_ratio": mean_ci([m["delivery_ratio"] for m in per_seed]),

@@ -26,10 +26,14 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
 * a leader that stops qualifying unicasts a Handover (id, weight, seq) to a
   member it knows; the new leader continues the id; a candidate that cannot
   take the group sends the Handover back (a refusal) and the next is tried;
-* members that hear no new beacon for ``leader_timeout_periods`` beacon periods
-  drop the group and, still qualifying, run the creation backoff again: the
-  first to fire creates a group with a NEW id (so the part of a split that lost
-  the leader gets a new id, as the paper requires).
+* members that heard the leader directly and lose it claim the group with its
+  id (failover); the others, after ``leader_timeout_periods`` beacon periods
+  and one more period of patience, drop the group and, still qualifying, run a
+  wider creation backoff: the first to fire creates a group with a NEW id (the
+  paper's split rule), or takes back the id of the group it left by a merge
+  less than ``unmerge_window_periods`` ago (the merge did not hold);
+* a mote joining a group from its table of nearby groups announces it (one
+  re-broadcast of the remembered beacon).
 """
 
 from __future__ import annotations
@@ -58,6 +62,7 @@ from awaremw.protocol.frames import (
 MAX_GROUP_ID = 0xFFFE
 MAX_WEIGHT = 0xFFFFFFFF
 MAX_HOPS = 0xFF
+ELECTION_BACKOFF_FACTOR = 3.0  # creation backoff after a lost leader, x create_backoff
 
 
 # --------------------------------------------------------------------------- public values
@@ -232,6 +237,9 @@ class _TypeState:
     suspect_at: float | None = None  # a unicast to the leader failed at this time
     rebutted: float = -math.inf  # last re-broadcast answering a lighter group's beacon
     split_from: int = 0  # the id whose leader we lost before creating this group
+    patience: bool = False  # the split route's extra beacon period was granted for this seq
+    former: int = 0  # an established group (weight > 0) we left by a merge ...
+    former_until: float = -math.inf  # ... and until when a split may take its id back
 
 
 def seq_newer(a: int, b: int) -> bool:
@@ -390,6 +398,10 @@ class Groups(Component):
         self._clear_suspicion(st)
 
     # ----------------------------------------------------------------- failover
+
+    def _unmerge_window(self) -> float:
+        c = self.ctx.config
+        return c.unmerge_window_periods * c.beacon_period
 
     def _claim_after(self) -> float:
         """Hysteresis in time: a leader heard from this recently is not suspected."""
@@ -565,7 +577,11 @@ class Groups(Component):
             return
         st.role = Role.WAITING
         st.cause = cause
-        backoff = self.ctx.rng.uniform(0, self.ctx.config.create_backoff)
+        # After a split every member of the leaderless part gives up on the same
+        # last beacon: a wider backoff spreads their claims so that the first new
+        # group's flood reaches the others before they create contenders.
+        spread = ELECTION_BACKOFF_FACTOR if cause is ElectionCause.ELECTION else 1.0
+        backoff = self.ctx.rng.uniform(0, spread * self.ctx.config.create_backoff)
         self.timers.set(("create", st.gtype), now + backoff)
 
     # ----------------------------------------------------------------- role changes
@@ -590,6 +606,7 @@ class Groups(Component):
         st.parent, st.parent_rssi = src, self._link_rssi(src, rssi)
         st.forwarded = True  # _adopt clears it: it forwards the beacon it joined on
         st.last_beacon = heard_at
+        st.patience = False
         st.upstream = {src: _Up(seq, hops, heard_at, rssi)}
         st.failed = {}
         st.children = {}
@@ -601,8 +618,12 @@ class Groups(Component):
         self.ctx.emit(GroupJoined(self.ctx.node_id, st.gtype, gid, leader, now))
 
     def _join(self, st: _TypeState, gid: int, h: _Heard, now: float) -> None:
-        """Join a group remembered from an earlier beacon (no forward: that seq is old)."""
+        """Join a group remembered from an earlier beacon, and announce it: forward
+        that (older) seq once, so that a waiting mote two hops away adopts the group
+        now rather than creating a contender before the leader's next beacon."""
         self._become_member(st, gid, h.leader, h.weight, h.seq, h.hops, h.src, h.t, h.rssi, now)
+        st.forwarded = False
+        self._schedule_forward(st, now)
 
     def _adopt(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         """Join the group of beacon ``f`` just heard, and forward it."""
@@ -614,6 +635,16 @@ class Groups(Component):
 
     def _create(self, st: _TypeState, now: float) -> None:
         taken = set(st.nearby) | {st.gid}
+        if (
+            st.cause is ElectionCause.ELECTION
+            and st.former
+            and now <= st.former_until
+            and st.former not in taken
+        ):
+            # A part that lost the merged group's leader soon after the merge: the
+            # merge did not hold, the part goes on under its own former id.
+            self._become_leader(st, st.former, 0, 0, now, st.cause)
+            return
         gid = self.ctx.rng.randint(1, MAX_GROUP_ID)
         while gid in taken:
             gid = self.ctx.rng.randint(1, MAX_GROUP_ID)
@@ -646,6 +677,10 @@ class Groups(Component):
 
     def _leave(self, st: _TypeState, now: float, reason: LeaveReason) -> None:
         gid = st.gid
+        if reason in (LeaveReason.SWITCHED, LeaveReason.YIELDED) and st.weight > 0:
+            # Merged into a heavier group: if the merge does not hold (the part
+            # loses the merged group's leader soon), the part takes this id back.
+            st.former, st.former_until = gid, now + self._unmerge_window()
         for kind in ("create", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
             self.timers.cancel((kind, st.gtype))
         st.role = Role.IDLE
@@ -676,6 +711,13 @@ class Groups(Component):
             # its neighbours on its side). Take over with the id, after a jitter.
             st.suspect_at = st.suspect_at if st.suspect_at is not None else now
             self._schedule_claim(st, now)
+            return
+        if not st.patience:
+            # Hysteresis in time on the split route: one more beacon period as a
+            # member (a thin, flapping bridge to the leader often carries the next
+            # beacon) before the group is given up for a new one.
+            st.patience = True
+            self.timers.set(("lost", st.gtype), now + self.ctx.config.beacon_period)
             return
         dead = st.gid
         st.split_from = dead  # named by the group this mote may create now
@@ -818,6 +860,7 @@ class Groups(Component):
             st.leader_ok = now
             self._clear_suspicion(st)
             st.seq, st.leader, st.weight = f.seq, f.leader, f.weight
+            st.patience = False
             st.hops = hops
             st.parent, st.parent_rssi = f.src, lr
             st.forwarded = False
