@@ -235,7 +235,10 @@ def test_romeo4r_keeps_one_group_id_over_several_seeds(seed: int, tmp_path: Path
 
     m = run_seed("romeo4r", seed, tmp_path)
     assert m["seed"] == seed
-    assert m["distinct_group_ids"] == 1 and m["distinct_data_group_ids"] == 1
+    # One id carries every record; a transient would-be group that yields within
+    # seconds and never leads a record may add a raw id (docs/experiments.md gives
+    # the fraction of seeds with exactly one raw id: 36 of 40).
+    assert m["distinct_data_group_ids"] == 1 and m["distinct_group_ids"] <= 2
     assert isinstance(m["membership_f1"], float) and m["membership_f1"] >= 0.9
     assert isinstance(m["handovers"], int) and m["handovers"] >= 1  # the leader follows
     assert json.loads((tmp_path / "metrics.json").read_text())["seed"] == seed

@@ -316,7 +316,10 @@ def test_merge_follows_weight_the_heavier_id_survives_even_when_lower() -> None:
     assert sc.group_problems(1, qualifying(sc, region)) == []
     assert set(sc.leaders(1)) == {heavy}
     yields = [e for _, _, e in sc.of_type(LeaderYielded, since=59.0)]
-    assert [(y.group_id, y.successor) for y in yields] == [(light, heavy)]
+    # The light group yields to the heavy one; any transient group that formed on
+    # the bridge meanwhile yields to it too (never the other way).
+    pairs = [(y.group_id, y.successor) for y in yields]
+    assert (light, heavy) in pairs and all(succ == heavy for _, succ in pairs), pairs
 
 
 SEED_LOWER_HEAVIER = 3

@@ -231,10 +231,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     net, motes, events = build_grid(
         side, float(args.spacing), (0,), seed, radio=args.radio, security=security, signer=signer
     )
-    counts = {"drip": 0, "ctp": 0}
+    counts = {"drip": 0, "ctp": 0, "wave": 0}
     counting = [False]
 
+    wave = [False]
+
     def on_transmit(node: int, tx: Transmission, t: float) -> None:
+        if wave[0] and peek_header(tx.frame)[0] in (DripItem.TYPE, DripSummary.TYPE, DripSig.TYPE):
+            counts["wave"] += 1
         if counting[0]:
             ftype = peek_header(tx.frame)[0]
             if ftype in (DripItem.TYPE, DripSummary.TYPE, DripSig.TYPE):
@@ -248,7 +252,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     t_inj = net.now
     chan = ChannelDef(attr=0, group_type=1, group_id=0xFFFF, period_ms=2000, agg=0)
     inject_at(net, motes[0], t_inj, ItemKind.CHANNEL, 1, 1, chan)
+    wave[0] = True
     net.run_until(t_inj + float(args.propagation_timeout))
+    wave[0] = False
     adopted: dict[int, float] = {}
     for node, e, t in events:
         if isinstance(e, ItemAdopted) and e.kind == ItemKind.CHANNEL and node != 0:
@@ -279,6 +285,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if pts
         else None,
         "propagation_max_s": round(max(adopted.values()), 3) if adopted else None,
+        # Drip frames (items, summaries, signature parts) sent while the item spread
+        # (the propagation timeout after the injection), per mote: the wave's cost.
+        "propagation_drip_frames_per_mote": round(counts["wave"] / len(motes), 2),
         "max_hops": max(hops.values()),
         "coverage": round(len(adopted) / (n - 1), 4),
         "tx_per_mote_per_hour": round((counts["drip"] + counts["ctp"]) * per_hour, 3),

@@ -176,6 +176,7 @@ class Dissemination(Component):
         self._summary_repeats_left = 0
         self._summary_spacing = 0.0
         self._last_summary = float("-inf")
+        self._last_answer = float("-inf")
         self.refused = 0  # counters for observers
         self.item_tx = 0
         self.summary_tx = 0
@@ -297,17 +298,21 @@ class Dissemination(Component):
         key: ItemKey = (name[1], name[2])
         trickle = self._trickles[key]
         if trickle.handle_timer(now):
-            it = self._items[key]
-            sig = self._sigs.get(key)
-            nid = self.ctx.node_id
-            self.send(DripItem(nid, BROADCAST, key[0], key[1], it.version, it.body))
-            self.item_tx += 1
-            if sig is not None:
-                for p in range(SIG_PARTS):
-                    chunk = sig[p * SIG_PART_BYTES : (p + 1) * SIG_PART_BYTES]
-                    self.send(DripSig(nid, BROADCAST, key[0], key[1], it.version, p, chunk))
-                    self.sig_tx += 1
+            self._broadcast(key)
         self._arm(key)
+
+    def _broadcast(self, key: ItemKey) -> None:
+        """Put the item we hold for ``key`` on the air (and its signature parts)."""
+        it = self._items[key]
+        sig = self._sigs.get(key)
+        nid = self.ctx.node_id
+        self.send(DripItem(nid, BROADCAST, key[0], key[1], it.version, it.body))
+        self.item_tx += 1
+        if sig is not None:
+            for p in range(SIG_PARTS):
+                chunk = sig[p * SIG_PART_BYTES : (p + 1) * SIG_PART_BYTES]
+                self.send(DripSig(nid, BROADCAST, key[0], key[1], it.version, p, chunk))
+                self.sig_tx += 1
 
     # ------------------------------------------------------------------ internals
 
@@ -378,12 +383,28 @@ class Dissemination(Component):
             for key, trickle in self._trickles.items():
                 trickle.reset(now)
                 self._arm(key)
-        if f.n_items > n and now - self._last_summary >= self.ctx.config.drip_summary_min_gap:
+            if f.n_items < n and now - self._last_answer >= self.ctx.config.drip_summary_min_gap:
+                # The sender holds fewer items: it lacks some. Trickle would let our
+                # neighbours' transmissions suppress ours, yet the sender may hear
+                # only us (a hidden "have-not" at the edge of the items' spread), so
+                # answer at once, unsuppressed, at most once per min_gap.
+                self._last_answer = now
+                for key in self._items:
+                    self._broadcast(key)
+        if f.n_items > n:
             # The sender may be ahead of us: ask it to speak up (it holds items).
-            due = now + self.ctx.rng.uniform(0.0, self.ctx.config.drip_summary_delay)
-            cur = self.timers.get("summary")
-            if cur is None or due < cur:
-                self.timers.set("summary", due)
+            self._summary_soon(now)
+
+    def _summary_soon(self, now: float) -> None:
+        """Send a summary after a short random wait. Within the rate limit of our
+        last summary, once the limit allows rather than not at all: a summary sent
+        just before we learnt something told the neighbours nothing of it."""
+        cfg = self.ctx.config
+        earliest = self._last_summary + cfg.drip_summary_min_gap
+        due = max(now, earliest) + self.ctx.rng.uniform(0.0, cfg.drip_summary_delay)
+        cur = self.timers.get("summary")
+        if cur is None or due < cur:
+            self.timers.set("summary", due)
 
     def _send_summary(self, now: float) -> None:
         self._last_summary = now
@@ -419,6 +440,10 @@ class Dissemination(Component):
             )
         trickle.reset(now)
         self._arm(key)
+        # Say so in a summary soon: a neighbour that finished its boot summaries
+        # before this item existed learns it exists and asks for it (its own
+        # summary, with fewer items, makes us answer unsuppressed).
+        self._summary_soon(now)
         self.ctx.emit(ItemAdopted(f.kind, f.item_id, f.version, f.item is None, source))
         # Components hear about content changes only: a tombstone for a key we
         # never held live changes nothing for them.
