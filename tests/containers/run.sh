@@ -54,7 +54,8 @@ compose -p "$PROJECT" up -d --no-build > "$CACHE/$PROJECT-up.log" 2>&1 \
     || { cat "$CACHE/$PROJECT-up.log" >&2; die "compose up failed"; }
 load_mqtt_secrets "$PROJECT" 90
 wait_status online 90 || die "the gateway never said online on aware/gateway/status"
-compose -p "$PROJECT" logs router 2>&1 | grep -q 'authenticated, access control by role' \
+router_log="$(compose -p "$PROJECT" logs router 2>&1 || true)"   # no pipe: pipefail + grep -q
+grep -q 'authenticated, access control by role' <<<"$router_log" \
     || die "the router does not run with the secrets (authentication, access control)"
 log "gateway online, router authenticating; defining group type 1 and channel 1 as the operator"
 mqtt_pub operator aware/def/group/1 \
