@@ -16,5 +16,6 @@ RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml
 COPY . ./
 RUN pip install --no-cache-dir --no-deps --no-build-isolation . \
     && install -m 0755 containers/fleet-part.sh /usr/local/bin/awaremw-fleet-part \
+    && install -m 0755 containers/with-secrets.sh /usr/local/bin/awaremw-with-secrets \
     && awaremw --help >/dev/null
 ENTRYPOINT ["awaremw"]

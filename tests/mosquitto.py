@@ -27,6 +27,7 @@ import aiomqtt
 import pytest
 
 from awaremw.gateway.mqtt import MqttSettings
+from awaremw.security.keys import make_broker_tls
 
 ROOT = Path(__file__).resolve().parent.parent
 CFG = ROOT / "broker_cfg"
@@ -70,7 +71,7 @@ class Mosquitto:
         self.workdir = workdir
         self.port = port or free_port()
         self.tls_port = free_port() if tls else None
-        self.ca_file = workdir / "server.crt"  # self-signed: its own CA
+        self.ca_file = workdir / "ca.crt"
         if tls:
             make_cert(workdir)
         self.proc: subprocess.Popen[bytes] | None = None
@@ -84,6 +85,7 @@ class Mosquitto:
         acl = self.workdir / "acl"
         shutil.copy(CFG / "acl", acl)
         lines = []
+        listeners = 0
         for line in (CFG / "mosquitto.conf").read_text().splitlines():
             key = line.split(" ", 1)[0]
             if key == "password_file":
@@ -91,12 +93,18 @@ class Mosquitto:
             elif key == "acl_file":
                 line = f"acl_file {acl}"
             elif key == "listener":
+                listeners += 1
+                if listeners > 1:  # the TLS listener: written below, on its own port
+                    continue
                 line = f"listener {self.port} 127.0.0.1"
+            elif key in ("certfile", "keyfile"):
+                continue
             elif key == "persistence":
                 line = "persistence false"
             elif key in ("persistence_location", "log_dest"):
                 continue
             lines.append(line)
+        assert listeners == 2, "broker_cfg/mosquitto.conf: a plain and a TLS listener"
         lines.append(f"log_dest file {self.log}")
         if self.tls_port is not None:
             lines += [
@@ -168,16 +176,9 @@ class Mosquitto:
 
 
 def make_cert(workdir: Path) -> None:
-    """A self-signed certificate for 127.0.0.1 (openssl CLI)."""
-    openssl = shutil.which("openssl")
-    if openssl is None:
-        pytest.skip("openssl not installed")
-    subprocess.run(
-        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2",
-         "-keyout", str(workdir / "server.key"), "-out", str(workdir / "server.crt"),
-         "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1"],
-        check=True, capture_output=True, timeout=30,
-    )  # fmt: skip
+    """A CA and a server certificate for localhost/127.0.0.1, as `awaremw keys init` makes."""
+    for name, data in make_broker_tls().items():
+        (workdir / name).write_bytes(data)
 
 
 @pytest.fixture(name="mosquitto")

@@ -40,7 +40,7 @@ def test_keys_init_makes_private_files_and_never_overwrites(tmp_path: Path) -> N
     assert cli_main(["keys", "init", str(root)]) == 0
     d = SecretsDir(root.resolve())
     files = [p for p in root.rglob("*") if p.is_file()]
-    assert len(files) == 13
+    assert len(files) == 17
     for p in files:
         assert stat.S_IMODE(p.stat().st_mode) == 0o600, p
     for p in [root, *(p for p in root.rglob("*") if p.is_dir())]:

@@ -21,7 +21,8 @@ from awaremw.security.zenoh_acl import DEFAULT_PREFIX
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "keys",
-        help="create the secrets: radio key, gateway signing key, Zenoh and MQTT accounts",
+        help="create the secrets: radio key, gateway signing key, Zenoh and MQTT accounts, "
+        "MQTT TLS certificates",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -31,10 +32,25 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="create every secret in DIR (files 0600, directories 0700)",
         description="Create in DIR: the radio network key, the gateway's Ed25519 key pair, "
         "Zenoh accounts per role with the router's config (authentication, access control) "
-        "and one client config per role, the Mosquitto password and ACL files.",
+        "and one client config per role, the Mosquitto password and ACL files, a CA and "
+        "the broker's TLS certificate.",
     )
     i.add_argument("dir", type=Path, metavar="DIR")
     i.add_argument("--force", action="store_true", help="replace existing secret files")
+    i.add_argument(
+        "--exist-ok",
+        action="store_true",
+        help="keep a complete set of secrets already in DIR and exit 0 (containers that "
+        "make their secrets at every start); an incomplete set is still an error",
+    )
+    i.add_argument(
+        "--tls-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="another DNS name or IP address for the MQTT broker's certificate (repeatable; "
+        "always: localhost, 127.0.0.1, ::1 and broker, the compose service)",
+    )
     i.add_argument(
         "--prefix",
         default=DEFAULT_PREFIX,
@@ -59,6 +75,8 @@ def run_init(args: argparse.Namespace) -> int:
             force=args.force,
             prefix=args.prefix,
             network_key_bytes=args.network_key_bytes,
+            tls_hosts=args.tls_host,
+            exist_ok=args.exist_ok,
         )
     except SecretsExist as e:
         print(f"awaremw keys init: {e}", file=sys.stderr)
@@ -67,6 +85,9 @@ def run_init(args: argparse.Namespace) -> int:
         print(f"awaremw keys init: {e}", file=sys.stderr)
         return 2
     root = args.dir.resolve()
+    if not written:
+        print(f"awaremw keys init: {root} holds a complete set of secrets already; kept")
+        return 0
     print(f"awaremw keys init: wrote {len(written)} files under {root} (mode 0600):")
     for p in written:
         print(f"  {p.relative_to(root)}")

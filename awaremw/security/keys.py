@@ -12,6 +12,9 @@ Layout (directories 0700, files 0600; see docs/security.md)::
     DIR/mqtt/passwd             Mosquitto password file (PBKDF2-SHA512, mosquitto's $7$)
     DIR/mqtt/acl                Mosquitto ACL of the accounts operator, gateway, viewer
     DIR/mqtt/accounts.json      the MQTT accounts' clear passwords, for their owners
+    DIR/mqtt/ca.crt, ca.key     a small CA (ECDSA P-256) for the broker's TLS listener
+    DIR/mqtt/server.crt, .key   the broker's certificate, signed by that CA (SAN: localhost,
+                                127.0.0.1, ::1, broker, and every ``tls_hosts`` name)
 
 Nothing is overwritten unless ``force``: without it, an existing file makes
 the whole call fail before anything is written.
@@ -22,16 +25,20 @@ from __future__ import annotations
 import base64
 import datetime
 import hashlib
+import ipaddress
 import json
 import os
 import secrets
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-from cryptography.hazmat.primitives import serialization
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from awaremw.security.zenoh_acl import (
     DEFAULT_PREFIX,
@@ -49,6 +56,11 @@ MQTT_ACCOUNTS: Final = ("operator", "gateway", "viewer")  # as broker_cfg/
 # itself uses 101 iterations; any count is accepted when reading the file.
 MQTT_PBKDF2_ITERATIONS: Final = 1000
 MQTT_SALT_BYTES: Final = 12
+# Names the broker's certificate is always valid for: the host itself and the
+# compose service name (docker-compose.yml).
+BROKER_TLS_HOSTS: Final = ("localhost", "127.0.0.1", "::1", "broker")
+CA_DAYS: Final = 3650
+SERVER_CERT_DAYS: Final = 825  # the longest validity browsers and Apple accept for a server
 
 
 class SecretsExist(FileExistsError):
@@ -105,6 +117,29 @@ class SecretsDir:
     def mqtt_accounts(self) -> Path:
         return self.root / "mqtt" / "accounts.json"
 
+    @property
+    def mqtt_ca_cert(self) -> Path:
+        return self.root / "mqtt" / "ca.crt"
+
+    @property
+    def mqtt_ca_key(self) -> Path:
+        return self.root / "mqtt" / "ca.key"
+
+    @property
+    def mqtt_server_cert(self) -> Path:
+        return self.root / "mqtt" / "server.crt"
+
+    @property
+    def mqtt_server_key(self) -> Path:
+        return self.root / "mqtt" / "server.key"
+
+    def read_mqtt_password(self, account: str) -> str:
+        """The clear password of MQTT ``account`` (operator, gateway, viewer)."""
+        accounts = json.loads(self.mqtt_accounts.read_text())
+        if not isinstance(accounts, dict) or not isinstance(accounts.get(account), str):
+            raise ValueError(f"{self.mqtt_accounts}: no MQTT account {account!r}")
+        return str(accounts[account])
+
     def read_network_key(self) -> bytes:
         key = self.network_key.read_bytes()
         if len(key) not in NETWORK_KEY_SIZES:
@@ -144,6 +179,119 @@ def mosquitto_acl(prefix: str = DEFAULT_PREFIX) -> str:
     )
 
 
+def _san(host: str) -> x509.GeneralName:
+    try:
+        return x509.IPAddress(ipaddress.ip_address(host))
+    except ValueError:
+        pass
+    if not host or any(c.isspace() or c in "/:@" for c in host):
+        raise ValueError(f"bad TLS host name {host!r}")
+    return x509.DNSName(host)
+
+
+def _pem_key(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.NoEncryption(),
+    )
+
+
+def make_broker_tls(
+    hosts: Iterable[str] = (), *, now: datetime.datetime | None = None
+) -> dict[str, bytes]:
+    """A CA and a server certificate signed by it, for the MQTT broker's TLS listener.
+
+    Keys are ECDSA P-256. The server certificate is valid for
+    :data:`BROKER_TLS_HOSTS` and ``hosts`` (DNS names or IP addresses). Returns the
+    PEM bytes under ``ca.crt``, ``ca.key``, ``server.crt``, ``server.key``.
+    """
+    names = list(dict.fromkeys([*BROKER_TLS_HOSTS, *hosts]))
+    sans = [_san(h) for h in names]
+    start = (now or datetime.datetime.now(datetime.UTC)) - datetime.timedelta(minutes=5)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name(
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "awaremw"),
+            x509.NameAttribute(NameOID.COMMON_NAME, f"awaremw CA {secrets.token_hex(4)}"),
+        ]
+    )
+    ca_ski = x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key())
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(ca_name)
+        .issuer_name(ca_name)
+        .public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(start + datetime.timedelta(days=CA_DAYS))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=False,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=True,
+                crl_sign=True,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(ca_ski, critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )
+    key = ec.generate_private_key(ec.SECP256R1())
+    server = (
+        x509.CertificateBuilder()
+        .subject_name(
+            x509.Name(
+                [
+                    x509.NameAttribute(NameOID.ORGANIZATION_NAME, "awaremw"),
+                    x509.NameAttribute(NameOID.COMMON_NAME, names[0]),
+                ]
+            )
+        )
+        .issuer_name(ca_name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(start + datetime.timedelta(days=SERVER_CERT_DAYS))
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=False,
+                crl_sign=False,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), critical=False)
+        .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ca_ski),
+            critical=False,
+        )
+        .sign(ca_key, hashes.SHA256())
+    )
+    pem = serialization.Encoding.PEM
+    return {
+        "ca.crt": ca.public_bytes(pem),
+        "ca.key": _pem_key(ca_key),
+        "server.crt": server.public_bytes(pem),
+        "server.key": _pem_key(key),
+    }
+
+
 def _json5(doc: Mapping[str, Any], what: str) -> bytes:
     head = f"// {what}\n// Made by `awaremw keys init`; secret: keep it 0600.\n"
     return (head + json.dumps(doc, indent=2) + "\n").encode()
@@ -154,7 +302,11 @@ def _password() -> str:
 
 
 def make_secrets(
-    root: Path, *, prefix: str = DEFAULT_PREFIX, network_key_bytes: int = 16
+    root: Path,
+    *,
+    prefix: str = DEFAULT_PREFIX,
+    network_key_bytes: int = 16,
+    tls_hosts: Iterable[str] = (),
 ) -> dict[Path, bytes]:
     """The contents of every secret file (nothing written)."""
     if network_key_bytes not in NETWORK_KEY_SIZES:
@@ -185,6 +337,12 @@ def make_secrets(
     files[d.mqtt_passwd] = "".join(f"{u}:{mosquitto_hash(pw)}\n" for u, pw in mpw.items()).encode()
     files[d.mqtt_acl] = mosquitto_acl(prefix).encode()
     files[d.mqtt_accounts] = (json.dumps(mpw, indent=2) + "\n").encode()
+    tls_hosts = list(dict.fromkeys([*BROKER_TLS_HOSTS, *tls_hosts]))
+    tls = make_broker_tls(tls_hosts)
+    files[d.mqtt_ca_cert] = tls["ca.crt"]
+    files[d.mqtt_ca_key] = tls["ca.key"]
+    files[d.mqtt_server_cert] = tls["server.crt"]
+    files[d.mqtt_server_key] = tls["server.key"]
     manifest = {
         "format": FORMAT_VERSION,
         "prefix": prefix,
@@ -192,6 +350,7 @@ def make_secrets(
         "network_key_bytes": network_key_bytes,
         "zenoh_roles": list(ROLES),
         "mqtt_accounts": list(MQTT_ACCOUNTS),
+        "mqtt_tls_hosts": tls_hosts,
     }
     files[d.manifest] = (json.dumps(manifest, indent=2) + "\n").encode()
     return files
@@ -227,13 +386,23 @@ def init_secrets(
     force: bool = False,
     prefix: str = DEFAULT_PREFIX,
     network_key_bytes: int = 16,
+    tls_hosts: Iterable[str] = (),
+    exist_ok: bool = False,
 ) -> list[Path]:
     """Create every secret under ``root``; the files written.
 
-    Raises :class:`SecretsExist` (and writes nothing) if one exists and not ``force``.
+    Raises :class:`SecretsExist` (and writes nothing) if one exists and not ``force``;
+    with ``exist_ok`` a complete set is kept as it is (nothing written, ``[]``
+    returned), while an incomplete one still raises.
+    The manifest (``secrets.json``) is written last: once it exists, every other file
+    is complete (containers wait for it).
     """
-    files = make_secrets(Path(root), prefix=prefix, network_key_bytes=network_key_bytes)
+    files = make_secrets(
+        Path(root), prefix=prefix, network_key_bytes=network_key_bytes, tls_hosts=tls_hosts
+    )
     existing = [p for p in files if p.exists() or p.is_symlink()]
+    if exist_ok and not force and len(existing) == len(files):
+        return []
     if existing and not force:
         raise SecretsExist(existing)
     for p in files:

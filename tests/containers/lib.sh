@@ -41,6 +41,7 @@ compose() {
 # networks (podman-compose 1.0 leaves networks, which would keep stale settings).
 compose_down() { # FILE PROJECT
     compose -f "$1" -p "$2" down -v >/dev/null 2>&1 || true
+    rm -f "$CACHE/$2-ca.crt" "$CACHE/$2-accounts.json"   # copies of the throw-away secrets
     local nets
     nets="$("$ENGINE" network ls -q --filter "label=com.docker.compose.project=$2" 2>/dev/null || true)"
     [ -z "$nets" ] || "$ENGINE" network rm $nets >/dev/null 2>&1 || true
@@ -188,19 +189,54 @@ free_port() {
     python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'
 }
 
-# mosquitto_sub/pub on the published broker port.
+# The secrets the compose project's one-shot `keys` service wrote in its
+# `secrets` volume: sets MQTT_CA (a copy of mqtt/ca.crt) and MQTT_ACCOUNTS (a copy
+# of mqtt/accounts.json), both 0600 under CACHE. Waits up to TIMEOUT_S for them.
+load_mqtt_secrets() { # PROJECT TIMEOUT_S
+    local vol="$1_secrets" end=$((SECONDS + $2)) mp
+    MQTT_CA="$CACHE/$1-ca.crt"
+    MQTT_ACCOUNTS="$CACHE/$1-accounts.json"
+    rm -f "$MQTT_CA" "$MQTT_ACCOUNTS"
+    (umask 077; while :; do
+        mp="$("$ENGINE" volume inspect -f '{{.Mountpoint}}' "$vol" 2>/dev/null || true)"
+        if [ -n "$mp" ] && [ -s "$mp/secrets.json" ]; then
+            cp "$mp/mqtt/ca.crt" "$MQTT_CA" && cp "$mp/mqtt/accounts.json" "$MQTT_ACCOUNTS" && break
+        elif [ -n "$mp" ] && [ ! -d "$mp" ]; then
+            # the volume lives elsewhere (a remote Docker engine): read it through a container
+            "$ENGINE" run --rm -v "$vol:/s:ro" --entrypoint cat "$AWAREMW_IMAGE" /s/mqtt/ca.crt \
+                > "$MQTT_CA" 2>/dev/null \
+                && "$ENGINE" run --rm -v "$vol:/s:ro" --entrypoint cat "$AWAREMW_IMAGE" \
+                    /s/mqtt/accounts.json > "$MQTT_ACCOUNTS" 2>/dev/null \
+                && [ -s "$MQTT_ACCOUNTS" ] && break
+        fi
+        [ "$SECONDS" -lt "$end" ] || exit 1
+        sleep 1
+    done) || die "no secrets in volume $vol after $2 s (the keys service's log: compose logs keys)"
+}
+# The password of MQTT account USER (operator, gateway, viewer) from MQTT_ACCOUNTS.
+mqtt_password() { # USER
+    python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' \
+        "$MQTT_ACCOUNTS" "$1"
+}
+
+# mosquitto_sub/pub on the published broker port: TLS, verified with the
+# generated CA (the certificate names 127.0.0.1), the generated accounts.
+_mqtt_args() { # USER
+    echo -h 127.0.0.1 -p "$AWARE_MQTT_PORT" --cafile "$MQTT_CA" -u "$1"
+}
 mqtt_pub() { # USER TOPIC PAYLOAD (retained)
-    mosquitto_pub -h 127.0.0.1 -p "$AWARE_MQTT_PORT" -u "$1" -P "$1-pw" -q 1 -r -t "$2" -m "$3"
+    mosquitto_pub $(_mqtt_args "$1") -P "$(mqtt_password "$1")" -q 1 -r -t "$2" -m "$3"
 }
 mqtt_sub() { # USER TOPIC COUNT TIMEOUT_S: prints "topic payload" lines
-    mosquitto_sub -h 127.0.0.1 -p "$AWARE_MQTT_PORT" -u "$1" -P "$1-pw" -q 1 -v \
+    mosquitto_sub $(_mqtt_args "$1") -P "$(mqtt_password "$1")" -q 1 -v \
         -t "$2" -C "$3" -W "$4" 2>/dev/null || true
 }
 # Waits until the gateway's retained status is VALUE (online/offline).
 wait_status() { # VALUE TIMEOUT_S
-    local end=$((SECONDS + $2)) got
+    local end=$((SECONDS + $2)) got pw
+    pw="$(mqtt_password viewer)"
     while :; do
-        got="$(mosquitto_sub -h 127.0.0.1 -p "$AWARE_MQTT_PORT" -u viewer -P viewer-pw \
+        got="$(mosquitto_sub $(_mqtt_args viewer) -P "$pw" \
             -t aware/gateway/status -C 1 -W 3 2>/dev/null || true)"
         [ "$got" = "$1" ] && return 0
         [ "$SECONDS" -lt "$end" ] || return 1

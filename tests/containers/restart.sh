@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Restart scenario in containers (tests/containers/two-networks.yml): two fleets
-# on two networks joined only through the Zenoh router; a group and a channel
+# Restart scenario in containers (tests/containers/two-networks.yml, secure as
+# docker-compose.yml): two fleets on two networks joined only through the Zenoh router; a group and a channel
 # defined over MQTT; the gateway container restarted mid-run
 # (`podman-compose restart gateway`). Passes when records resume after the
 # restart, the definitions survive it (still retained, still applied: the
@@ -11,7 +11,7 @@ set -euo pipefail
 source "$(dirname "$0")/lib.sh"
 
 TIMEOUT="${AWAREMW_RECORDS_TIMEOUT:-120}"
-PROJECT=awaremw-restart
+PROJECT="${AWAREMW_COMPOSE_PROJECT:-awaremw-restart}"
 FILE="$REPO/tests/containers/two-networks.yml"
 
 check_kernel
@@ -53,7 +53,11 @@ log "up: router on three networks, broker + gateway (core), fleet-west (west), f
 UP=1
 compose -f "$FILE" -p "$PROJECT" up -d --no-build > "$CACHE/$PROJECT-up.log" 2>&1 \
     || { cat "$CACHE/$PROJECT-up.log" >&2; die "compose up failed"; }
+load_mqtt_secrets "$PROJECT" 90
 wait_status online 90 || die "the gateway never said online"
+router_log="$(compose -f "$FILE" -p "$PROJECT" logs router 2>&1 || true)"   # no pipe: pipefail + grep -q
+grep -q 'authenticated, access control by role' <<<"$router_log" \
+    || die "the router does not run with the secrets (authentication, access control)"
 
 can_connect "$PROJECT" fleet-west router 7447 && can_connect "$PROJECT" fleet-east router 7447 \
     || die "a fleet cannot reach the router"

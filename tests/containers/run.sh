@@ -5,9 +5,10 @@
 #   CONTAINER_ENGINE=docker bash tests/containers/run.sh
 #
 # Installs what it needs, builds the base images (cached) and the project's
-# image, brings the stack up (router, broker, gateway, AWARE_FLEETS fleets),
-# defines a group and a channel over MQTT from the host on the published broker
-# port, waits for records, tears everything down (also on failure) and prints
+# image, brings the secure stack up (throw-away secrets, router, broker, gateway,
+# AWARE_FLEETS fleets), defines a group and a channel over MQTT with TLS from the
+# host on the published broker port (the generated operator and viewer accounts
+# and CA, read from the project's `secrets` volume), waits for records, tears everything down (also on failure) and prints
 # `records received: N` last. Exits 1 when no record came, 77 when the kernel
 # refuses containers. See docs/containers.md.
 set -euo pipefail
@@ -15,7 +16,7 @@ source "$(dirname "$0")/lib.sh"
 
 TIMEOUT="${AWAREMW_RECORDS_TIMEOUT:-120}"   # s to wait for records
 WANT="${AWAREMW_RECORDS_WANT:-3}"           # stop waiting after this many
-PROJECT=awaremw-it
+PROJECT="${AWAREMW_COMPOSE_PROJECT:-awaremw-it}"
 
 check_kernel
 install_tools
@@ -47,12 +48,16 @@ compose_down "$REPO/docker-compose.yml" "$PROJECT"   # leftovers of an interrupt
 log "images ready in $((SECONDS - t0)) s"
 
 export AWARE_START_AT=$(( $(date +%s) + 8 ))
-log "up: router, broker, gateway, $AWARE_FLEETS fleets (broker on 127.0.0.1:$AWARE_MQTT_PORT)"
+log "up: keys, router, broker, gateway, $AWARE_FLEETS fleets (broker TLS on 127.0.0.1:$AWARE_MQTT_PORT)"
 UP=1
 compose -p "$PROJECT" up -d --no-build > "$CACHE/$PROJECT-up.log" 2>&1 \
     || { cat "$CACHE/$PROJECT-up.log" >&2; die "compose up failed"; }
+load_mqtt_secrets "$PROJECT" 90
 wait_status online 90 || die "the gateway never said online on aware/gateway/status"
-log "gateway online; defining group type 1 and channel 1 as the operator"
+router_log="$(compose -p "$PROJECT" logs router 2>&1 || true)"   # no pipe: pipefail + grep -q
+grep -q 'authenticated, access control by role' <<<"$router_log" \
+    || die "the router does not run with the secrets (authentication, access control)"
+log "gateway online, router authenticating; defining group type 1 and channel 1 as the operator"
 mqtt_pub operator aware/def/group/1 \
     '{"conditions": [{"attr": "temperature", "op": ">", "value": 15}]}'
 mqtt_pub operator aware/def/channel/1 \
