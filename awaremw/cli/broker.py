@@ -69,7 +69,7 @@ def find_config(explicit: str | None) -> Path:
     tried = [Path(explicit)] if explicit is not None else [Path("broker_cfg"), here]
     for d in tried:
         if (d / "mosquitto.conf").is_file():
-            return d
+            return d.resolve()
     raise FileNotFoundError(
         "no mosquitto.conf in " + " or ".join(str(d) for d in tried) + " (give --config DIR)"
     )

@@ -7,7 +7,9 @@ tracking group and the channels over MQTT and prints the data it receives.
 A live map shows the motes coloured by group, the leaders, the robot and the
 records arriving; --plain prints log lines instead (scripts, CI). The run
 ends after the scenario's duration (or --duration emulated seconds) with a
-summary of its figures.
+summary of its figures, also written to --summary FILE (default
+$XDG_STATE_HOME/awaremw/demo-summary.txt). The exit status is 1 when the
+broker cannot be reached or the robot received no record at all.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 import asyncio
 import logging
 import sys
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console
@@ -58,7 +61,22 @@ def register(sub: Any) -> None:
         help="let the embedded broker accept clients without an account",
     )
     p.add_argument("--plain", action="store_true", help="log lines instead of the live view")
+    p.add_argument(
+        "--summary",
+        default=None,
+        metavar="FILE",
+        help="also write the summary here (default $XDG_STATE_HOME/awaremw/demo-summary.txt)",
+    )
     p.set_defaults(func=main)
+
+
+def summary_path(arg: str | None) -> Path:
+    """Where the summary is written: ``arg``, else next to the gateway's state."""
+    if arg is not None:
+        return Path(arg)
+    from awaremw.gateway.broker import default_state_dir
+
+    return default_state_dir().parent / "demo-summary.txt"
 
 
 def main(args: argparse.Namespace) -> int:
@@ -94,8 +112,13 @@ def main(args: argparse.Namespace) -> int:
         return 2
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
+    from awaremw.cli.friendly import mqtt_problem
     from awaremw.gateway.broker import BrokerError
 
+    for url in dict.fromkeys(u for u in (args.mqtt, args.robot_mqtt) if u is not None):
+        if (why := asyncio.run(mqtt_problem(url))) is not None:
+            print(f"awaremw demo: {why}", file=sys.stderr)
+            return 1
     try:
         summary = asyncio.run(
             run_demo(
@@ -114,7 +137,37 @@ def main(args: argparse.Namespace) -> int:
         print(f"awaremw demo: {e}", file=sys.stderr)
         return 2
     print_summary(summary, plain=plain)
+    path = summary_path(args.summary)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(summary_text(summary), encoding="utf-8")
+        print(f"awaremw demo: summary written to {path}", flush=True)
+    except OSError as e:
+        print(f"awaremw demo: cannot write the summary to {path}: {e}", file=sys.stderr)
+    if summary["records_received"] == 0:
+        print(f"awaremw demo: {no_record_reason(summary, args.mqtt is not None)}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return 0
+
+
+def no_record_reason(s: dict[str, Any], external: bool) -> str:
+    """One line on why the robot may have received nothing."""
+    if s["errors"]:
+        return f"the robot received no record; the gateway reported: {s['errors'][0][:200]}"
+    if s["records_produced"] and external:
+        return (
+            f"the robot received no record although the leaders produced {s['records_produced']}: "
+            "the gateway cannot publish them or the robot cannot read them (with broker_cfg/: "
+            "--mqtt needs the gateway account, --robot-mqtt the operator's)"
+        )
+    if s["records_produced"]:
+        return f"the robot received none of the {s['records_produced']} records produced"
+    return "no record was produced: no group formed in the time run (try a longer --duration)"
+
+
+def summary_text(s: dict[str, Any]) -> str:
+    return "".join(f"{k}: {v}\n" for k, v in summary_rows(s))
 
 
 async def run_demo(
@@ -174,6 +227,8 @@ async def run_demo(
     end = sc.duration if duration is None else duration
     view.log(0.0, f"demo {sc.name}: {len(sc.deployment.nodes)} motes, {end:g} s at speed "
                   f"{speed:g} (MQTT {mask_url(mqtt)})")  # fmt: skip
+    for line in waiting_lines(sc, end):
+        view.log(0.0, line)
     view.start()
     try:
         result = await run.run(end)
@@ -203,8 +258,28 @@ async def run_demo(
     return out
 
 
-def print_summary(s: dict[str, Any], plain: bool = False) -> None:
-    rows = [
+def waiting_lines(sc: Any, end: float) -> list[str]:
+    """What the first seconds wait for (the map stays idle until a group forms)."""
+    if not sc.group_json:
+        return ["no group type defined by this deployment: the map shows the motes only"]
+    types = ", ".join(map(str, sc.group_json))
+    chans = ", ".join(map(str, sc.channel_json)) or "none"
+    lines = [f"at t={sc.define_at:g} s the robot's client defines group type(s) {types} and "
+             f"channel(s) {chans} over MQTT"]  # fmt: skip
+    first = sc.robot_entry(sc.truth())
+    what = f"the robot (mote {sc.robot}) to come into range" if sc.robot is not None else (
+        "the condition to hold at a mote"
+    )  # fmt: skip
+    if first is None or first > end:
+        lines.append(f"waiting for {what}: not expected within the {end:g} s run")
+    else:
+        lines.append(f"waiting for {what}: expected at t~{first:g} s (the map stays idle "
+                     "until a group forms)")  # fmt: skip
+    return lines
+
+
+def summary_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
+    rows: list[tuple[str, Any]] = [
         ("deployment", s["deployment"]),
         ("emulated time", f"{s['emulated_s']:g} s at speed {s['speed']:g}"),
         ("MQTT broker", s["mqtt"]),
@@ -221,6 +296,11 @@ def print_summary(s: dict[str, Any], plain: bool = False) -> None:
         rows.append(("first record at", f"{s['first_record_at_s']:.1f} s"))
     if s["errors"]:
         rows.append(("errors", "; ".join(s["errors"])[:200]))
+    return rows
+
+
+def print_summary(s: dict[str, Any], plain: bool = False) -> None:
+    rows = summary_rows(s)
     if plain:
         for k, v in rows:
             print(f"summary {k}: {v}")
