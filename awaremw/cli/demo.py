@@ -242,10 +242,18 @@ async def run_demo(
         "emulated_s": end,
         "speed": speed,
         "mqtt": None if run.broker_url is None else mask_url(run.broker_url),
-        "records_received": len(run.live.records),
+        # Distinct records (channel, group, epoch), as the delivery ratio counts them;
+        # at a handover or a merge two leaders may both close an epoch: "repeated".
+        "records_received": len(rec.arrivals),
+        "records_repeated": len(run.live.records) - len(rec.arrivals),
         "records_produced": len(rec.produced),
         "delivery_ratio": M.delivery_ratio(rec, end - 5.0),
         "groups": sorted(rec.group_ids(gtype, 0.0, end)) if gtype is not None else [],
+        # ids that had members for at least two beacon periods (not a fringe mote's
+        # group that yielded a moment later)
+        "lasting_groups": sorted(M.lasting_group_ids(rec, gtype, 0.0, end, LASTING_S))
+        if gtype is not None
+        else [],
         "handovers": len(rec.handovers),
         "elections": len(rec.elections),
         "frames_per_mote": traffic.frames_tx,
@@ -256,6 +264,9 @@ async def run_demo(
         first = run.live.records[0]
         out["first_record_at_s"] = first.t
     return out
+
+
+LASTING_S = 4.0  # two leader-beacon periods: shorter-lived ids are a fringe mote's transient
 
 
 def waiting_lines(sc: Any, end: float) -> list[str]:
@@ -284,9 +295,15 @@ def summary_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
         ("emulated time", f"{s['emulated_s']:g} s at speed {s['speed']:g}"),
         ("MQTT broker", s["mqtt"]),
         ("records received (MQTT)", s["records_received"]),
+        ("records repeated (MQTT)", s.get("records_repeated", 0)),
         ("records produced (leaders)", s["records_produced"]),
-        ("delivery ratio", "-" if s["delivery_ratio"] is None else f"{s['delivery_ratio']:.3f}"),
+        (
+            "delivery ratio (produced > 5 s before the end)",
+            "-" if s["delivery_ratio"] is None else f"{s['delivery_ratio']:.3f}",
+        ),
         ("group ids seen", ", ".join(map(str, s["groups"])) or "none"),
+        (f"group ids lasting >= {LASTING_S:g} s", ", ".join(map(str, s.get("lasting_groups", [])))
+         or "none"),
         ("handovers", s["handovers"]),
         ("leader elections", s["elections"]),
         ("frames sent per mote", f"{s['frames_per_mote']:.1f}"),
