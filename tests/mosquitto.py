@@ -1,7 +1,8 @@
 """A real Mosquitto broker for tests, started on a free loopback port.
 
 It runs ``broker_cfg/mosquitto.conf`` (password file, ACL) with the listener
-and file paths rewritten, persistence off. Use the ``mosquitto`` fixture
+and file paths rewritten, persistence off (``awaremw.cli.broker.local_config``,
+what ``awaremw broker --mosquitto`` runs). Use the ``mosquitto`` fixture
 (``from mosquitto import mosquitto_fixture  # noqa: F401`` in a test module). Without
 the binary the tests skip, unless ``AWAREMW_REQUIRE_MOSQUITTO=1`` (CI), when
 they fail.
@@ -26,6 +27,7 @@ from pathlib import Path
 import aiomqtt
 import pytest
 
+from awaremw.cli.broker import local_config
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.security.keys import make_broker_tls
 
@@ -80,41 +82,14 @@ class Mosquitto:
         self._write_conf()
 
     def _write_conf(self) -> None:
-        passwd = self.workdir / "passwd"
-        shutil.copy(CFG / "passwd", passwd)
-        acl = self.workdir / "acl"
-        shutil.copy(CFG / "acl", acl)
-        lines = []
-        listeners = 0
-        for line in (CFG / "mosquitto.conf").read_text().splitlines():
-            key = line.split(" ", 1)[0]
-            if key == "password_file":
-                line = f"password_file {passwd}"
-            elif key == "acl_file":
-                line = f"acl_file {acl}"
-            elif key == "listener":
-                listeners += 1
-                if listeners > 1:  # the TLS listener: written below, on its own port
-                    continue
-                line = f"listener {self.port} 127.0.0.1"
-            elif key in ("certfile", "keyfile"):
-                continue
-            elif key == "persistence":
-                line = "persistence false"
-            elif key in ("persistence_location", "log_dest"):
-                continue
-            lines.append(line)
-        assert listeners == 2, "broker_cfg/mosquitto.conf: a plain and a TLS listener"
-        lines.append(f"log_dest file {self.log}")
+        extra: tuple[str, ...] = ()
         if self.tls_port is not None:
-            lines += [
+            extra = (
                 f"listener {self.tls_port} 127.0.0.1",
                 f"certfile {self.workdir / 'server.crt'}",
                 f"keyfile {self.workdir / 'server.key'}",
-            ]
-        if os.geteuid() == 0:
-            lines.append("user root")  # else mosquitto drops to a user that cannot read tmp
-        self.conf.write_text("\n".join(lines) + "\n")
+            )
+        local_config(CFG, self.workdir, self.port, extra=extra)
 
     def lock_out(self, *users: str) -> None:
         """Remove accounts from the password file (takes effect at start or :meth:`reload`)."""

@@ -157,6 +157,7 @@ async def test_mqtt_definitions_data_groups_and_refusals(
                         "leader": 12,
                         "t": 101.5,
                         "attr": "temperature",
+                        "unit": "°C",
                     },
                 )
             ]

@@ -25,6 +25,7 @@ VERB_MODULES: tuple[str, ...] = (
     "bench",
     "keys",
     "view",
+    "broker",
 )
 
 
@@ -58,6 +59,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         code: int = args.func(args)
     except KeyboardInterrupt:
         return 130
+    except Exception as e:
+        # Zenoh refusing an endpoint (nothing listens, port taken, access denied) is
+        # the user's setup, not our bug: one line without Rust source paths.
+        from awaremw.cli.friendly import is_zenoh_error, zenoh_message
+
+        if not is_zenoh_error(e):
+            raise
+        print(f"awaremw {args.verb}: Zenoh: {zenoh_message(e)}", file=sys.stderr)
+        return 1
     return code
 
 

@@ -33,6 +33,9 @@ from awaremw.gateway import schema
 from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
 
 DEFAULT_URL = "mqtt://127.0.0.1:1883"
+# How long `delete` waits for the retained definition it removes (brokers send
+# retained messages right after the subscription is acknowledged).
+RETAINED_WAIT_S = 1.0
 _COND_RE = re.compile(r"^\s*(\S+?)\s*(<=|>=|==|!=|<|>)\s*(\S+)\s*$")
 _SPLIT_RE = re.compile(r"\s*(?:,|&&|\band\b)\s*")
 
@@ -220,10 +223,19 @@ async def publish(
     retain: bool,
     wait: float = 0.0,
     client_id: str | None = None,
+    defined: list[bool] | None = None,
+    check: str | None = None,
 ) -> dict[str, Any] | None:
-    """Publish (QoS 1); with ``wait`` return the gateway's refusal of it, if any."""
+    """Publish (QoS 1); with ``wait`` return the gateway's refusal of (or warning on) it.
+
+    With ``defined`` (a list), first look for a retained message on ``check``
+    (relative; default the topic itself) and append whether there was one (a
+    delete of something never defined, a channel on an undefined group type).
+    """
     topic = s.topic(rel_topic)
     async with _client(s, client_id) as client:
+        if defined is not None:
+            defined.append(await _has_retained(client, s.topic(check or rel_topic)))
         if wait > 0:
             await client.subscribe(s.topic("errors"), qos=1)
         await client.publish(topic, payload, qos=1, retain=retain)
@@ -241,14 +253,47 @@ async def publish(
     return None
 
 
-def _send(args: argparse.Namespace, rel: str, payload: bytes, retain: bool) -> int:
+async def _has_retained(client: aiomqtt.Client, topic: str) -> bool:
+    """Whether the broker holds a retained message on ``topic`` (sent right after SUBACK)."""
+    await client.subscribe(topic, qos=1)
+    try:
+        async with asyncio.timeout(RETAINED_WAIT_S):
+            async for m in client.messages:
+                if m.topic.matches(topic) and m.payload:
+                    return True
+    except TimeoutError:
+        return False
+    finally:
+        await client.unsubscribe(topic)
+    return False
+
+
+def _send(
+    args: argparse.Namespace, rel: str, payload: bytes, retain: bool, needs: str | None = None
+) -> int:
+    """Publish; a delete checks that there was something to delete, a definition
+    that ``needs`` another (a channel's group type) that it exists."""
     s = _settings(args)
+    defined: list[bool] | None = [] if not payload or needs else None
     err = asyncio.run(
-        publish(s, rel, payload, retain=retain, wait=args.wait, client_id=args.client_id)
-    )
-    if err is not None:
+        publish(s, rel, payload, retain=retain, wait=args.wait, client_id=args.client_id,
+                defined=defined, check=needs)
+    )  # fmt: skip
+    if needs is not None and defined == [False] and err is None:
+        print(
+            f"warning: {s.topic(needs)} is not defined: the channel waits for its group type "
+            "and produces no data until then (waits_for_group_type)",
+            file=sys.stderr,
+        )
+        defined = None
+    if err is not None and err.get("level") == "warning":
+        print(f"warning from the gateway: {err.get('error')} ({err.get('code')})", file=sys.stderr)
+    elif err is not None:
         print(f"refused by the gateway: {err.get('error')} ({err.get('code')})", file=sys.stderr)
         return 1
+    if not payload and defined == [False]:
+        print(f"{s.topic(rel)} was not defined (no retained definition on the broker)")
+        return 0
     print(f"{s.topic(rel)} {payload.decode() if payload else '(deleted)'}")
     return 0
 
@@ -288,7 +333,9 @@ def cmd_define_channel(args: argparse.Namespace) -> int:
         }
         payload = json.dumps(doc).encode()
         schema.parse_channel(args.id, payload, schema.Limits())
-        return _send(args, f"def/channel/{args.id}", payload, retain=True)
+        gt = doc["group_type"]
+        needs = None if gt == "*" else f"def/group/{gt}"
+        return _send(args, f"def/channel/{args.id}", payload, retain=True, needs=needs)
 
     return _run(go, args)
 

@@ -7,7 +7,9 @@ tracking group and the channels over MQTT and prints the data it receives.
 A live map shows the motes coloured by group, the leaders, the robot and the
 records arriving; --plain prints log lines instead (scripts, CI). The run
 ends after the scenario's duration (or --duration emulated seconds) with a
-summary of its figures.
+summary of its figures, also written to --summary FILE (default
+$XDG_STATE_HOME/awaremw/demo-summary.txt). The exit status is 1 when the
+broker cannot be reached or the robot received no record at all.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 import asyncio
 import logging
 import sys
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console
@@ -64,7 +67,22 @@ def register(sub: Any) -> None:
         metavar="HOST:PORT",
         help="also serve the web dashboard there (e.g. 127.0.0.1:8080; docs/dashboard.md)",
     )
+    p.add_argument(
+        "--summary",
+        default=None,
+        metavar="FILE",
+        help="also write the summary here (default $XDG_STATE_HOME/awaremw/demo-summary.txt)",
+    )
     p.set_defaults(func=main)
+
+
+def summary_path(arg: str | None) -> Path:
+    """Where the summary is written: ``arg``, else next to the gateway's state."""
+    if arg is not None:
+        return Path(arg)
+    from awaremw.gateway.broker import default_state_dir
+
+    return default_state_dir().parent / "demo-summary.txt"
 
 
 def main(args: argparse.Namespace) -> int:
@@ -108,9 +126,14 @@ def main(args: argparse.Namespace) -> int:
         return 2
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
+    from awaremw.cli.friendly import mqtt_problem
     from awaremw.gateway.broker import BrokerError
     from awaremw.view.web import DashboardError
 
+    for url in dict.fromkeys(u for u in (args.mqtt, args.robot_mqtt) if u is not None):
+        if (why := asyncio.run(mqtt_problem(url))) is not None:
+            print(f"awaremw demo: {why}", file=sys.stderr)
+            return 1
     try:
         summary = asyncio.run(
             run_demo(
@@ -133,7 +156,37 @@ def main(args: argparse.Namespace) -> int:
         print(f"awaremw demo: {e}", file=sys.stderr)
         return 2
     print_summary(summary, plain=plain)
+    path = summary_path(args.summary)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(summary_text(summary), encoding="utf-8")
+        print(f"awaremw demo: summary written to {path}", flush=True)
+    except OSError as e:
+        print(f"awaremw demo: cannot write the summary to {path}: {e}", file=sys.stderr)
+    if summary["records_received"] == 0:
+        print(f"awaremw demo: {no_record_reason(summary, args.mqtt is not None)}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return 0
+
+
+def no_record_reason(s: dict[str, Any], external: bool) -> str:
+    """One line on why the robot may have received nothing."""
+    if s["errors"]:
+        return f"the robot received no record; the gateway reported: {s['errors'][0][:200]}"
+    if s["records_produced"] and external:
+        return (
+            f"the robot received no record although the leaders produced {s['records_produced']}: "
+            "the gateway cannot publish them or the robot cannot read them (with broker_cfg/: "
+            "--mqtt needs the gateway account, --robot-mqtt the operator's)"
+        )
+    if s["records_produced"]:
+        return f"the robot received none of the {s['records_produced']} records produced"
+    return "no record was produced: no group formed in the time run (try a longer --duration)"
+
+
+def summary_text(s: dict[str, Any]) -> str:
+    return "".join(f"{k}: {v}\n" for k, v in summary_rows(s))
 
 
 async def run_demo(
@@ -208,6 +261,8 @@ async def run_demo(
     end = sc.duration if duration is None else duration
     view.log(0.0, f"demo {sc.name}: {len(sc.deployment.nodes)} motes, {end:g} s at speed "
                   f"{speed:g} (MQTT {mask_url(mqtt)})")  # fmt: skip
+    for line in waiting_lines(sc, end):
+        view.log(0.0, line)
     view.start()
     try:
         result = await run.run(end)
@@ -223,10 +278,18 @@ async def run_demo(
         "emulated_s": end,
         "speed": speed,
         "mqtt": None if run.broker_url is None else mask_url(run.broker_url),
-        "records_received": len(run.live.records),
+        # Distinct records (channel, group, epoch), as the delivery ratio counts them;
+        # at a handover or a merge two leaders may both close an epoch: "repeated".
+        "records_received": len(rec.arrivals),
+        "records_repeated": len(run.live.records) - len(rec.arrivals),
         "records_produced": len(rec.produced),
         "delivery_ratio": M.delivery_ratio(rec, end - 5.0),
         "groups": sorted(rec.group_ids(gtype, 0.0, end)) if gtype is not None else [],
+        # ids that had members for at least two beacon periods (not a fringe mote's
+        # group that yielded a moment later)
+        "lasting_groups": sorted(M.lasting_group_ids(rec, gtype, 0.0, end, LASTING_S))
+        if gtype is not None
+        else [],
         "handovers": len(rec.handovers),
         "elections": len(rec.elections),
         "frames_per_mote": traffic.frames_tx,
@@ -239,15 +302,44 @@ async def run_demo(
     return out
 
 
-def print_summary(s: dict[str, Any], plain: bool = False) -> None:
-    rows = [
+LASTING_S = 4.0  # two leader-beacon periods: shorter-lived ids are a fringe mote's transient
+
+
+def waiting_lines(sc: Any, end: float) -> list[str]:
+    """What the first seconds wait for (the map stays idle until a group forms)."""
+    if not sc.group_json:
+        return ["no group type defined by this deployment: the map shows the motes only"]
+    types = ", ".join(map(str, sc.group_json))
+    chans = ", ".join(map(str, sc.channel_json)) or "none"
+    lines = [f"at t={sc.define_at:g} s the robot's client defines group type(s) {types} and "
+             f"channel(s) {chans} over MQTT"]  # fmt: skip
+    first = sc.robot_entry(sc.truth())
+    what = f"the robot (mote {sc.robot}) to come into range" if sc.robot is not None else (
+        "the condition to hold at a mote"
+    )  # fmt: skip
+    if first is None or first > end:
+        lines.append(f"waiting for {what}: not expected within the {end:g} s run")
+    else:
+        lines.append(f"waiting for {what}: expected at t~{first:g} s (the map stays idle "
+                     "until a group forms)")  # fmt: skip
+    return lines
+
+
+def summary_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
+    rows: list[tuple[str, Any]] = [
         ("deployment", s["deployment"]),
         ("emulated time", f"{s['emulated_s']:g} s at speed {s['speed']:g}"),
         ("MQTT broker", s["mqtt"]),
         ("records received (MQTT)", s["records_received"]),
+        ("records repeated (MQTT)", s.get("records_repeated", 0)),
         ("records produced (leaders)", s["records_produced"]),
-        ("delivery ratio", "-" if s["delivery_ratio"] is None else f"{s['delivery_ratio']:.3f}"),
+        (
+            "delivery ratio (produced > 5 s before the end)",
+            "-" if s["delivery_ratio"] is None else f"{s['delivery_ratio']:.3f}",
+        ),
         ("group ids seen", ", ".join(map(str, s["groups"])) or "none"),
+        (f"group ids lasting >= {LASTING_S:g} s", ", ".join(map(str, s.get("lasting_groups", [])))
+         or "none"),
         ("handovers", s["handovers"]),
         ("leader elections", s["elections"]),
         ("frames sent per mote", f"{s['frames_per_mote']:.1f}"),
@@ -257,6 +349,11 @@ def print_summary(s: dict[str, Any], plain: bool = False) -> None:
         rows.append(("first record at", f"{s['first_record_at_s']:.1f} s"))
     if s["errors"]:
         rows.append(("errors", "; ".join(s["errors"])[:200]))
+    return rows
+
+
+def print_summary(s: dict[str, Any], plain: bool = False) -> None:
+    rows = summary_rows(s)
     if plain:
         for k, v in rows:
             print(f"summary {k}: {v}")

@@ -26,6 +26,7 @@ import signal
 import sys
 from typing import Any
 
+from awaremw.cli.friendly import zenoh_message
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 
@@ -292,7 +293,9 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             fleet = Fleet(dep, factory, settings, node_filter=_combine(args.part_filter, skip))
             await fleet.__aenter__()
         except zenoh.ZError as e:
-            raise _StartError(f"cannot open the Zenoh session on {where}: {e}") from None
+            raise _StartError(
+                f"cannot open the Zenoh session on {where}: {zenoh_message(e)}"
+            ) from None
         try:
             await wait_end(fleet)
             fleet.raise_errors()
@@ -324,7 +327,7 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     try:
         await launcher.__aenter__()
     except zenoh.ZError as e:
-        raise _StartError(f"cannot start the Zenoh router on {where}: {e}") from None
+        raise _StartError(f"cannot start the Zenoh router on {where}: {zenoh_message(e)}") from None
     except LaunchError as e:
         raise _StartError(str(e)) from None
     print(
@@ -462,7 +465,10 @@ def run_ctl(args: argparse.Namespace) -> int:
     try:
         replies = control_query(connect, args.prefix, req, args.timeout, config_file)
     except zenoh.ZError as e:
-        print(f"awaremw fleet-ctl: cannot reach {', '.join(connect)}: {e}", file=sys.stderr)
+        print(
+            f"awaremw fleet-ctl: cannot reach {', '.join(connect)}: {zenoh_message(e)}",
+            file=sys.stderr,
+        )
         return 1
     if not replies:
         print(
@@ -475,6 +481,8 @@ def run_ctl(args: argparse.Namespace) -> int:
     errors = [d for d in replies if not d.get("ok")]
     done = [d for d in replies if d.get("done")]
     if args.op in ("list", "stats"):
+        if args.op == "list" and sys.stdout.isatty():
+            print("# node\tx (m)\ty (m)\tfleet")  # for a reader; piped output stays bare
         for d in replies:
             if args.op == "list":
                 for nid, (x, y) in sorted(d.get("motes", {}).items(), key=lambda kv: int(kv[0])):

@@ -262,8 +262,9 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         if args.define_initial:
             for out in svc.define_initial(deployment_definitions(dep.groups, dep.channels)):
                 if out.error is not None:
+                    what = "warning on" if out.error.warning else "refused"
                     print(
-                        f"awaremw gateway: deployment definition refused: {out.error.topic}: "
+                        f"awaremw gateway: deployment definition {what}: {out.error.topic}: "
                         f"{out.error.error}",
                         file=sys.stderr,
                     )

@@ -67,7 +67,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         router = EmbeddedRouter(listen, args.connect, config_file=config_file).start()
     except Exception as e:  # bad endpoint, port in use: the user's input, not our bug
-        print(f"awaremw router: cannot start: {e}", file=sys.stderr)
+        from awaremw.cli.friendly import zenoh_message
+
+        print(f"awaremw router: cannot start: {zenoh_message(e)}", file=sys.stderr)
         return 2
     mode = "authenticated, access control by role" if config_file else "open to every client"
     print(f"awaremw router listening on {', '.join(listen)} ({mode})", flush=True)

@@ -19,9 +19,11 @@ from typing import Any
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from awaremw.experiments.metrics import Instant, Recorder
 from awaremw.experiments.truth import GroundTruth
+from awaremw.protocol.attributes import unit_of
 from awaremw.protocol.frames import GroupTypeDef
 from awaremw.world.fields import World
 
@@ -44,7 +46,16 @@ class GroupColours:
         return self._map[gid]
 
 
-def _save(fig: Figure, path: Path, dpi: int = 90) -> Path:
+# Print size: at 150 dpi a panel is about 6-7 cm wide on paper; these sizes stay
+# readable there (axis labels and legends at 8-10 pt, titles 11 pt).
+DPI = 150
+FS_TICK = 8
+FS_LABEL = 9
+FS_LEGEND = 8
+FS_TITLE = 11
+
+
+def _save(fig: Figure, path: Path, dpi: int = DPI) -> Path:
     FigureCanvasAgg(fig)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi, bbox_inches="tight")
@@ -84,10 +95,17 @@ def _draw_motes(
                 marker="*" if s.leader else "o", edgecolors=ring, linewidths=1.6, zorder=3,
             )  # fmt: skip
         if labels:
-            ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7)
+            ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=FS_TICK)
 
 
-def _legend(ax: object, rec: Recorder, gtype: int, t: float, colours: GroupColours) -> None:
+def _legend(
+    ax: object,
+    rec: Recorder,
+    gtype: int,
+    t: float,
+    colours: GroupColours,
+    extra: Sequence[Any] = (),
+) -> None:
     from matplotlib.axes import Axes
     from matplotlib.lines import Line2D
 
@@ -98,7 +116,14 @@ def _legend(ax: object, rec: Recorder, gtype: int, t: float, colours: GroupColou
     ]
     handles.append(Line2D([], [], marker="*", ls="", color="k", ms=10, label="leader"))
     handles.append(Line2D([], [], marker="o", ls="", mfc="none", mec="k", label="true member"))
-    ax.legend(handles=handles, loc="upper right", fontsize=6, framealpha=0.8)
+    handles.extend(extra)
+    ax.legend(handles=handles, loc="upper right", fontsize=FS_LEGEND, framealpha=0.85)
+
+
+def _axes_in_metres(ax: Any) -> None:
+    ax.set_xlabel("x (m)", fontsize=FS_LABEL)
+    ax.set_ylabel("y (m)", fontsize=FS_LABEL)
+    ax.tick_params(labelsize=FS_TICK)
 
 
 def tracking_snapshots(
@@ -117,7 +142,7 @@ def tracking_snapshots(
     """Panels at ``times``: motes coloured by group id, leaders as stars, true
     members (noise-free RSSI over the threshold) ringed, the robot and its trail."""
     rows, cols = _grid(len(times))
-    fig = Figure(figsize=(3.6 * cols, 3.3 * rows))
+    fig = Figure(figsize=(4.6 * cols, 4.2 * rows), layout="constrained")
     colours = GroupColours()
     for k, t in enumerate(times):
         ax = fig.add_subplot(rows, cols, k + 1)
@@ -129,11 +154,12 @@ def tracking_snapshots(
         ax.set_xlim(area[0] - 1.5, area[1] + 1.5)
         ax.set_ylim(area[2] - 1.5, area[3] + 1.5)
         ax.set_aspect("equal")
-        ax.set_title(f"t = {t:.0f} s", fontsize=9)
-        ax.tick_params(labelsize=7)
+        ax.set_title(f"t = {t:.0f} s", fontsize=FS_TITLE)
+        _axes_in_metres(ax)
         if k == 0:
-            _legend(ax, rec, gtype, t + settle, colours)
-    fig.suptitle(title, fontsize=10)
+            robot_h = Line2D([], [], marker="^", ls="--", color="#cc0000", label="robot, trail")
+            _legend(ax, rec, gtype, t + settle, colours, extra=[robot_h])
+    fig.suptitle(title, fontsize=FS_TITLE + 1)
     return _save(fig, path)
 
 
@@ -152,7 +178,7 @@ def rssi_traces(
     """RSSI of the robot's beacons at ``motes``: what each mote measured (EWMA of
     received Hello frames), the noise-free mean, the threshold and hysteresis band,
     and shading while the mote was a group member."""
-    fig = Figure(figsize=(7.5, 2.1 * len(motes) + 0.4))
+    fig = Figure(figsize=(8.0, 2.6 * len(motes) + 0.8), layout="constrained")
     ts = [t0 + (t1 - t0) * i / 400 for i in range(401)]
     axes: list[Any] = []
     for k, n in enumerate(motes):
@@ -182,13 +208,18 @@ def rssi_traces(
                 start = None
         if start is not None:
             ax.axvspan(start, ts[-1], color="#2ca02c", alpha=0.15, lw=0)
-        ax.set_ylabel(f"mote {n}\nRSSI (dBm)", fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.set_ylabel(f"mote {n}\nRSSI (dBm)", fontsize=FS_LABEL)
+        ax.tick_params(labelsize=FS_TICK)
         if k == 0:
-            ax.legend(fontsize=6, loc="lower right", ncol=2)
-    axes[-1].set_xlabel("time (s); shaded: member of the robot's group", fontsize=8)
+            from matplotlib.patches import Patch
+
+            handles, _ = ax.get_legend_handles_labels()
+            handles.append(Patch(color="#2ca02c", alpha=0.15, label="member of the group"))
+            ax.legend(handles=handles, fontsize=FS_LEGEND, loc="lower right", ncol=2,
+                      framealpha=0.85)  # fmt: skip
+    axes[-1].set_xlabel("time (s); shaded: member of the robot's group", fontsize=FS_LABEL)
     fig.suptitle(f"RSSI of the robot's mote ({robot}) at motes {', '.join(map(str, motes))}",
-                 fontsize=10)  # fmt: skip
+                 fontsize=FS_TITLE)  # fmt: skip
     return _save(fig, path)
 
 
@@ -210,7 +241,7 @@ def field_snapshots(
     """Panels at ``times`` over a heat map of ``field``: motes coloured by group id,
     leaders as stars, true members ringed, the threshold contour."""
     rows, cols = _grid(len(times))
-    fig = Figure(figsize=(4.2 * cols, 3.2 * rows))
+    fig = Figure(figsize=(5.0 * cols, 3.9 * rows), layout="constrained")
     colours = GroupColours()
     nx, ny = 90, 60
     xs = [area[0] - 1 + (area[1] - area[0] + 2) * i / (nx - 1) for i in range(nx)]
@@ -225,7 +256,10 @@ def field_snapshots(
         if threshold is not None and lo < threshold < hi:
             levels = sorted({*levels, threshold})
         if hi - lo > 1e-6:
-            ax.contourf(xs, ys, grid, levels=levels, cmap="YlOrRd", alpha=0.8)
+            filled = ax.contourf(xs, ys, grid, levels=levels, cmap="YlOrRd", alpha=0.8)
+            bar = fig.colorbar(filled, ax=ax, shrink=0.85, format="%.0f")
+            bar.set_label(f"{field} ({unit_of(field) or '-'})", fontsize=FS_LABEL)
+            bar.ax.tick_params(labelsize=FS_TICK)
         ax.set_aspect("equal")
         if threshold is not None:
             ax.contour(xs, ys, grid, levels=[threshold], colors="#ff4444", linewidths=0.8)
@@ -233,9 +267,14 @@ def field_snapshots(
             ax, rec, truth, gtype, t + settle, ids, colours, truth.members(defn, t, ids), False
         )
         label = (titles or {}).get(t, "")
-        ax.set_title(f"t = {t:.0f} s {label}".strip(), fontsize=9)
-        ax.tick_params(labelsize=7)
-        _legend(ax, rec, gtype, t + settle, colours)
+        ax.set_title(f"t = {t:.0f} s {label}".strip(), fontsize=FS_TITLE)
+        _axes_in_metres(ax)
+        extra: list[Any] = []
+        if threshold is not None:
+            unit = unit_of(field)
+            extra.append(Line2D([], [], color="#ff4444", lw=1.0,
+                                label=f"{field} = {threshold:g} {unit}".strip()))  # fmt: skip
+        _legend(ax, rec, gtype, t + settle, colours, extra=extra)
     return _save(fig, path)
 
 
@@ -243,7 +282,7 @@ def membership_sizes(
     path: Path, series: Sequence[Instant], title: str = "Group membership vs truth"
 ) -> Path:
     """Members in a group of the type vs true members, and per-instant errors."""
-    fig = Figure(figsize=(7.5, 2.8))
+    fig = Figure(figsize=(8.0, 3.2), layout="constrained")
     ax = fig.add_subplot(1, 1, 1)
     ts = [i.t for i in series]
     ax.step(ts, [len(i.truth) for i in series], where="post", color="k", lw=1.2, label="truth")
@@ -251,9 +290,9 @@ def membership_sizes(
             label="members (t + settle)")  # fmt: skip
     ax.bar(ts, [len(i.members ^ i.truth) for i in series], width=(ts[1] - ts[0]) if len(ts) > 1
            else 0.5, color="#d62728", alpha=0.35, label="disagreements")  # fmt: skip
-    ax.set_xlabel("time (s)", fontsize=8)
-    ax.set_ylabel("motes", fontsize=8)
-    ax.tick_params(labelsize=7)
-    ax.legend(fontsize=7)
-    ax.set_title(title, fontsize=10)
+    ax.set_xlabel("time (s)", fontsize=FS_LABEL)
+    ax.set_ylabel("motes (count)", fontsize=FS_LABEL)
+    ax.tick_params(labelsize=FS_TICK)
+    ax.legend(fontsize=FS_LEGEND, framealpha=0.85)
+    ax.set_title(title, fontsize=FS_TITLE)
     return _save(fig, path)

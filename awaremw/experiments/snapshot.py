@@ -13,13 +13,15 @@ from awaremw.experiments.client import Received
 from awaremw.experiments.metrics import Recorder
 from awaremw.experiments.scenario import Scenario
 from awaremw.gateway.schema import agg_name
+from awaremw.protocol.attributes import unit_of
 from awaremw.view.snapshot import GroupLine, MoteDot, RecordLine, Snapshot
 
 
 def record_line(r: Received) -> RecordLine:
     """A RecordLine from a client's :class:`~awaremw.experiments.client.Received`."""
     d = r.record
-    return RecordLine(r.t, d.channel, d.group_type, d.group_id, r.agg, d.value, d.count, d.leader)
+    return RecordLine(r.t, d.channel, d.group_type, d.group_id, r.agg, d.value, d.count, d.leader,
+                      unit_of(r.attr, r.agg))  # fmt: skip
 
 
 def snapshot_of(
@@ -57,7 +59,8 @@ def snapshot_of(
     else:
         records = tuple(
             RecordLine(a.t, a.record.channel, a.record.group_type, a.record.group_id,
-                       agg_name(a.record.agg), a.record.value, a.record.count, a.record.leader)
+                       agg_name(a.record.agg), a.record.value, a.record.count, a.record.leader,
+                       unit_of(_attr_of(sc, a.record.channel), agg_name(a.record.agg)))
             for a in sorted(rec.arrivals.values(), key=lambda a: a.t)[-8:]
         )  # fmt: skip
     stats: dict[str, float | int | str] = {
@@ -75,3 +78,9 @@ def snapshot_of(
         now, (0.0, w, 0.0, h), tuple(dots), tuple(groups), records, stats,
         title=title or f"awaremw {sc.name}", group_type=gtype,
     )  # fmt: skip
+
+
+def _attr_of(sc: Scenario, channel: int) -> str | None:
+    """The attribute the scenario's channel samples (None if it defines no such channel)."""
+    attr = sc.channel_json.get(channel, {}).get("attr")
+    return None if attr is None else str(attr)

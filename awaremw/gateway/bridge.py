@@ -38,8 +38,9 @@ from awaremw.gateway.schema import (
     parse_group_type,
 )
 from awaremw.gateway.store import StoredItem, VersionStore, payload_hash
-from awaremw.protocol.attributes import attribute_name
+from awaremw.protocol.attributes import attribute_name, unit_of
 from awaremw.protocol.frames import (
+    ANY_GROUP_TYPE,
     ChannelDef,
     DataRecord,
     GroupReport,
@@ -52,6 +53,7 @@ log = logging.getLogger(__name__)
 
 MAX_ERROR_PAYLOAD = 512  # characters of the refused payload echoed on the errors topic
 MAX_ERROR_TOPIC = 200  # characters of the topic echoed on the errors topic and in the log
+WAITS_FOR_GROUP_TYPE = "waits_for_group_type"  # warning code: a channel on an undefined type
 MAX_TOPIC = 256  # longest IP-side topic accepted (the contract's are < 40 characters)
 MAX_GROUPS = 4096  # live groups tracked; beyond it the longest-unheard one is dropped
 REFUSAL_LOG_INTERVAL_S = 10.0  # at most one refusal log line per code in this span
@@ -117,17 +119,20 @@ class Publish:
 
 @dataclass(frozen=True, slots=True)
 class ErrorReport:
-    """A refusal, for the errors topic of the transport the payload came from."""
+    """A refusal (or, with ``warning``, a note on an accepted payload), for the errors
+    topic of the transport the payload came from."""
 
     topic: str  # the full topic / key expression the payload arrived on
     code: str
     error: str
     payload: str
+    warning: bool = False  # the payload was accepted; "level": "warning" on the wire
 
     def to_json(self) -> bytes:
-        return json.dumps(
-            {"topic": self.topic, "error": self.error, "code": self.code, "payload": self.payload}
-        ).encode()
+        doc = {"topic": self.topic, "error": self.error, "code": self.code, "payload": self.payload}
+        if self.warning:
+            doc["level"] = "warning"
+        return json.dumps(doc).encode()
 
 
 @dataclass(frozen=True, slots=True)
@@ -135,7 +140,7 @@ class Outcome:
     """What one incoming payload led to."""
 
     inject: Inject | None = None
-    error: ErrorReport | None = None
+    error: ErrorReport | None = None  # a refusal, or a warning on what ``inject`` carries
     replay: bool = False  # a retained payload already handled: ignored
 
     @property
@@ -183,6 +188,7 @@ class BridgeStats:
     groups_evicted: int = 0  # dropped because MAX_GROUPS were tracked
     learned: int = 0  # item versions learned from the network
     reasserted: int = 0  # our newer definitions re-sent above the network's version
+    waiting_channels: int = 0  # channels accepted on a group type not defined (yet)
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {k: getattr(self, k) for k in self.__slots__}
@@ -289,7 +295,27 @@ class GatewayBridge:
             self.store.set_seen(source, h)
             return self._refuse(source, payload, e)
         self.store.set_seen(source, h)
+        if outcome.inject is not None and (w := self._waiting(outcome.inject, source, payload)):
+            outcome = Outcome(inject=outcome.inject, error=w)
         return outcome
+
+    def _waiting(self, inj: Inject, source: str, payload: bytes) -> ErrorReport | None:
+        """A warning when a channel names a group type nobody defined: the channel is
+        accepted (the motes keep it until the type comes), but no data flows until then."""
+        body = inj.body
+        if inj.kind is not ItemKind.CHANNEL or not isinstance(body, ChannelDef):
+            return None
+        gt = body.group_type
+        if gt == ANY_GROUP_TYPE or gt in self.store.defined_ids(ItemKind.GROUP_TYPE):
+            return None
+        self.stats.waiting_channels += 1
+        msg = (
+            f"channel {inj.item_id} accepted, but group type {gt} is not defined: it waits "
+            f"for def/group/{gt} and produces no data until then"
+        )
+        self.refusal_log.warning(WAITS_FOR_GROUP_TYPE, "%s: %s", clip(source, MAX_ERROR_TOPIC), msg)
+        text = payload[:MAX_ERROR_PAYLOAD].decode("utf-8", errors="replace")
+        return ErrorReport(clip(source, MAX_ERROR_TOPIC), WAITS_FOR_GROUP_TYPE, msg, text, True)
 
     def _refuse(self, source: str, payload: bytes, e: SchemaError) -> Outcome:
         """Count, log (rate-limited) and report a refusal; the echoes are truncated."""
@@ -405,7 +431,9 @@ class GatewayBridge:
         }
         ch = self.store.get(ItemKind.CHANNEL, r.channel)
         if ch is not None and isinstance(ch.body, ChannelDef):
-            doc["attr"] = attribute_name(ch.body.attr)
+            doc["attr"] = name = attribute_name(ch.body.attr)
+            if unit := unit_of(name, doc["agg"]):
+                doc["unit"] = unit
         return [Publish(data_topic(r.channel, r.group_type, r.group_id), json.dumps(doc).encode())]
 
     def on_report(self, r: GroupReport, now: float) -> list[Publish]:

@@ -42,6 +42,27 @@ UNITS: Mapping[int, str] = {
 }
 
 
+# Units as a reader expects them printed next to a value (records, plots, docs).
+DISPLAY_UNITS: Mapping[str, str] = {
+    "temperature": "°C",
+    "humidity": "%RH",
+    "light": "lx",
+    "x": "m",
+    "y": "m",
+    "battery": "V",
+    "gas": "ppm",
+}
+
+
+def unit_of(name: str | None, agg: str = "avg") -> str:
+    """The unit of an aggregate of attribute ``name`` ("" if none: a COUNT, an unknown name)."""
+    if name is None or agg == "count":
+        return ""
+    if name.startswith("rssi:"):
+        return "dBm"
+    return DISPLAY_UNITS.get(name, "")
+
+
 class UnknownAttribute(ValueError):
     """An attribute name (IP side) or id (wire side) that nobody defines."""
 

@@ -68,8 +68,8 @@ def describe(node: int, event: object, t: float) -> str | None:
 
 def record_line(r: RecordLine) -> str:
     return (
-        f"data ch {r.channel} group {r.group_type}/{r.group_id}: {r.agg} = {r.value:.2f} "
-        f"over {r.count} reading(s) (leader {r.leader})"
+        f"data ch {r.channel} group {r.group_type}/{r.group_id}: {r.agg} = {r.value:.2f}"
+        f"{' ' + r.unit if r.unit else ''} over {r.count} reading(s) (leader {r.leader})"
     )
 
 

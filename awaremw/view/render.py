@@ -104,7 +104,7 @@ def render(snap: Snapshot, width: int = 64, height: int = 22) -> RenderableType:
             f"{r.t:.1f}",
             str(r.channel),
             Text(f"{r.group_type}/{r.group_id}", style=styles(r.group_id)),
-            f"{r.agg} {r.value:.2f}",
+            f"{r.agg} {r.value:.2f}{' ' + r.unit if r.unit else ''}",
             str(r.count),
         )
     stats = Table.grid(padding=(0, 1))

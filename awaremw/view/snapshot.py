@@ -34,6 +34,7 @@ class RecordLine:
     value: float
     count: int
     leader: int
+    unit: str = ""  # of the value ("°C", "dBm"...; "" for a count or unknown)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,64 @@
+"""Errors a user can act on: one line, no Rust source paths, no traceback.
+
+Zenoh's errors (``zenoh.ZError``) carry the Rust source location they were
+raised at (``... at /root/.cargo/git/checkouts/.../orchestrator.rs:388.``);
+:func:`zenoh_message` keeps the sentence and drops the location.
+:func:`mqtt_problem` tries a broker URL once before a long run relies on it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import secrets
+import ssl
+import sys
+
+# " at /path/to/file.rs:388." (possibly several, possibly without the final dot)
+_RUST_AT = re.compile(r"\s+at\s+\S+\.rs:\d+(?::\d+)?\.?")
+_MAX_LINE = 300
+
+
+def zenoh_message(e: BaseException) -> str:
+    """The text of a Zenoh error on one line, without Rust source locations."""
+    text = _RUST_AT.sub("", str(e))
+    text = " ".join(text.split())
+    if len(text) > _MAX_LINE:
+        text = text[: _MAX_LINE - 3] + "..."
+    return text or type(e).__name__
+
+
+def is_zenoh_error(e: BaseException) -> bool:
+    """Whether ``e`` is a ``zenoh.ZError`` (without importing zenoh when unused)."""
+    zenoh = sys.modules.get("zenoh")
+    zerr = getattr(zenoh, "ZError", None) if zenoh is not None else None
+    return isinstance(zerr, type) and isinstance(e, zerr)
+
+
+async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
+    """Connect to the broker of ``url`` once; None if it accepts, else why not (one line)."""
+    import aiomqtt
+
+    from awaremw.gateway.broker import mask_url
+    from awaremw.gateway.mqtt import MqttSettings
+
+    s = MqttSettings.from_url(url)
+    ctx = ssl.create_default_context(cafile=s.ca_file) if s.tls else None
+    client = aiomqtt.Client(
+        s.host,
+        s.port,
+        username=s.username,
+        password=s.password,
+        identifier=f"awaremw-probe-{secrets.token_hex(4)}",
+        protocol=aiomqtt.ProtocolVersion.V311,
+        tls_context=ctx,
+        timeout=timeout,
+    )
+    try:
+        async with asyncio.timeout(timeout + 1.0), client:
+            return None
+    except TimeoutError:
+        return f"MQTT broker {mask_url(url)} did not answer within {timeout:g} s"
+    except aiomqtt.MqttError as e:
+        reason = " ".join(str(e).split()) or type(e).__name__
+        return f"cannot connect to the MQTT broker {mask_url(url)}: {reason}"
