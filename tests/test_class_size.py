@@ -37,6 +37,7 @@ HOLD_DATA = {
     "gateway.mqtt.MqttStats",
     "gateway.bridge.BridgeStats",
     "gateway.schema.Limits",
+    "view.snapshot.RecordLine",
 }
 # Owned by work in progress (named in docs/architecture.md with the reason).
 PENDING: set[str] = set()

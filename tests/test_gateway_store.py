@@ -179,6 +179,7 @@ def test_records_published_once_with_contract_fields() -> None:
         "leader": 17,
         "t": 100.25,
         "attr": "temperature",
+        "unit": "°C",
     }
     assert b.on_payload(r, 100.5) == []  # delivered twice (two roots): published once
     assert b.stats.duplicate_records == 1

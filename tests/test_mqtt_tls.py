@@ -53,10 +53,10 @@ def test_keys_init_makes_a_ca_and_a_broker_certificate(tmp_path: Path) -> None:
         cli_main(["keys", "init", str(d.root), "--tls-host", "mqtt.lab", "--tls-host", "10.1.2.3"])
         == 0
     )
-    for key in (d.mqtt_ca_key, d.mqtt_server_key, d.mqtt_ca_cert, d.mqtt_server_cert):
+    for key in (d.mqtt.ca_key, d.mqtt.server_key, d.mqtt.ca_cert, d.mqtt.server_cert):
         assert stat.S_IMODE(key.stat().st_mode) == 0o600, key
-    ca = x509.load_pem_x509_certificate(d.mqtt_ca_cert.read_bytes())
-    server = x509.load_pem_x509_certificate(d.mqtt_server_cert.read_bytes())
+    ca = x509.load_pem_x509_certificate(d.mqtt.ca_cert.read_bytes())
+    server = x509.load_pem_x509_certificate(d.mqtt.server_cert.read_bytes())
     assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
     assert not server.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
     eku = server.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
@@ -73,11 +73,11 @@ def test_keys_init_makes_a_ca_and_a_broker_certificate(tmp_path: Path) -> None:
     assert server.not_valid_before_utc < now < server.not_valid_after_utc
     assert json.loads(d.manifest.read_text())["mqtt_tls_hosts"][-2:] == ["mqtt.lab", "10.1.2.3"]
     # --exist-ok keeps a complete set (containers run it at every start)...
-    before = d.mqtt_server_key.read_bytes()
+    before = d.mqtt.server_key.read_bytes()
     assert cli_main(["keys", "init", str(d.root), "--exist-ok"]) == 0
-    assert d.mqtt_server_key.read_bytes() == before
+    assert d.mqtt.server_key.read_bytes() == before
     # ...but not an incomplete one
-    d.mqtt_ca_key.unlink()
+    d.mqtt.ca_key.unlink()
     assert cli_main(["keys", "init", str(d.root), "--exist-ok"]) == 1
     with pytest.raises(SecretsExist):
         init_secrets(d.root, exist_ok=True)
@@ -97,7 +97,7 @@ class TlsBroker:
 
     @property
     def ca(self) -> str:
-        return str(self.secrets.mqtt_ca_cert)
+        return str(self.secrets.mqtt.ca_cert)
 
 
 def broker_conf(d: SecretsDir, port: int, tls_port: int, log: Path) -> str:
@@ -142,7 +142,7 @@ def tls_broker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TlsBroker]:
                 break
             assert time.monotonic() < deadline, "mosquitto did not open its TLS listener"
             time.sleep(0.02)
-        yield TlsBroker(d, port, tls_port, json.loads(d.mqtt_accounts.read_text()))
+        yield TlsBroker(d, port, tls_port, json.loads(d.mqtt.accounts.read_text()))
     finally:
         proc.terminate()
         proc.wait(10)

@@ -95,7 +95,7 @@ def test_mosquitto_accepts_the_generated_accounts_and_acl(tmp_path: Path) -> Non
         pytest.skip("mosquitto not installed")
     d = SecretsDir(tmp_path / "s")
     init_secrets(d.root)
-    pw = json.loads(d.mqtt_accounts.read_text())
+    pw = json.loads(d.mqtt.accounts.read_text())
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -103,8 +103,8 @@ def test_mosquitto_accepts_the_generated_accounts_and_acl(tmp_path: Path) -> Non
     lines = [
         "per_listener_settings false",
         "allow_anonymous false",
-        f"password_file {d.mqtt_passwd}",
-        f"acl_file {d.mqtt_acl}",
+        f"password_file {d.mqtt.passwd}",
+        f"acl_file {d.mqtt.acl}",
         f"listener {port} 127.0.0.1",
     ]
     if os.geteuid() == 0:

@@ -73,6 +73,48 @@ class SecretsExist(FileExistsError):
 
 
 @dataclass(frozen=True, slots=True)
+class MqttFiles:
+    """The MQTT broker's files under ``DIR/mqtt`` (Mosquitto accounts, ACL, TLS)."""
+
+    root: Path
+
+    @property
+    def passwd(self) -> Path:
+        return self.root / "passwd"
+
+    @property
+    def acl(self) -> Path:
+        return self.root / "acl"
+
+    @property
+    def accounts(self) -> Path:
+        return self.root / "accounts.json"
+
+    @property
+    def ca_cert(self) -> Path:
+        return self.root / "ca.crt"
+
+    @property
+    def ca_key(self) -> Path:
+        return self.root / "ca.key"
+
+    @property
+    def server_cert(self) -> Path:
+        return self.root / "server.crt"
+
+    @property
+    def server_key(self) -> Path:
+        return self.root / "server.key"
+
+    def password(self, account: str) -> str:
+        """The clear password of MQTT ``account`` (operator, gateway, viewer)."""
+        accounts = json.loads(self.accounts.read_text())
+        if not isinstance(accounts, dict) or not isinstance(accounts.get(account), str):
+            raise ValueError(f"{self.accounts}: no MQTT account {account!r}")
+        return str(accounts[account])
+
+
+@dataclass(frozen=True, slots=True)
 class SecretsDir:
     """Where each secret lives under ``root``."""
 
@@ -106,39 +148,8 @@ class SecretsDir:
         return self.root / "zenoh" / f"{role}.json5"
 
     @property
-    def mqtt_passwd(self) -> Path:
-        return self.root / "mqtt" / "passwd"
-
-    @property
-    def mqtt_acl(self) -> Path:
-        return self.root / "mqtt" / "acl"
-
-    @property
-    def mqtt_accounts(self) -> Path:
-        return self.root / "mqtt" / "accounts.json"
-
-    @property
-    def mqtt_ca_cert(self) -> Path:
-        return self.root / "mqtt" / "ca.crt"
-
-    @property
-    def mqtt_ca_key(self) -> Path:
-        return self.root / "mqtt" / "ca.key"
-
-    @property
-    def mqtt_server_cert(self) -> Path:
-        return self.root / "mqtt" / "server.crt"
-
-    @property
-    def mqtt_server_key(self) -> Path:
-        return self.root / "mqtt" / "server.key"
-
-    def read_mqtt_password(self, account: str) -> str:
-        """The clear password of MQTT ``account`` (operator, gateway, viewer)."""
-        accounts = json.loads(self.mqtt_accounts.read_text())
-        if not isinstance(accounts, dict) or not isinstance(accounts.get(account), str):
-            raise ValueError(f"{self.mqtt_accounts}: no MQTT account {account!r}")
-        return str(accounts[account])
+    def mqtt(self) -> MqttFiles:
+        return MqttFiles(self.root / "mqtt")
 
     def read_network_key(self) -> bytes:
         key = self.network_key.read_bytes()
@@ -334,15 +345,15 @@ def make_secrets(
             client_config(role, zpw[role]), f"Zenoh client config of role {role!r}"
         )
     mpw = {user: _password() for user in MQTT_ACCOUNTS}
-    files[d.mqtt_passwd] = "".join(f"{u}:{mosquitto_hash(pw)}\n" for u, pw in mpw.items()).encode()
-    files[d.mqtt_acl] = mosquitto_acl(prefix).encode()
-    files[d.mqtt_accounts] = (json.dumps(mpw, indent=2) + "\n").encode()
+    files[d.mqtt.passwd] = "".join(f"{u}:{mosquitto_hash(pw)}\n" for u, pw in mpw.items()).encode()
+    files[d.mqtt.acl] = mosquitto_acl(prefix).encode()
+    files[d.mqtt.accounts] = (json.dumps(mpw, indent=2) + "\n").encode()
     tls_hosts = list(dict.fromkeys([*BROKER_TLS_HOSTS, *tls_hosts]))
     tls = make_broker_tls(tls_hosts)
-    files[d.mqtt_ca_cert] = tls["ca.crt"]
-    files[d.mqtt_ca_key] = tls["ca.key"]
-    files[d.mqtt_server_cert] = tls["server.crt"]
-    files[d.mqtt_server_key] = tls["server.key"]
+    files[d.mqtt.ca_cert] = tls["ca.crt"]
+    files[d.mqtt.ca_key] = tls["ca.key"]
+    files[d.mqtt.server_cert] = tls["server.crt"]
+    files[d.mqtt.server_key] = tls["server.key"]
     manifest = {
         "format": FORMAT_VERSION,
         "prefix": prefix,
