@@ -190,10 +190,6 @@ def run(args: argparse.Namespace) -> int:
     if args.mqtt_port is not None and not 0 <= args.mqtt_port <= 65535:
         print("awaremw gateway: --mqtt-port must be in 0..65535", file=sys.stderr)
         return 2
-    if args.secrets is None:
-        from awaremw.security.material import warn_open
-
-        warn_open("awaremw gateway")
     try:
         return asyncio.run(_main(args, mqtt))
     except KeyboardInterrupt:
@@ -217,6 +213,10 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
     if not any(s.kind == "gateway" for s in dep.nodes):
         print(f"awaremw gateway: {dep.name} has no mote of kind 'gateway'", file=sys.stderr)
         return 2
+    if args.secrets is None:  # after the input checks: a refused run says one thing
+        from awaremw.security.material import warn_open
+
+        warn_open("awaremw gateway")
     radio_prefix = args.radio_prefix or DEFAULT_PREFIX
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
