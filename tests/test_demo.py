@@ -35,9 +35,15 @@ def _cli(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
 
 
 def test_demo_plain_runs_the_whole_system() -> None:
+    """Secure by default: throw-away secrets, every process by role through the
+    router's rules, authenticated frames, signed items; records still arrive."""
     p = _cli("demo", *FAST, "--plain")
     assert p.returncode == 0, p.stderr[-2000:]
     out = p.stdout
+    assert "awaremw demo: throw-away secrets in " in out and "authenticated radio" in out
+    secrets_dir = out.split("throw-away secrets in ", 1)[1].split(" ", 1)[0]
+    assert not Path(secrets_dir).exists()  # removed at the end
+    assert "radio and the control plane are open" not in p.stderr
     assert "demo romeo4r: 22 motes" in out
     assert "leads group" in out  # a group formed around the robot
     assert "robot got data ch 1 group 1/" in out  # and its data reached the robot over MQTT

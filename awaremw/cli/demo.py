@@ -10,14 +10,22 @@ ends after the scenario's duration (or --duration emulated seconds) with a
 summary of its figures, also written to --summary FILE (default
 $XDG_STATE_HOME/awaremw/demo-summary.txt). The exit status is 1 when the
 broker cannot be reached or the robot received no record at all.
+
+Secure by default: without --secrets the demo makes throw-away secrets in a
+temporary directory (as `awaremw keys init`), removed at the end, and runs with
+everything on: Zenoh authentication and access control by role, authenticated
+radio frames, signed definitions and commands, an embedded broker with an
+account. --insecure (or --no-secrets) runs it all open, for quick experiments.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +54,14 @@ def register(sub: Any) -> None:
         "--secrets",
         default=None,
         metavar="DIR",
-        help="Zenoh with authentication and access control by role (DIR from `awaremw keys init`)",
+        help="use these secrets (DIR from `awaremw keys init`; default: throw-away ones)",
+    )
+    p.add_argument(
+        "--insecure",
+        "--no-secrets",
+        dest="insecure",
+        action="store_true",
+        help="run without secrets: open Zenoh, unauthenticated radio, unsigned items",
     )
     p.add_argument(
         "--mqtt-port",
@@ -124,6 +139,9 @@ def main(args: argparse.Namespace) -> int:
     if not sc.deployment.of_kind("gateway"):
         print(f"awaremw demo: {sc.name} has no gateway mote", file=sys.stderr)
         return 2
+    if args.insecure and args.secrets is not None:
+        print("awaremw demo: --insecure and --secrets do not combine", file=sys.stderr)
+        return 2
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
     from awaremw.cli.friendly import mqtt_problem
@@ -134,27 +152,30 @@ def main(args: argparse.Namespace) -> int:
         if (why := asyncio.run(mqtt_problem(url))) is not None:
             print(f"awaremw demo: {why}", file=sys.stderr)
             return 1
-    try:
-        summary = asyncio.run(
-            run_demo(
-                sc,
-                args.duration,
-                args.speed,
-                args.mqtt,
-                plain,
-                args.robot_mqtt,
-                args.secrets,
-                mqtt_port=args.mqtt_port,
-                mqtt_anonymous=args.mqtt_anonymous,
-                web=args.web,
+    with contextlib.ExitStack() as stack:
+        try:
+            secrets = _secrets(args, stack)
+        except ValueError as e:  # SecretsError: a missing or bad file of --secrets DIR
+            print(f"awaremw demo: {e}", file=sys.stderr)
+            return 2
+        try:
+            summary = asyncio.run(
+                run_demo(
+                    sc,
+                    args.duration,
+                    args.speed,
+                    args.mqtt,
+                    plain,
+                    args.robot_mqtt,
+                    secrets,
+                    mqtt_port=args.mqtt_port,
+                    mqtt_anonymous=args.mqtt_anonymous,
+                    web=args.web,
+                )
             )
-        )
-    except BrokerError as e:
-        print(f"awaremw demo: {e}", file=sys.stderr)
-        return 2
-    except DashboardError as e:
-        print(f"awaremw demo: {e}", file=sys.stderr)
-        return 2
+        except (BrokerError, DashboardError) as e:
+            print(f"awaremw demo: {e}", file=sys.stderr)
+            return 2
     print_summary(summary, plain=plain)
     path = summary_path(args.summary)
     try:
@@ -187,6 +208,29 @@ def no_record_reason(s: dict[str, Any], external: bool) -> str:
 
 def summary_text(s: dict[str, Any]) -> str:
     return "".join(f"{k}: {v}\n" for k, v in summary_rows(s))
+
+
+def _secrets(args: argparse.Namespace, stack: contextlib.ExitStack) -> str | None:
+    """The secrets directory the demo runs with: --secrets DIR (checked), throw-away
+    ones made now (removed when ``stack`` closes), or None with --insecure."""
+    from awaremw.security.material import check_secrets, warn_open
+
+    if args.insecure:
+        warn_open("awaremw demo")
+        return None
+    if args.secrets is not None:
+        check_secrets(args.secrets)
+        return str(args.secrets)
+    from awaremw.security.keys import init_secrets
+
+    tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="awaremw-demo-")))
+    init_secrets(tmp / "secrets")
+    print(
+        f"awaremw demo: throw-away secrets in {tmp / 'secrets'} (removed at the end): Zenoh "
+        "access control by role, authenticated radio, signed items; --insecure runs open",
+        flush=True,
+    )
+    return str(tmp / "secrets")
 
 
 async def run_demo(
@@ -338,8 +382,10 @@ def summary_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
             "-" if s["delivery_ratio"] is None else f"{s['delivery_ratio']:.3f}",
         ),
         ("group ids seen", ", ".join(map(str, s["groups"])) or "none"),
-        (f"group ids lasting >= {LASTING_S:g} s", ", ".join(map(str, s.get("lasting_groups", [])))
-         or "none"),
+        (
+            f"group ids lasting >= {LASTING_S:g} s",
+            ", ".join(map(str, s.get("lasting_groups", []))) or "none",
+        ),
         ("handovers", s["handovers"]),
         ("leader elections", s["elections"]),
         ("frames sent per mote", f"{s['frames_per_mote']:.1f}"),

@@ -48,7 +48,8 @@ def register(sub: Any) -> None:
         "--secrets",
         default=None,
         metavar="DIR",
-        help="Zenoh with authentication and access control by role (DIR from `awaremw keys init`)",
+        help="real time: Zenoh with authentication and access control by role, authenticated "
+        "radio frames, signed items (DIR from `awaremw keys init`)",
     )
     p.add_argument("--plain", action="store_true", help="log lines instead of a live view")
     p.add_argument(
@@ -80,6 +81,15 @@ def main(args: argparse.Namespace) -> int:
         return 2
     if args.seeds is not None:
         return _main_seeds(args, name, out)
+    if args.secrets is not None and not args.virtual:
+        from awaremw.security.material import check_secrets
+        from awaremw.security.zenoh_acl import SecretsError
+
+        try:
+            check_secrets(args.secrets)
+        except SecretsError as e:
+            print(f"awaremw experiment: {e}", file=sys.stderr)
+            return 2
     started = time.monotonic()
     if args.virtual:
         import importlib

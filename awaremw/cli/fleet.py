@@ -185,20 +185,27 @@ def run_fleet(args: argparse.Namespace) -> int:
     if args.part_filter is not None and args.processes != 1:
         print("awaremw fleet: --part and --processes do not combine", file=sys.stderr)
         return 2
-    args.role_config = args.router_config = None
+    args.role_config = args.router_config = args.security = None
     if args.secrets is not None:
+        from awaremw.security.material import load_radio_security
         from awaremw.security.zenoh_acl import SecretsError, role_config_path, router_config_path
 
         try:
             args.role_config = str(role_config_path(args.secrets, "fleet"))
             if not args.connect:
                 args.router_config = str(router_config_path(args.secrets))
+            # The network key and the gateway's public key; never its signing key.
+            args.security = load_radio_security(args.secrets)
         except SecretsError as e:
             print(f"awaremw fleet: {e}", file=sys.stderr)
             return 2
         if args.part_filter is not None and not args.connect:
             print("awaremw fleet: --part with --secrets needs --connect", file=sys.stderr)
             return 2
+    else:
+        from awaremw.security.material import warn_open
+
+        warn_open("awaremw fleet")
     try:
         return asyncio.run(_run_fleet(args, dep))
     except _StartError as e:
@@ -245,12 +252,12 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     listen = args.listen or ([] if args.connect else [DEFAULT_ROUTER_ENDPOINT])
-    factory: CoreFactory = hello_core if args.hello else KindsFactory()
+    factory: CoreFactory = hello_core if args.hello else KindsFactory(security=args.security)
     where = ", ".join(args.connect) if args.connect else ", ".join(listen)
     print(
         f"awaremw fleet: {dep.name}: {len(dep.nodes)} motes, {args.processes} process(es), "
         f"speed x{args.speed:g}, Zenoh {'via ' if args.connect else 'on '}{where}"
-        f"{' (role fleet, access control on)' if args.role_config else ''}",
+        f"{_secured(args.security)}",
         flush=True,
     )
 
@@ -289,6 +296,7 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
                 freeze_gc=True,
                 track_links=args.links_json is not None,
                 session=session,
+                security=args.security,
             )
             fleet = Fleet(dep, factory, settings, node_filter=_combine(args.part_filter, skip))
             await fleet.__aenter__()
@@ -321,6 +329,7 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             exclude_kinds=skip,
             router_config_file=args.router_config,
             worker_config_file=args.role_config,
+            security=args.security,
         ),
         on_progress=show,
     )
@@ -356,6 +365,15 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             print(f"awaremw fleet: worker {r.name}: {r.error}", file=sys.stderr)
             code = 1
     return code
+
+
+def _secured(security: Any) -> str:
+    if security is None:
+        return ""
+    return (
+        f" (role fleet, access control on; authenticated radio, {security.overhead} B "
+        "per frame; signed items verified)"
+    )
 
 
 def _combine(part: Any, skip: frozenset[str]) -> Any:

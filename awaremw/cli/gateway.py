@@ -151,8 +151,9 @@ def run(args: argparse.Namespace) -> int:
     except BadMqttUrl as e:
         print(f"awaremw gateway: {e}", file=sys.stderr)
         return 2
-    args.session_settings = None
+    args.session_settings = args.security = args.signing_key = None
     if args.secrets is not None:
+        from awaremw.security.material import load_radio_security, load_signing_key
         from awaremw.security.zenoh_acl import SecretsError, role_settings
 
         if args.listen:
@@ -160,6 +161,9 @@ def run(args: argparse.Namespace) -> int:
             return 2
         try:
             args.session_settings = role_settings(args.secrets, "gateway", args.connect)
+            args.security = load_radio_security(args.secrets)
+            # Only the gateway holds the signing key: its motes sign what they inject.
+            args.signing_key = load_signing_key(args.secrets, args.security.gateway_public_key)
         except SecretsError as e:
             print(f"awaremw gateway: {e}", file=sys.stderr)
             return 2
@@ -209,6 +213,10 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
     if not any(s.kind == "gateway" for s in dep.nodes):
         print(f"awaremw gateway: {dep.name} has no mote of kind 'gateway'", file=sys.stderr)
         return 2
+    if args.secrets is None:  # after the input checks: a refused run says one thing
+        from awaremw.security.material import warn_open
+
+        warn_open("awaremw gateway")
     radio_prefix = args.radio_prefix or DEFAULT_PREFIX
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -236,7 +244,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             )
         fleet = Fleet(
             dep,
-            KindsFactory(),
+            KindsFactory(security=args.security, signing_key=args.signing_key),
             FleetSettings(
                 name="gateway",
                 speed=args.speed,
@@ -245,6 +253,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
                 listen=tuple(args.listen),
                 autostart=False,
                 session=args.session_settings,
+                security=args.security,
             ),
             node_filter=lambda s: s.kind == "gateway",
         )
@@ -271,7 +280,12 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         print(
             f"awaremw gateway: motes {','.join(map(str, svc.roots))} of {dep.name}; "
             f"MQTT {mqtt.url} prefix {args.prefix!r}; Zenoh HBN "
-            f"{'off' if args.no_hbn else args.prefix + '/hbn/**'}",
+            f"{'off' if args.no_hbn else args.prefix + '/hbn/**'}"
+            + (
+                ""
+                if args.security is None
+                else f"; authenticated radio (payload MTU {svc.config.mtu} B), items signed"
+            ),
             flush=True,
         )
         waiters = [asyncio.create_task(stop.wait()), asyncio.create_task(fleet.run(args.duration))]

@@ -73,6 +73,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     mode = "authenticated, access control by role" if config_file else "open to every client"
     print(f"awaremw router listening on {', '.join(listen)} ({mode})", flush=True)
+    if config_file is None:
+        from awaremw.security.material import warn_open
+
+        warn_open("awaremw router")
     # serve_forever closes the session once ``stop`` is set; on a loaded machine a Zenoh
     # close can stall, so it runs in a thread and the process leaves after a bounded wait.
     server = threading.Thread(target=router.serve_forever, args=(stop,), daemon=True)

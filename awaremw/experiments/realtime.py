@@ -65,7 +65,8 @@ class RealtimeSettings:
     prefix: str = "aware"
     sample_dt: float = 0.5  # emulated seconds between ticks (RSSI samples, views)
     # A secrets directory (`awaremw keys init`): an embedded router with its access
-    # rules; the motes and the gateway connect to it with their roles.
+    # rules; the motes and the gateway connect to it with their roles; the radio is
+    # authenticated with its network key and the gateway's motes sign their items.
     secrets: str | None = None
 
     def __post_init__(self) -> None:
@@ -107,8 +108,18 @@ class RealtimeRun:
 
     # ------------------------------------------------------------------ helpers
 
-    def _factory(self) -> KindsFactory:
-        return KindsFactory(self.sc.world)
+    def _factory(self, name: str = "field") -> KindsFactory:
+        """The core factory of one fleet: with secrets, the radio secured and, for
+        the gateway's fleet only, the signing key (its motes sign the items)."""
+        if self.secrets is None:
+            return KindsFactory(self.sc.world)
+        from awaremw.security.material import load_radio_security, load_signing_key
+
+        security = load_radio_security(self.secrets)
+        key = None
+        if name == "gateway":
+            key = load_signing_key(self.secrets, security.gateway_public_key)
+        return KindsFactory(self.sc.world, security=security, signing_key=key)
 
     def _session_settings(self, name: str, endpoint: str) -> SessionSettings | None:
         if self.secrets is None:
@@ -199,7 +210,6 @@ class RealtimeRun:
                 )
                 await asyncio.to_thread(router.start)
                 stack.callback(router.close)
-            factory = self._factory()
             groups: tuple[tuple[str, Callable[[NodeSpec], bool], list[str], list[str]], ...] = (
                 ("field", lambda s: s.kind not in ("robot", "gateway"), [endpoint], []),
                 ("robot", lambda s: s.kind == "robot", [], [endpoint]),
@@ -209,6 +219,7 @@ class RealtimeRun:
             for name, flt, listen, connect in groups:
                 if not any(flt(s) for s in d.nodes):
                     continue
+                factory = self._factory(name)
                 settings = FleetSettings(
                     name=name,
                     speed=self.speed,
@@ -217,6 +228,7 @@ class RealtimeRun:
                     autostart=False,
                     control=False,
                     session=self._session_settings(name, endpoint),
+                    security=factory.security,
                 )
                 f = Fleet(d, factory, settings, node_filter=flt)
                 await stack.enter_async_context(f)

@@ -6,7 +6,9 @@ mote it runs: the kind's application (sensors over the world, commands) inside
 an :class:`~awaremw.protocol.mote.AwareMote` configured by, from weakest to
 strongest, the radio preset (MTU), the kind (a robot beacons, a gateway is a
 collection root), the deployment's ``[middleware]`` table and the node entry's
-own ``middleware`` table.
+own ``middleware`` table; with a secured radio (:class:`RadioSecurity`) the
+MTU is the preset's payload MTU less the security overhead and the motes
+verify dissemination items with the gateway's public key.
 
 Node entries may carry, besides the deployment keys, ``middleware = {...}``
 (config overrides) and ``noise = {temperature = 0.2, ...}`` (sensor noise
@@ -31,6 +33,8 @@ from awaremw.nodes.kinds import (
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.mote import AwareMote
+from awaremw.protocol.signing import ItemSigner
+from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.deployment import Deployment, DeploymentError, NodeSpec
 from awaremw.world.fields import World, WorldError
 
@@ -78,13 +82,21 @@ def _table(spec: NodeSpec, key: str, deployment: Deployment) -> Mapping[str, Any
     return v
 
 
-def config_for(spec: NodeSpec, deployment: Deployment) -> MiddlewareConfig:
-    """The middleware configuration of one mote (see the module docstring)."""
+def config_for(
+    spec: NodeSpec, deployment: Deployment, security: RadioSecurity | None = None
+) -> MiddlewareConfig:
+    """The middleware configuration of one mote (see the module docstring).
+
+    With ``security`` the MTU is at most the secured payload MTU (a deployment
+    may set a smaller one) and ``gateway_public_key`` is the security's."""
     info = kind_info(spec.kind)
     layers: dict[str, Any] = {"mtu": deployment.preset.mtu}
     layers.update(info.config)
     layers.update(deployment.middleware)
     layers.update(_table(spec, "middleware", deployment))
+    if security is not None:
+        layers["mtu"] = min(int(layers["mtu"]), security.payload_mtu(deployment.preset.mtu))
+        layers["gateway_public_key"] = security.gateway_public_key
     try:
         return MiddlewareConfig().with_overrides(layers)
     except (ValueError, TypeError) as e:
@@ -119,14 +131,26 @@ def build_app(spec: NodeSpec, deployment: Deployment, world: World | None = None
     return info.app(spec.id, spec.mobility().position, w, noise=noise)
 
 
-def build_core(spec: NodeSpec, deployment: Deployment, world: World | None) -> MoteCore:
+def build_core(
+    spec: NodeSpec,
+    deployment: Deployment,
+    world: World | None,
+    security: RadioSecurity | None = None,
+    signer: ItemSigner | None = None,
+) -> MoteCore:
     """The :class:`AwareMote` for ``spec`` with its kind's application.
 
     ``world`` None builds it from the deployment (pass one shared world when
-    building many motes). Raises :class:`DeploymentError` for a bad entry.
+    building many motes). ``security``: a secured radio (see :func:`config_for`);
+    ``signer``: the gateway's item signer, given to collection roots (gateway
+    motes) only. Raises :class:`DeploymentError` for a bad entry.
     """
     app = build_app(spec, deployment, world)
-    return AwareMote(spec.id, app, config_for(spec, deployment), mote_rng(spec, deployment))
+    config = config_for(spec, deployment, security)
+    mote = AwareMote(spec.id, app, config, mote_rng(spec, deployment))
+    if signer is not None and config.is_root:
+        mote.dissemination.signer = signer
+    return mote
 
 
 class KindsFactory:
@@ -138,27 +162,56 @@ class KindsFactory:
     :class:`~awaremw.runtime.fleet.FleetLauncher`. Picklable, so a launcher can
     hand it to its worker processes. ``kinds`` are the names a control-plane
     ``add`` may use.
+
+    ``security``: the radio is secured (the motes get the payload MTU and verify
+    items with its gateway public key). ``signing_key``: the gateway's Ed25519
+    private key (32 raw bytes), for the gateway process only: its collection
+    roots sign the items they inject. A fleet's factory never holds it.
     """
 
-    __slots__ = ("_world",)
+    __slots__ = ("_signer", "_signing_key", "_world", "security")
 
-    def __init__(self, world: World | None = None) -> None:
+    def __init__(
+        self,
+        world: World | None = None,
+        *,
+        security: RadioSecurity | None = None,
+        signing_key: bytes | None = None,
+    ) -> None:
+        if signing_key is not None and security is None:
+            raise ValueError("a signing key needs the radio security (the motes' public key)")
         self._world = world  # None: built from the first deployment seen
+        self.security = security
+        self._signing_key = signing_key
+        self._signer: ItemSigner | None = None
 
     @property
     def kinds(self) -> frozenset[str]:
         return frozenset(kind_names())
 
+    @property
+    def signs(self) -> bool:
+        """Whether the gateway motes this factory builds sign their items."""
+        return self._signing_key is not None
+
     def __call__(self, spec: NodeSpec, deployment: Deployment) -> MoteCore:
         if self._world is None:
             self._world = world_of(deployment)
-        return build_core(spec, deployment, self._world)
+        if self._signing_key is not None and self._signer is None:
+            from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
-    def __getstate__(self) -> World | None:
-        return self._world
+            self._signer = ItemSigner(Ed25519PrivateKey.from_private_bytes(self._signing_key))
+        return build_core(spec, deployment, self._world, self.security, self._signer)
 
-    def __setstate__(self, state: World | None) -> None:
-        self._world = state
+    def __repr__(self) -> str:
+        return f"KindsFactory(secured={self.security is not None}, signs={self.signs})"
+
+    def __getstate__(self) -> tuple[World | None, RadioSecurity | None, bytes | None]:
+        return self._world, self.security, self._signing_key
+
+    def __setstate__(self, state: tuple[World | None, RadioSecurity | None, bytes | None]) -> None:
+        self._world, self.security, self._signing_key = state
+        self._signer = None
 
 
 def app_of(core: MoteCore) -> NodeApp | None:

@@ -53,6 +53,7 @@ from awaremw.radio.faults import FaultLog
 log = logging.getLogger(__name__)
 
 KEY_BYTES = 16  # AES-128, as 802.15.4
+KEY_SIZES = (16, 32)  # AES-128-CCM* (802.15.4) or AES-256-CCM (`keys init --network-key-bytes 32`)
 COUNTER_BYTES = 4
 MAX_COUNTER = 0xFFFFFFFF
 MAX_SENDERS = 256  # replay-table entries per receiver (neighbours it has heard)
@@ -67,10 +68,11 @@ _NONCE = struct.Struct(">QIB")  # extended source address, frame counter, securi
 class RadioSecurity:
     """The key material a secured radio needs (what ``--secrets DIR`` provides).
 
-    ``network_key``: 16 raw bytes shared by every mote and gateway of the
-    network (radio.key). ``gateway_public_key``: the gateway's raw 32-byte
-    Ed25519 public key, with which motes verify dissemination items (None:
-    items are not verified). ``mic_bytes``: 8 (MIC-64, default) or 4 (MIC-32).
+    ``network_key``: 16 raw bytes (AES-128, as 802.15.4; 32 for AES-256) shared
+    by every mote and gateway of the network (``DIR/radio/network.key``).
+    ``gateway_public_key``: the gateway's raw 32-byte Ed25519 public key, with
+    which motes verify dissemination items (None: items are not verified).
+    ``mic_bytes``: 8 (MIC-64, default) or 4 (MIC-32).
     """
 
     network_key: bytes = field(repr=False)
@@ -78,8 +80,8 @@ class RadioSecurity:
     mic_bytes: int = 8
 
     def __post_init__(self) -> None:
-        if not isinstance(self.network_key, bytes) or len(self.network_key) != KEY_BYTES:
-            raise ValueError(f"the network key must be {KEY_BYTES} raw bytes")
+        if not isinstance(self.network_key, bytes) or len(self.network_key) not in KEY_SIZES:
+            raise ValueError("the network key must be 16 raw bytes (AES-128) or 32 (AES-256)")
         if self.gateway_public_key is not None and len(self.gateway_public_key) != 32:
             raise ValueError("the gateway public key must be 32 raw bytes (Ed25519)")
         if self.mic_bytes not in (4, 8):

@@ -235,7 +235,12 @@ class Fleet:
             endpoints = s.session or SessionSettings("peer", s.connect, s.listen)
             self._session = await asyncio.to_thread(open_session, endpoints)
         medium = ZenohMedium(
-            self._session, self.model, self.clock, prefix=s.prefix, handler=s.handler
+            self._session,
+            self.model,
+            self.clock,
+            prefix=s.prefix,
+            handler=s.handler,
+            security=s.security,
         )
         self._medium = medium
         medium.open()

@@ -94,6 +94,8 @@ class ControlService:
                 if self._medium is not None:  # remote garbage dropped, bugs contained
                     snap["rejected"] = self._medium.rejected.as_dict()
                     snap["faults"] = self._medium.faults.as_dict()
+                    guard = self._medium.guard  # secured radio: frames refused, by reason
+                    snap["refused"] = None if guard is None else guard.refused.as_dict()
                 return {**base, "ok": True, "done": True, "snapshot": snap}
             case "kill":
                 nid = req.get("id")

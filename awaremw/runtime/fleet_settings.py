@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+from awaremw.radio.security import RadioSecurity
 from awaremw.radio.zenoh_medium import DEFAULT_HANDLER, DEFAULT_PREFIX, Handler
 from awaremw.runtime.partition import Layout
 from awaremw.runtime.zenoh_session import SessionSettings
@@ -32,6 +33,9 @@ class FleetSettings:
     ``track_links``: count deliveries per (src, dst) on the medium.
     ``session``: full session settings instead of ``connect``/``listen`` (e.g.
     a role's client settings with ``--secrets``, or client mode).
+    ``security``: the radio is secured (frames sealed and checked with its
+    network key; docs/security.md). The core factory must then build motes
+    for the payload MTU (``awaremw.nodes.KindsFactory(security=...)``).
     """
 
     name: str = "main"
@@ -47,6 +51,7 @@ class FleetSettings:
     freeze_gc: bool = False
     track_links: bool = False
     session: SessionSettings | None = None
+    security: RadioSecurity | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "connect", _endpoints(self.connect))
@@ -65,7 +70,8 @@ class LauncherSettings:
     ``router_config_file``: the embedded router starts from this Zenoh config
     (``awaremw keys init``'s router.json5: authentication, access control);
     ``worker_config_file``: a role's client config; the workers then join the
-    router in client mode with it.
+    router in client mode with it. ``security``: every worker's radio is
+    secured with it (as :attr:`FleetSettings.security`).
     """
 
     processes: int = 1
@@ -83,6 +89,7 @@ class LauncherSettings:
     start_delay_s: float = 0.3
     router_config_file: str | None = None
     worker_config_file: str | None = None
+    security: RadioSecurity | None = None
 
     def __post_init__(self) -> None:
         if self.processes < 1:
@@ -107,4 +114,5 @@ class LauncherSettings:
             session=None
             if self.worker_config_file is None
             else SessionSettings("client", connect, config_file=self.worker_config_file),
+            security=self.security,
         )
