@@ -418,3 +418,19 @@ def test_mote_that_was_off_catches_up_from_its_neighbours() -> None:
     net.run_until(t0 + 5.0)
     assert back.dissemination.items[(CH, 1)] == (2, CHAN2)
     assert back.dissemination.items[(GT, 1)] == (1, HOT)
+
+
+def test_an_injection_a_foreign_version_supersedes_is_reported_not_lost() -> None:
+    # A forged item far along the u32 circle sits in the gateway mote; the gateway's
+    # next version is "older" there. The mote says so (the gateway then re-injects
+    # above it) instead of dropping the definition silently.
+    from awaremw.protocol.dissemination import InjectSuperseded
+
+    d, ctx, _ = make()
+    forged = 0x7FFF_FFF0
+    d.on_frame(DripItem(9, BROADCAST, CH, 2, forged, CHAN2), -60.0, 0.5)
+    assert d.version_of(CH, 2) == forged
+    assert d.inject(CH, 2, 7, CHAN, 1.0) is False
+    assert ctx.event_list[-1] == InjectSuperseded(CH, 2, 7, forged)
+    assert d.inject(CH, 2, forged + 1, CHAN, 1.0) is True  # stepping over it works
+    assert d.items[(CH, 2)].body == CHAN

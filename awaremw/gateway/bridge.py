@@ -399,6 +399,18 @@ class GatewayBridge:
             )
         return None
 
+    def supersede(self, kind: ItemKind, item_id: int, version: int) -> Inject | None:
+        """Store our current definition again at ``version`` (above what a gateway
+        mote holds from the network) and return it to be injected."""
+        cur = self.store.get(kind, item_id)
+        if cur is None or version <= cur.version:
+            return None
+        item = self.store.bump_to(kind, item_id, version, cur.body, cur.json)
+        self.stats.reasserted += 1
+        log.info("%s %d: re-sent as version %d over a foreign one", kind.name.lower(), item_id,
+                 item.version)  # fmt: skip
+        return Inject(item.kind, item.item_id, item.version, item.body)
+
     # ----------------------------------------------------------------- WSN -> IP
 
     def on_payload(self, payload: DataRecord | GroupReport, now: float) -> list[Publish]:

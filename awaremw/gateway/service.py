@@ -35,7 +35,7 @@ from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSett
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore, unwrap, wire_version
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.dissemination import InjectSuperseded, ItemAdopted
 from awaremw.protocol.frames import DataRecord, GroupReport, ItemBody, ItemKind
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.driver import MoteUp
@@ -256,6 +256,11 @@ class GatewayService:
             if event.source is not None:  # heard from the radio, not injected by us
                 self._learn(node_id, event)
             return
+        if isinstance(event, InjectSuperseded):
+            # Our mote holds a foreign version that ours does not supersede (serial
+            # order is not transitive: forged versions can sit anywhere on the circle).
+            self._supersede(event)
+            return
         payload = getattr(event, "payload", None)
         if not isinstance(payload, DataRecord | GroupReport):
             return
@@ -265,6 +270,18 @@ class GatewayService:
         self.delivered.set()
         if isinstance(payload, GroupReport):
             self._refresh_hbn()
+
+    def _supersede(self, ev: InjectSuperseded) -> None:
+        """Re-inject our definition just above the version the mote holds."""
+        cur = self.bridge.store.get(ev.kind, ev.item_id)
+        if cur is None or wire_version(cur.version) != ev.version:
+            return  # a later definition is on its way already
+        # Step over it on the radio's circle: the next store version whose u32 is
+        # ``held + 1``, newer than ``held`` for every mote (RFC 1982).
+        target = cur.version + ((ev.held - ev.version) & 0xFFFFFFFF) + 1
+        inj = self.bridge.supersede(ev.kind, ev.item_id, target)
+        if inj is not None:
+            self._inject_all(inj)
 
     def _learn(self, node_id: int, ev: ItemAdopted) -> None:
         body: ItemBody | None = None

@@ -140,6 +140,18 @@ class ItemRefused:
     reason: str
 
 
+@dataclass(frozen=True, slots=True)
+class InjectSuperseded:
+    """Event: an injected version was not newer than the version this mote holds
+    (``held``, e.g. a foreign item heard from the radio): the injector, the source
+    of truth, may inject again above ``held``."""
+
+    kind: ItemKind
+    item_id: int
+    version: int
+    held: int
+
+
 class ItemTableFull(ValueError):
     """``inject`` of a new key while the kind's table holds only live items."""
 
@@ -249,6 +261,8 @@ class Dissemination(Component):
         encode(frame, self.ctx.config.mtu)  # raises FrameTooLarge before we keep it
         cur = self._items.get((frame.kind, item_id))
         if cur is not None and not newer(version, cur.version):
+            if version != cur.version:
+                self.ctx.emit(InjectSuperseded(frame.kind, item_id, version, cur.version))
             return False
         if not self.accepts(frame.kind, item_id):
             raise ItemTableFull(
