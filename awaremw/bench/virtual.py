@@ -1,16 +1,25 @@
 """``awaremw bench virtual``: how much faster than real time the virtual driver runs.
 
 Motes on a square grid (CC2420 preset, 12 m spacing: about ten neighbours
-each), every one running :class:`~awaremw.protocol.hello.HelloMote` beaconing
-once per second. Two runs with the same seed give identical counters
-(``tests/test_virtual.py`` checks it on a smaller grid).
+each). ``--workload hello`` (the default, the radio alone): every one runs
+:class:`~awaremw.protocol.hello.HelloMote` beaconing once per second.
+``--workload aware``: the whole middleware, cores from the fleet's core
+factory, a fire crossing the field tracked by a group, an AVG channel every
+2 s, collection to the gateway's mote, Drip (see
+:mod:`awaremw.bench.aware_load`). Two runs with the same seed give identical
+counters (``tests/test_virtual.py`` checks it on a smaller grid).
+``--profile FILE``: cProfile of the run (setup excluded) to FILE.
 
 JSON keys: ``motes``, ``sim_seconds``, ``wall_seconds``, ``speedup``
 (simulated / wall seconds), ``cpu_seconds`` (this process's CPU time: on a
 shared machine, ``sim_seconds / cpu_seconds`` is the speed-up it would have
 alone), ``frames_tx``, ``deliveries`` (frames received by
 a core), ``mean_neighbours`` (table size at the end), ``dropped_loss``,
-``dropped_distance``, ``preset``, ``seed``, ``spacing_m``.
+``dropped_distance``, ``preset``, ``seed``, ``spacing_m``, ``workload``. With
+``--workload aware`` also ``records_produced``, ``records_delivered``,
+``record_delivery`` (delivered / produced, records produced in the last 10 s
+left out), ``leaders``, ``channel_period_s``; ``mean_neighbours`` is then the
+mean collection-tree neighbour table size.
 """
 
 from __future__ import annotations
@@ -21,12 +30,16 @@ import random
 import time
 from typing import Any
 
+from awaremw.bench import aware_load
+from awaremw.bench.profiling import profiled
 from awaremw.protocol.hello import HelloMote
+from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import RadioModel, preset
 from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.world.mobility import Static
 
 SPACING_M = 12.0
+WORKLOADS = ("hello", "aware")
 
 
 def build(
@@ -45,23 +58,39 @@ def build(
 
 
 def run(
-    motes: int | argparse.Namespace = 1000, duration: float = 100.0, seed: int = 1
+    motes: int | argparse.Namespace = 1000,
+    duration: float = 100.0,
+    seed: int = 1,
+    workload: str = "hello",
+    profile: str | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark. Also accepts the parsed CLI arguments (bench registry)."""
     if isinstance(motes, argparse.Namespace):
         ns = motes
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
-    net = build(motes, seed)
+        workload, profile = str(ns.workload), ns.profile
+    if workload not in WORKLOADS:
+        raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
+    load = aware_load.build(motes, seed, duration) if workload == "aware" else None
+    net = load.net if load is not None else build(motes, seed)
     t0 = time.perf_counter()
     c0 = time.process_time()
-    net.run_until(duration)
+    with profiled(profile):
+        if load is not None:
+            load.run_until(duration)
+        else:
+            net.run_until(duration)
     wall = time.perf_counter() - t0
     cpu = time.process_time() - c0
     counters = net.counters
     frames_tx = sum(c.frames_tx for c in counters.values())
     deliveries = sum(c.frames_rx for c in counters.values())
-    tables = [len(core.table) for core in net.cores.values() if isinstance(core, HelloMote)]
-    return {
+    tables = [
+        len(core.table) if isinstance(core, HelloMote) else len(core.collection.neighbours)
+        for core in net.cores.values()
+        if isinstance(core, HelloMote | AwareMote)
+    ]
+    out: dict[str, Any] = {
         "motes": motes,
         "sim_seconds": duration,
         "wall_seconds": round(wall, 3),
@@ -75,10 +104,21 @@ def run(
         "preset": net.preset.name,
         "seed": seed,
         "spacing_m": SPACING_M,
+        "workload": workload,
     }
+    if load is not None:
+        out.update(load.results(duration))
+    return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--motes", type=int, default=1000, help="number of motes (grid)")
     parser.add_argument("--duration", type=float, default=100.0, help="simulated seconds")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--workload",
+        choices=WORKLOADS,
+        default="hello",
+        help="hello: beacons only (the radio); aware: the whole middleware tracking a fire",
+    )
+    parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")

@@ -1,0 +1,160 @@
+"""The ``--workload aware`` fleet of the scale benchmarks: the whole middleware.
+
+Motes on a square grid (CC2420 preset, 12 m spacing: about ten neighbours
+each), built by the same core factory as a fleet's node kinds
+(:class:`~awaremw.nodes.KindsFactory`: tmote sky applications over a world,
+:class:`~awaremw.protocol.mote.AwareMote` cores); node 0, in a corner, is the
+gateway's mote (collection root). A fire (a disc about 80 degC above ambient,
+25 m radius) crosses the field diagonally during the run; the gateway mote
+injects, as the gateway would, a tracking group type (temperature above 50
+degC) and an AVG temperature channel every 2 s, and Drip spreads them. The
+group forms around the fire and follows it, its leader produces one record
+per epoch, and collection carries it to the gateway mote.
+
+``record_delivery`` is the share of records the leaders produced (up to
+:data:`GRACE_S` before the end, so records still in flight do not count
+against it) that arrived at the gateway mote.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from awaremw.nodes import KindsFactory, kind_names
+from awaremw.protocol.attributes import TEMPERATURE
+from awaremw.protocol.channels import RecordProduced
+from awaremw.protocol.collection import Delivered
+from awaremw.protocol.frames import (
+    ANY_GROUP_ID,
+    AggId,
+    ChannelDef,
+    Condition,
+    DataRecord,
+    GroupTypeDef,
+    ItemKind,
+    Op,
+)
+from awaremw.protocol.mote import AwareMote
+from awaremw.runtime.deployment import Deployment, parse_deployment
+from awaremw.runtime.virtual import VirtualNetwork
+
+SPACING_M = 12.0
+GATEWAY = 0
+GROUP_TYPE = 1
+CHANNEL = 1
+CHANNEL_PERIOD_S = 2.0
+DEFINE_AT_S = 1.0
+GRACE_S = 10.0  # records produced this close to the end may still be in flight
+FIRE_RADIUS_M = 25.0
+FIRE_PEAK_C = 80.0
+HOT_C = 50.0
+
+RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
+
+
+def deployment(motes: int, seed: int, duration: float, spacing: float = SPACING_M) -> Deployment:
+    """``motes`` motes on a square grid, the gateway's at (0, 0)-ish, a fire crossing."""
+    if motes < 2:
+        raise ValueError("the aware workload needs at least 2 motes (a gateway and a sensor)")
+    cols = max(1, math.ceil(math.sqrt(motes)))
+    rows = math.ceil(motes / cols)
+    w, h = spacing * cols, spacing * rows
+    nodes: list[dict[str, Any]] = []
+    for i in range(motes):
+        pos = [spacing * (0.5 + i % cols), spacing * (0.5 + i // cols)]
+        nodes.append({"id": i, "kind": "gateway" if i == GATEWAY else "tmote", "position": pos})
+    # The fire crosses from one quarter of the diagonal to three quarters, away
+    # from the gateway's corner at the start, over the run.
+    fire = {
+        "name": "front",
+        "edge": 4.0,
+        "keyframes": [
+            {"t": 0.0, "x": 0.3 * w, "y": 0.7 * h, "radius": FIRE_RADIUS_M, "peak": FIRE_PEAK_C},
+            {"t": max(duration, 1.0), "x": 0.7 * w, "y": 0.3 * h},
+        ],
+    }
+    doc = {
+        "name": f"bench-aware-{motes}",
+        "radio": "cc2420",
+        "seed": seed,
+        "tx_power_dbm": 0.0,
+        "area": [w, h],
+        "world": {"ambient_temperature": 20.0, "fires": [fire]},
+        "nodes": nodes,
+    }
+    return parse_deployment(doc, known_kinds=kind_names())
+
+
+@dataclass
+class AwareLoad:
+    """A virtual network of full AwareMotes with the tracking load (see the module)."""
+
+    net: VirtualNetwork
+    deployment: Deployment
+    produced: dict[RecordKey, float] = field(default_factory=dict)  # key -> time produced
+    delivered: set[RecordKey] = field(default_factory=set)
+    leaders: set[int] = field(default_factory=set)
+
+    def on_event(self, nid: int, ev: object, t: float) -> None:
+        if isinstance(ev, RecordProduced):
+            self.produced.setdefault(_key(ev.record), t)
+            self.leaders.add(nid)
+        elif isinstance(ev, Delivered) and nid == GATEWAY and isinstance(ev.payload, DataRecord):
+            self.delivered.add(_key(ev.payload))
+
+    def define(self) -> None:
+        """The gateway mote injects the group type and the channel (Drip spreads them)."""
+        root = self.net.cores[GATEWAY]
+        if not isinstance(root, AwareMote):
+            raise TypeError(f"node {GATEWAY} is not an AwareMote: {type(root).__name__}")
+        hot = GroupTypeDef((Condition(TEMPERATURE, Op.GT, HOT_C),))
+        period_ms = round(CHANNEL_PERIOD_S * 1000)
+        chan = ChannelDef(TEMPERATURE, GROUP_TYPE, ANY_GROUP_ID, period_ms, AggId.AVG)
+        now = self.net.now
+        self.net.call(GATEWAY, lambda: root.inject(ItemKind.GROUP_TYPE, GROUP_TYPE, 1, hot, now))
+        self.net.call(GATEWAY, lambda: root.inject(ItemKind.CHANNEL, CHANNEL, 1, chan, now))
+
+    def run_until(self, end: float) -> None:
+        if self.net.now < DEFINE_AT_S <= end:
+            self.net.run_until(DEFINE_AT_S)
+            self.define()
+        self.net.run_until(end)
+
+    def results(self, end: float) -> dict[str, Any]:
+        """``records_produced`` (up to ``end - GRACE_S``), ``records_delivered`` (of
+        those), ``record_delivery`` (their ratio; 0.0 when none was produced),
+        ``leaders`` (distinct motes that led an epoch)."""
+        counted = [k for k, t in self.produced.items() if t <= end - GRACE_S]
+        got = sum(1 for k in counted if k in self.delivered)
+        return {
+            "workload": "aware",
+            "records_produced": len(counted),
+            "records_delivered": got,
+            "record_delivery": round(got / len(counted), 4) if counted else 0.0,
+            "leaders": len(self.leaders),
+            "channel_period_s": CHANNEL_PERIOD_S,
+        }
+
+
+def _key(r: DataRecord) -> RecordKey:
+    return (r.channel, r.group_type, r.group_id, r.epoch)
+
+
+def build(motes: int, seed: int, duration: float) -> AwareLoad:
+    """The network, every core from the fleet's :class:`KindsFactory`."""
+    d = deployment(motes, seed, duration)
+    factory = KindsFactory()
+    net = VirtualNetwork(d.radio_model(), d.seed)
+    load = AwareLoad(net, d)
+    net.on_event = load.on_event
+    for spec in d.nodes:
+        net.add(
+            factory(spec, d),
+            spec.mobility(),
+            tx_power_dbm=d.tx_power_of(spec),
+            start_at=spec.boot_s,
+            battery_mj=spec.battery_mj,
+        )
+    return load
