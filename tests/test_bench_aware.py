@@ -1,0 +1,75 @@
+"""``awaremw bench virtual --workload aware``: the whole middleware on the virtual clock."""
+
+from __future__ import annotations
+
+import pstats
+from pathlib import Path
+
+import pytest
+
+from awaremw.bench import aware_load
+from awaremw.bench.virtual import run
+from awaremw.nodes import KindsFactory
+from awaremw.protocol.mote import AwareMote
+
+KEYS = {
+    "motes",
+    "sim_seconds",
+    "wall_seconds",
+    "cpu_seconds",
+    "speedup",
+    "frames_tx",
+    "deliveries",
+    "mean_neighbours",
+    "dropped_loss",
+    "dropped_distance",
+    "preset",
+    "seed",
+    "spacing_m",
+    "workload",
+    "records_produced",
+    "records_delivered",
+    "record_delivery",
+    "leaders",
+    "channel_period_s",
+}
+TIMING = ("wall_seconds", "cpu_seconds", "speedup")
+
+
+def test_aware_workload_tracks_and_delivers(tmp_path: Path) -> None:
+    prof = tmp_path / "run.prof"
+    out = run(100, 30.0, 3, workload="aware", profile=str(prof))
+    assert set(out) == KEYS
+    assert out["workload"] == "aware" and out["motes"] == 100 and out["sim_seconds"] == 30.0
+    assert out["cpu_seconds"] > 0 and out["wall_seconds"] > 0
+    # The group formed on the fire and its leaders produced records every epoch.
+    assert out["records_produced"] >= 5 and out["leaders"] >= 1
+    assert out["record_delivery"] > 0.9
+    assert out["records_delivered"] <= out["records_produced"]
+    # The profile holds the protocol's own functions (the run went through them).
+    stats = pstats.Stats(str(prof))
+    funcs = {f"{Path(file).name}:{name}" for file, _, name in stats.stats}  # type: ignore[attr-defined]
+    assert "mote.py:receive" in funcs and "collection.py:_deliver" in funcs
+    # Same seed, same counters.
+    again = run(100, 30.0, 3, workload="aware")
+    assert {k: v for k, v in again.items() if k not in TIMING} == {
+        k: v for k, v in out.items() if k not in TIMING
+    }
+
+
+def test_aware_cores_come_from_the_fleet_factory() -> None:
+    load = aware_load.build(9, 1, 10.0)
+    d = load.deployment
+    ref = KindsFactory()
+    for spec in d.nodes:
+        core = load.net.cores[spec.id]
+        assert isinstance(core, AwareMote)
+        assert core.ctx.config == ref(spec, d).ctx.config  # type: ignore[attr-defined]
+    assert load.net.cores[aware_load.GATEWAY].collection.is_root  # type: ignore[attr-defined]
+
+
+def test_unknown_workload_and_tiny_fleet_are_refused() -> None:
+    with pytest.raises(ValueError, match="unknown workload 'x'"):
+        run(4, 1.0, 1, workload="x")
+    with pytest.raises(ValueError, match="at least 2 motes"):
+        aware_load.deployment(1, 1, 1.0)
