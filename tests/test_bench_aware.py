@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import pstats
 from pathlib import Path
 
@@ -73,3 +74,21 @@ def test_unknown_workload_and_tiny_fleet_are_refused() -> None:
         run(4, 1.0, 1, workload="x")
     with pytest.raises(ValueError, match="at least 2 motes"):
         aware_load.deployment(1, 1, 1.0)
+
+
+def test_scale_aware_workload_over_zenoh() -> None:
+    """The same load in a real-time fleet (one process, real Zenoh), at 5x speed."""
+    from awaremw.bench.scale import run_once
+
+    out = asyncio.run(run_once(64, 30.0, speed=5.0, seed=2, workload="aware"))
+    assert out["workload"] == "aware" and out["motes"] == 64
+    assert out["delivery_ratio"] is None and out["frames_expected"] is None
+    assert out["records_produced"] >= 5 and out["record_delivery"] > 0.9
+    assert out["timer_samples"] > 0 and out["frames_rx"] > out["frames_tx"]
+
+
+def test_scale_aware_refuses_processes() -> None:
+    from awaremw.bench.scale import run_once
+
+    with pytest.raises(ValueError, match="one process"):
+        asyncio.run(run_once(64, 1.0, processes=2, workload="aware"))

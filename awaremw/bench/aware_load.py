@@ -26,6 +26,7 @@ from awaremw.nodes import KindsFactory, kind_names
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.collection import Delivered
+from awaremw.protocol.core import MoteCore
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     AggId,
@@ -88,11 +89,10 @@ def deployment(motes: int, seed: int, duration: float, spacing: float = SPACING_
 
 
 @dataclass
-class AwareLoad:
-    """A virtual network of full AwareMotes with the tracking load (see the module)."""
+class RecordTally:
+    """Records produced by leaders and records arrived at the gateway mote, from
+    the core events (``on_event`` is an event hook of either driver)."""
 
-    net: VirtualNetwork
-    deployment: Deployment
     produced: dict[RecordKey, float] = field(default_factory=dict)  # key -> time produced
     delivered: set[RecordKey] = field(default_factory=set)
     leaders: set[int] = field(default_factory=set)
@@ -103,24 +103,6 @@ class AwareLoad:
             self.leaders.add(nid)
         elif isinstance(ev, Delivered) and nid == GATEWAY and isinstance(ev.payload, DataRecord):
             self.delivered.add(_key(ev.payload))
-
-    def define(self) -> None:
-        """The gateway mote injects the group type and the channel (Drip spreads them)."""
-        root = self.net.cores[GATEWAY]
-        if not isinstance(root, AwareMote):
-            raise TypeError(f"node {GATEWAY} is not an AwareMote: {type(root).__name__}")
-        hot = GroupTypeDef((Condition(TEMPERATURE, Op.GT, HOT_C),))
-        period_ms = round(CHANNEL_PERIOD_S * 1000)
-        chan = ChannelDef(TEMPERATURE, GROUP_TYPE, ANY_GROUP_ID, period_ms, AggId.AVG)
-        now = self.net.now
-        self.net.call(GATEWAY, lambda: root.inject(ItemKind.GROUP_TYPE, GROUP_TYPE, 1, hot, now))
-        self.net.call(GATEWAY, lambda: root.inject(ItemKind.CHANNEL, CHANNEL, 1, chan, now))
-
-    def run_until(self, end: float) -> None:
-        if self.net.now < DEFINE_AT_S <= end:
-            self.net.run_until(DEFINE_AT_S)
-            self.define()
-        self.net.run_until(end)
 
     def results(self, end: float) -> dict[str, Any]:
         """``records_produced`` (up to ``end - GRACE_S``), ``records_delivered`` (of
@@ -138,6 +120,36 @@ class AwareLoad:
         }
 
 
+def inject_definitions(root: MoteCore, now: float) -> None:
+    """The gateway mote injects the group type and the channel (Drip spreads them)."""
+    if not isinstance(root, AwareMote):
+        raise TypeError(f"node {GATEWAY} is not an AwareMote: {type(root).__name__}")
+    hot = GroupTypeDef((Condition(TEMPERATURE, Op.GT, HOT_C),))
+    period_ms = round(CHANNEL_PERIOD_S * 1000)
+    chan = ChannelDef(TEMPERATURE, GROUP_TYPE, ANY_GROUP_ID, period_ms, AggId.AVG)
+    root.inject(ItemKind.GROUP_TYPE, GROUP_TYPE, 1, hot, now)
+    root.inject(ItemKind.CHANNEL, CHANNEL, 1, chan, now)
+
+
+@dataclass
+class AwareLoad:
+    """A virtual network of full AwareMotes with the tracking load (see the module)."""
+
+    net: VirtualNetwork
+    deployment: Deployment
+    tally: RecordTally = field(default_factory=RecordTally)
+
+    def run_until(self, end: float) -> None:
+        if self.net.now < DEFINE_AT_S <= end:
+            self.net.run_until(DEFINE_AT_S)
+            root = self.net.cores[GATEWAY]
+            self.net.call(GATEWAY, lambda: inject_definitions(root, self.net.now))
+        self.net.run_until(end)
+
+    def results(self, end: float) -> dict[str, Any]:
+        return self.tally.results(end)
+
+
 def _key(r: DataRecord) -> RecordKey:
     return (r.channel, r.group_type, r.group_id, r.epoch)
 
@@ -148,7 +160,7 @@ def build(motes: int, seed: int, duration: float) -> AwareLoad:
     factory = KindsFactory()
     net = VirtualNetwork(d.radio_model(), d.seed)
     load = AwareLoad(net, d)
-    net.on_event = load.on_event
+    net.on_event = load.tally.on_event
     for spec in d.nodes:
         net.add(
             factory(spec, d),

@@ -8,6 +8,16 @@ embedded router (``--processes N``). After ``--duration`` emulated seconds
 every radio is frozen, frames in flight land for ``--grace`` wall seconds, and
 the counters are gathered.
 
+``--workload aware`` (``--processes 1`` for now): the whole middleware
+instead of Hello beacons, cores from the fleet's core factory, a fire crossing
+the field tracked by a group, an AVG channel every 2 s, collection to the
+gateway's mote, Drip (see :mod:`awaremw.bench.aware_load`); the definitions
+are injected at the gateway's mote at 1 s; ``record_delivery`` (records that
+reached the gateway mote over records the leaders produced) replaces the
+radio's ``delivery_ratio`` in the target (``frames_expected`` and
+``delivery_ratio`` are None: the loss recount knows only Hello frames).
+``--profile FILE``: cProfile of the run (this process only).
+
 Target (``--search``): timer lag p99 below ``--max-p99-ms`` (50) and delivery
 above ``--min-delivery`` (0.99). ``--search`` doubles ``--motes`` while the
 target holds, then bisects between the last pass and the first failure.
@@ -28,7 +38,9 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   ``rx_per_tx`` (mean receivers per beacon);
 * ``envelopes_rx`` (frames that crossed processes through Zenoh),
   ``malformed``; ``cpu_s`` (all processes), ``cpu_per_process``,
-  ``wall_s``; ``meets_target``.
+  ``wall_s``; ``meets_target``; ``workload``; with ``--workload aware``
+  also ``records_produced``, ``records_delivered``, ``record_delivery``,
+  ``leaders``, ``channel_period_s``.
 """
 
 from __future__ import annotations
@@ -40,6 +52,10 @@ import math
 import time
 from typing import Any
 
+from awaremw.bench import aware_load
+from awaremw.bench.profiling import profiled
+from awaremw.nodes import KindsFactory
+from awaremw.protocol.core import MoteCore
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import CC2420, RadioModel, cell_of, packet_key, preset
 from awaremw.radio.zenoh_medium import Handler
@@ -54,6 +70,7 @@ from awaremw.runtime.fleet import (
 )
 
 SPACING_M = 12.0  # CC2420 at 0 dBm: about ten neighbours hear each beacon
+WORKLOADS = ("hello", "aware")
 
 
 def grid_deployment(
@@ -148,9 +165,23 @@ async def run_once(
     grace: float = 1.0,
     max_p99_ms: float = 50.0,
     min_delivery: float = 0.99,
+    workload: str = "hello",
+    profile: str | None = None,
 ) -> dict[str, Any]:
     """One measured run (see the module docstring for the keys)."""
-    dep = grid_deployment(motes, seed, radio)
+    if workload not in WORKLOADS:
+        raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
+    aware = workload == "aware"
+    if aware and processes > 1:
+        raise ValueError("--workload aware runs in one process for now (--processes 1)")
+    if aware and radio != "cc2420":
+        raise ValueError("--workload aware uses the cc2420 preset")
+    dep = (
+        aware_load.deployment(motes, seed, duration)
+        if aware
+        else grid_deployment(motes, seed, radio)
+    )
+    tally = aware_load.RecordTally()
     h: Handler = "channel" if handler == "channel" else "callback"
     cpu: list[float] = []
     lag: list[float] = []
@@ -158,18 +189,24 @@ async def run_once(
     t0 = time.perf_counter()
     if processes <= 1:
         settings = FleetSettings(speed=speed, handler=h, control=False, freeze_gc=True)
-        async with Fleet(dep, hello_core, settings) as fleet:
-            cpu0 = time.process_time()  # from the start, like the workers' figure
-            await fleet.wait_until(warmup)
-            assert fleet.lag is not None
-            fleet.lag.clear()
-            await fleet.run(duration)
-            fleet.medium.freeze()
-            await asyncio.sleep(grace)
-            counters = dict(fleet.counters)
-            lag = list(fleet.lag.samples)
-            envelopes = fleet.medium.stats.envelopes_rx
-        cpu.append(time.process_time() - cpu0)
+        factory = KindsFactory() if aware else hello_core
+        with profiled(profile):
+            async with Fleet(dep, factory, settings) as fleet:
+                cpu0 = time.process_time()  # from the start, like the workers' figure
+                if aware:
+                    fleet.on_event(tally.on_event)
+                    await fleet.wait_until(aware_load.DEFINE_AT_S)
+                    fleet.run_on(aware_load.GATEWAY, _inject)
+                await fleet.wait_until(warmup)
+                assert fleet.lag is not None
+                fleet.lag.clear()
+                await fleet.run(duration)
+                fleet.medium.freeze()
+                await asyncio.sleep(grace)
+                counters = dict(fleet.counters)
+                lag = list(fleet.lag.samples)
+                envelopes = fleet.medium.stats.envelopes_rx
+            cpu.append(time.process_time() - cpu0)
         gc.unfreeze()
     else:
         async with FleetLauncher(
@@ -197,10 +234,17 @@ async def run_once(
     tot = MoteCounters()
     for c in counters.values():
         tot.add(c)
-    expected = expected_receptions(dep, {i: c.frames_tx for i, c in counters.items()})
-    delivery = tot.frames_rx / expected if expected else math.nan
+    expected: int | None = None
+    delivery: float | None = None
+    if aware:
+        records = tally.results(duration)
+        ok_delivery = records["record_delivery"] > min_delivery
+    else:
+        expected = expected_receptions(dep, {i: c.frames_tx for i, c in counters.items()})
+        delivery = tot.frames_rx / expected if expected else math.nan
+        ok_delivery = delivery > min_delivery
     p50, p99 = percentile(lag, 50), percentile(lag, 99)
-    return {
+    out: dict[str, Any] = {
         "motes": motes,
         "processes": processes,
         "duration_s": duration,
@@ -219,15 +263,23 @@ async def run_once(
         "frames_tx": tot.frames_tx,
         "frames_rx": tot.frames_rx,
         "frames_expected": expected,
-        "delivery_ratio": round(delivery, 5),
+        "delivery_ratio": None if delivery is None else round(delivery, 5),
         "rx_per_tx": round(tot.frames_rx / tot.frames_tx, 2) if tot.frames_tx else 0.0,
         "envelopes_rx": envelopes,
         "malformed": tot.malformed,
         "cpu_s": round(sum(cpu), 2),
         "cpu_per_process": [round(c, 2) for c in cpu],
         "wall_s": round(wall, 2),
-        "meets_target": bool(p99 < max_p99_ms and delivery > min_delivery),
+        "meets_target": bool(p99 < max_p99_ms and ok_delivery),
+        "workload": workload,
     }
+    if aware:
+        out.update(records)
+    return out
+
+
+def _inject(core: MoteCore, now: float) -> None:
+    aware_load.inject_definitions(core, now)
 
 
 async def search(args: argparse.Namespace) -> dict[str, Any]:
@@ -289,6 +341,8 @@ def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "grace": float(args.grace),
         "max_p99_ms": float(args.max_p99_ms),
         "min_delivery": float(args.min_delivery),
+        "workload": str(args.workload),
+        "profile": args.profile,
     }
 
 
@@ -319,6 +373,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-delivery", type=float, default=0.99)
     parser.add_argument("--search", action="store_true", help="find the largest N on target")
     parser.add_argument("--max-motes", type=int, default=16000, help="upper bound for --search")
+    parser.add_argument(
+        "--workload",
+        choices=WORKLOADS,
+        default="hello",
+        help="hello: beacons only (the radio); aware: the whole middleware tracking a fire "
+        "(--processes 1)",
+    )
+    parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
