@@ -32,6 +32,7 @@ KEYS = {
     "records_delivered",
     "record_delivery",
     "leaders",
+    "records_untracked",
     "channel_period_s",
 }
 TIMING = ("wall_seconds", "cpu_seconds", "speedup")
@@ -47,6 +48,7 @@ def test_aware_workload_tracks_and_delivers(tmp_path: Path) -> None:
     assert out["records_produced"] >= 5 and out["leaders"] >= 1
     assert out["record_delivery"] > 0.9
     assert out["records_delivered"] <= out["records_produced"]
+    assert out["records_untracked"] == 0
     # The profile holds the protocol's own functions (the run went through them).
     stats = pstats.Stats(str(prof))
     funcs = {f"{Path(file).name}:{name}" for file, _, name in stats.stats}  # type: ignore[attr-defined]
@@ -92,3 +94,17 @@ def test_scale_aware_refuses_processes() -> None:
 
     with pytest.raises(ValueError, match="one process"):
         asyncio.run(run_once(64, 1.0, processes=2, workload="aware"))
+
+
+def test_tally_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    from awaremw.protocol.channels import RecordProduced
+    from awaremw.protocol.frames import DataRecord
+
+    monkeypatch.setattr(aware_load, "MAX_TRACKED", 2)
+    tally = aware_load.RecordTally()
+    for epoch in range(5):
+        rec = DataRecord(1, 1, 7, epoch, 0, 20.0, 3, 5)
+        tally.on_event(5, RecordProduced(rec, float(epoch)), float(epoch))
+    out = tally.results(100.0)
+    assert out["records_produced"] == 2 and out["records_untracked"] == 3
+    assert out["records_delivered"] == 0 and out["record_delivery"] == 0.0

@@ -51,6 +51,7 @@ GRACE_S = 10.0  # records produced this close to the end may still be in flight
 FIRE_RADIUS_M = 25.0
 FIRE_PEAK_C = 80.0
 HOT_C = 50.0
+MAX_TRACKED = 200_000  # records remembered by the tally (a 2 s channel: ~110 h per group)
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
 
@@ -96,18 +97,26 @@ class RecordTally:
     produced: dict[RecordKey, float] = field(default_factory=dict)  # key -> time produced
     delivered: set[RecordKey] = field(default_factory=set)
     leaders: set[int] = field(default_factory=set)
+    untracked: int = 0  # events past MAX_TRACKED, not counted
 
     def on_event(self, nid: int, ev: object, t: float) -> None:
         if isinstance(ev, RecordProduced):
+            if len(self.produced) >= MAX_TRACKED:
+                self.untracked += 1
+                return
             self.produced.setdefault(_key(ev.record), t)
             self.leaders.add(nid)
         elif isinstance(ev, Delivered) and nid == GATEWAY and isinstance(ev.payload, DataRecord):
+            if len(self.delivered) >= MAX_TRACKED:
+                self.untracked += 1
+                return
             self.delivered.add(_key(ev.payload))
 
     def results(self, end: float) -> dict[str, Any]:
         """``records_produced`` (up to ``end - GRACE_S``), ``records_delivered`` (of
         those), ``record_delivery`` (their ratio; 0.0 when none was produced),
-        ``leaders`` (distinct motes that led an epoch)."""
+        ``leaders`` (distinct motes that led an epoch), ``records_untracked``
+        (events past :data:`MAX_TRACKED`, 0 in any run of sensible length)."""
         counted = [k for k, t in self.produced.items() if t <= end - GRACE_S]
         got = sum(1 for k in counted if k in self.delivered)
         return {
@@ -116,6 +125,7 @@ class RecordTally:
             "records_delivered": got,
             "record_delivery": round(got / len(counted), 4) if counted else 0.0,
             "leaders": len(self.leaders),
+            "records_untracked": self.untracked,
             "channel_period_s": CHANNEL_PERIOD_S,
         }
 

@@ -40,7 +40,7 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   ``malformed``; ``cpu_s`` (all processes), ``cpu_per_process``,
   ``wall_s``; ``meets_target``; ``workload``; with ``--workload aware``
   also ``records_produced``, ``records_delivered``, ``record_delivery``,
-  ``leaders``, ``channel_period_s``.
+  ``leaders``, ``records_untracked``, ``channel_period_s``.
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ a core), ``mean_neighbours`` (table size at the end), ``dropped_loss``,
 ``dropped_distance``, ``preset``, ``seed``, ``spacing_m``, ``workload``. With
 ``--workload aware`` also ``records_produced``, ``records_delivered``,
 ``record_delivery`` (delivered / produced, records produced in the last 10 s
-left out), ``leaders``, ``channel_period_s``; ``mean_neighbours`` is then the
-mean collection-tree neighbour table size.
+left out), ``leaders``, ``records_untracked``, ``channel_period_s``;
+``mean_neighbours`` is then the mean collection-tree neighbour table size.
 """
 
 from __future__ import annotations
