@@ -44,9 +44,7 @@ HOT = GroupTypeDef((Condition(0, Op.GT, 45.0),))
 Calls = list[tuple[ItemKind, int, ItemBody | None, float]]
 
 
-def make(
-    node: int = 1, seed: int = 0, **cfg: object
-) -> tuple[Dissemination, MoteContext, Calls]:
+def make(node: int = 1, seed: int = 0, **cfg: object) -> tuple[Dissemination, MoteContext, Calls]:
     ctx = MoteContext(node, MiddlewareConfig().with_overrides(cfg), random.Random(seed), None)
     calls: Calls = []
     d = Dissemination(ctx, lambda k, i, b, t: calls.append((k, i, b, t)))

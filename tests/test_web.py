@@ -213,8 +213,9 @@ async def test_view_shows_a_system_known_only_through_mqtt(tmp_path: Path) -> No
 
             def led() -> Any:
                 d = _get_json(url)
-                return d if d and d["groups"] and d["gateway"] == "online" and d["t"] >= 40 \
-                    else None
+                return (
+                    d if d and d["groups"] and d["gateway"] == "online" and d["t"] >= 40 else None
+                )
 
             d = await asyncio.to_thread(_wait, led, 30, "the view's state")
             assert len(d["motes"]) == 22
@@ -341,7 +342,7 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
 
                 first = points()
                 page.wait_for_function(
-                    f"+document.querySelector(\"{plot}\").dataset.points > {max(first, 1)}",
+                    f'+document.querySelector("{plot}").dataset.points > {max(first, 1)}',
                     timeout=60_000,
                 )
                 assert points() > first

@@ -268,9 +268,7 @@ class DashboardState:
                 if self.members_known:
                     continue  # reported but no longer on the air
                 out[(gt, gid)] = {"type": gt, "id": gid, "leader": s["leader"], "members": None}
-            out[(gt, gid)].update(
-                weight=s["weight"], readings=s["readings"], reported_t=s["t"]
-            )
+            out[(gt, gid)].update(weight=s["weight"], readings=s["readings"], reported_t=s["t"])
         return [out[k] for k in sorted(out)]
 
     def state(self) -> dict[str, Any]:
