@@ -5,7 +5,9 @@ deadline, and ``due(now)`` pops the names whose time has come, in time order.
 
 The earliest deadline is cached (kept exact by ``set`` when it can be, else
 recomputed on the next ask), so ``next_deadline`` and a ``due`` with nothing
-due cost O(1): the mote asks both far more often than timers change.
+due cost O(1): the mote asks both far more often than timers change. A
+:class:`TimerWatch` shared by the sets of one mote is marked on every change,
+so the mote can cache its own earliest deadline too.
 """
 
 from __future__ import annotations
@@ -13,15 +15,31 @@ from __future__ import annotations
 from collections.abc import Hashable
 
 
+class TimerWatch:
+    """Marked (``changed = True``) by every change of the sets watching it."""
+
+    __slots__ = ("changed",)
+
+    def __init__(self) -> None:
+        self.changed = True
+
+
 class TimerSet:
-    __slots__ = ("_deadlines", "_min", "_stale")
+    __slots__ = ("_deadlines", "_min", "_stale", "_watch")
 
     def __init__(self) -> None:
         self._deadlines: dict[Hashable, float] = {}
         self._min: float | None = None  # the earliest deadline, when not _stale
         self._stale = False
+        self._watch = TimerWatch()
+
+    def watch(self, w: TimerWatch) -> None:
+        """Mark ``w`` (instead of a private watch) on every later change."""
+        self._watch = w
+        w.changed = True
 
     def set(self, name: Hashable, when: float) -> None:
+        self._watch.changed = True
         d = self._deadlines
         old = d.get(name)
         d[name] = when
@@ -35,7 +53,10 @@ class TimerSet:
 
     def cancel(self, name: Hashable) -> None:
         old = self._deadlines.pop(name, None)
-        if old is not None and not self._stale and self._min is not None and old <= self._min:
+        if old is None:
+            return
+        self._watch.changed = True
+        if not self._stale and self._min is not None and old <= self._min:
             self._stale = True
 
     def get(self, name: Hashable) -> float | None:
@@ -63,4 +84,5 @@ class TimerSet:
         for n in names:
             del d[n]
         self._stale = True
+        self._watch.changed = True
         return names
