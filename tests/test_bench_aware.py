@@ -108,3 +108,29 @@ def test_tally_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
     out = tally.results(100.0)
     assert out["records_produced"] == 2 and out["records_untracked"] == 3
     assert out["records_delivered"] == 0 and out["record_delivery"] == 0.0
+
+
+def _trace(motes: int, duration: float) -> list[str]:
+    """Every core event of a seeded aware run (mote, time, event), then every
+    mote's radio counters and pending timers."""
+    load = aware_load.build(motes, 1, duration)
+    out: list[str] = []
+    tally = load.net.on_event
+    assert tally is not None
+
+    def hook(nid: int, ev: object, t: float) -> None:
+        out.append(f"{nid}|{t!r}|{ev!r}")
+        tally(nid, ev, t)
+
+    load.net.on_event = hook
+    load.run_until(duration)
+    for nid, core in sorted(load.net.cores.items()):
+        assert isinstance(core, AwareMote)
+        out.append(f"{nid}|{load.net.counters[nid]!r}|{core.next_deadline()!r}")
+    return out
+
+
+def test_same_seed_same_events_and_records() -> None:
+    first = _trace(100, 30.0)
+    assert any("RecordProduced" in line for line in first)
+    assert _trace(100, 30.0) == first

@@ -317,10 +317,16 @@ class Collection(Component):
         best: Neighbour | None = None
         best_path = NO_ROUTE
         limit = NO_ROUTE if below is None else below
+        # No link costs less than this (see _rssi_cost; link_cost is at least it),
+        # so a neighbour whose cost plus it already exceeds the best path so far
+        # cannot win nor tie: skip its link cost (same choice, fewer calls).
+        floor = min(ETX_ONE, self.ctx.config.ctp_rssi_max_etx)
         for n in self._neighbours.values():
             if n.cost >= limit or n.parent == me or n.node == exclude:
                 continue
             if n.last_heard < fresh_since:
+                continue
+            if best is not None and min(n.cost + floor, MAX_COST) > best_path:
                 continue
             p = self._path_via(n)
             if p < best_path or (p == best_path and best is not None and n.node < best.node):

@@ -46,6 +46,7 @@ from awaremw.protocol.frames import (
     decode,
 )
 from awaremw.protocol.groups import Groups
+from awaremw.protocol.timers import TimerWatch
 
 __all__ = ["AwareMote", "Component", "MoteContext", "RssiSample"]  # the contract is re-exported
 
@@ -89,6 +90,10 @@ class AwareMote:
             Handover.TYPE: self.groups,
             Partial.TYPE: self.channels,
         }
+        self._timer_watch = TimerWatch()
+        for c in self._components:
+            c.timers.watch(self._timer_watch)
+        self._next_deadline: float | None = None  # valid while not _timer_watch.changed
         self.started = False
 
     # ----------------------------------------------------------------- MoteCore
@@ -115,10 +120,14 @@ class AwareMote:
                 c.on_timer(name, now)
 
     def next_deadline(self) -> float | None:
-        return min(
-            (d for c in self._components if (d := c.timers.next_deadline()) is not None),
-            default=None,
-        )
+        w = self._timer_watch
+        if w.changed:
+            w.changed = False
+            self._next_deadline = min(
+                (d for c in self._components if (d := c.timers.next_deadline()) is not None),
+                default=None,
+            )
+        return self._next_deadline
 
     def drain(self) -> list[Transmission]:
         out, self.ctx.outbox = self.ctx.outbox, []
