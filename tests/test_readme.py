@@ -9,17 +9,16 @@ MQTT broker) are real processes talking over Zenoh on loopback.
 from __future__ import annotations
 
 import ast
-import queue
 import re
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from lines import Lines
 
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.slow
@@ -38,31 +37,6 @@ def readme_robot_client() -> str:
     m = re.search(r"```python\n(.*?)```", section, re.S)
     assert m, "README has no python block in 'A robot client in Python'"
     return m.group(1)
-
-
-class Lines:
-    """Lines of a child's stdout, read on a thread, awaited with a timeout."""
-
-    def __init__(self, proc: subprocess.Popen[str]) -> None:
-        self.q: queue.Queue[str] = queue.Queue()
-        self.seen: list[str] = []
-        assert proc.stdout is not None
-        out = proc.stdout
-        threading.Thread(target=lambda: [self.q.put(ln) for ln in out], daemon=True).start()
-
-    def wait_for(self, pattern: str, timeout: float) -> re.Match[str]:
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                line = self.q.get(timeout=left)
-            except queue.Empty:
-                break
-            self.seen.append(line)
-            if m := re.search(pattern, line):
-                return m
-        raise AssertionError(
-            f"no line matching {pattern!r} in {timeout} s; got:\n" + "".join(self.seen)
-        )
 
 
 @pytest.fixture
