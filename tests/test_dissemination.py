@@ -432,3 +432,75 @@ def test_an_injection_a_foreign_version_supersedes_is_reported_not_lost() -> Non
     assert ctx.event_list[-1] == InjectSuperseded(CH, 2, 7, forged)
     assert d.inject(CH, 2, forged + 1, CHAN, 1.0) is True  # stepping over it works
     assert d.items[(CH, 2)].body == CHAN
+
+
+# --------------------------------------------------------------------------- forged versions
+
+
+def test_a_version_jump_is_refused_once_neighbours_echoed_ours() -> None:
+    d, ctx, calls = make(drip_tau_l=1.0, drip_tau_h=64.0)
+    d.start(0.0)
+    d.on_frame(DripItem(7, BROADCAST, CH, 1, 3, CHAN), -70.0, 0.0)
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 3, CHAN), -70.0, 0.5)  # a neighbour echoes 3
+    advance(d, 40.0)
+    sent(ctx)
+    t = d.trickle(CH, 1)
+    assert t is not None and t.interval is not None and t.interval > 8.0
+    jump = 3 + (1 << 16) + 1  # "newer" in serial order, but no gateway steps that far
+    d.on_frame(DripItem(9, BROADCAST, CH, 1, jump, CHAN2), -70.0, 40.0)
+    assert d.items[(CH, 1)] == (3, CHAN) and len(calls) == 1
+    assert ctx.event_list[-1] == ItemRefused(CH, 1, jump, 9, "version jump")
+    assert t.interval == 1.0  # we tell the sender our version soon
+    # A step within the window is adopted as before.
+    d.on_frame(DripItem(9, BROADCAST, CH, 1, 3 + (1 << 16), CHAN2), -70.0, 41.0)
+    assert d.items[(CH, 1)] == (3 + (1 << 16), CHAN2)
+
+
+def test_a_version_adopted_alone_gives_way_to_the_networks() -> None:
+    # A mote that booted into a forged item (nothing held, so any version is taken)
+    # hears its neighbours' version, "older" in serial order: it takes theirs.
+    d, _, calls = make()
+    d.start(0.0)
+    forged = 0x4000_0005  # ours (3) is older than it in serial order
+    d.on_frame(DripItem(66, BROADCAST, CH, 1, forged, CHAN2), -60.0, 0.1)
+    assert d.version_of(CH, 1) == forged
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 3, CHAN), -70.0, 1.0)
+    assert d.items[(CH, 1)] == (3, CHAN) and calls[-1] == (CH, 1, CHAN, 1.0)
+    d.on_frame(DripItem(7, BROADCAST, CH, 1, 3, CHAN), -70.0, 1.5)  # echoed now
+    d.on_frame(DripItem(66, BROADCAST, CH, 1, forged, CHAN2), -60.0, 2.0)
+    assert d.items[(CH, 1)] == (3, CHAN)
+
+
+def test_an_injected_version_is_the_networks_at_once() -> None:
+    # The gateway is the source of truth: its mote never trades an injected
+    # version for a jump, even before any neighbour echoed it.
+    d, _, _ = make()
+    d.inject(CH, 1, 5, CHAN, 0.0)
+    d.on_frame(DripItem(66, BROADCAST, CH, 1, 0x4000_0000, CHAN2), -60.0, 0.1)
+    assert d.items[(CH, 1)] == (5, CHAN)
+
+
+def test_forged_versions_around_the_circle_cannot_hold_off_the_gateway() -> None:
+    # Serial order is not transitive: 1 < 0x55555556 < 0xAAAAAAAB < 1. Forged
+    # versions planted around that circle at several motes once kept the
+    # network cycling, and the gateway's next version lost to some of them.
+    net = Net(line, drip_tau_l=1.0, drip_tau_h=32.0)
+    for n in range(10):
+        net.add(n)
+    net.run_until(2.0)
+    net.nodes[0][0].inject(CH, 1, 1, CHAN, 2.0)
+    net.run_until(60.0)
+    assert all(d.version_of(CH, 1) == 1 for d, _, _ in net.nodes.values())
+    forged = {3: 0x5555_5556, 6: 0xAAAA_AAAB, 9: 0x8000_0001}
+    for k in range(5):
+        for n, v in forged.items():
+            d, _, _ = net.nodes[n]
+            d.on_frame(DripItem(66, BROADCAST, CH, 1, v, CHAN2), -60.0, 60.0 + k)
+        net.run_until(61.0 + k)
+    net.nodes[0][0].inject(CH, 1, 2, CHAN2, 70.0)
+    net.run_until(100.0)
+    assert {n: d.items[(CH, 1)] for n, (d, _, _) in net.nodes.items()} == {
+        n: (2, CHAN2) for n in range(10)
+    }
+    refused = [e for n in forged for e in net.nodes[n][1].event_list if isinstance(e, ItemRefused)]
+    assert refused and all(e.reason == "version jump" for e in refused)

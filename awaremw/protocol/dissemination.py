@@ -199,6 +199,11 @@ class Dissemination(Component):
         self.signer: ItemSigner | None = None
         self._pending: dict[ItemKey, _Pending] = {}  # bound: config.max_pending_items
         self._sigs: dict[ItemKey, bytes] = {}  # the held version's signature (same keys)
+        # Keys anchored in the network: another mote has sent us the version we
+        # held, or the gateway injected one here. From then on only steps within
+        # drip_max_version_step are taken; until then (a mote that booted into a
+        # forged version, alone) any version its neighbours send replaces ours.
+        self._anchored: set[ItemKey] = set()
 
     # ------------------------------------------------------------------ public API
 
@@ -282,6 +287,7 @@ class Dissemination(Component):
                     "signed dissemination: the signature does not match the gateway key"
                 )
         self._adopt(frame, now, source=None, sig=sig)
+        self._anchored.add((frame.kind, item_id))  # the source of truth's own version
         return True
 
     # ------------------------------------------------------------------ Component hooks
@@ -333,6 +339,23 @@ class Dissemination(Component):
     def _on_item_frame(self, f: DripItem, now: float) -> None:
         key = (f.kind, f.item_id)
         cur = self._items.get(key)
+        if cur is not None and f.version == cur.version:
+            self._anchored.add(key)  # another mote holds our version: anchored
+            self._trickles[key].hear_consistent()
+            return
+        if cur is not None and self.verifier is None and self._is_jump(f.version, cur.version):
+            if key in self._anchored:
+                # A jump no gateway makes (a forged or garbled version): keep ours,
+                # which our neighbours confirmed, and tell the sender soon.
+                self.refused += 1
+                self.ctx.emit(ItemRefused(f.kind, f.item_id, f.version, f.src, "version jump"))
+                self._trickles[key].reset(now)
+                self._arm(key)
+                return
+            # Nobody ever echoed a version of ours (we took it alone, e.g. a forged
+            # one at boot): the network's version replaces it, older or not.
+            self._adopt(f, now, source=f.src)
+            return
         if cur is None or newer(f.version, cur.version):
             if self.verifier is None:
                 self._adopt(f, now, source=f.src)
@@ -341,11 +364,16 @@ class Dissemination(Component):
                 if pend is not None:
                     pend.body = f.item
                     self._try_complete(key, pend, now)
-        elif f.version != cur.version:  # older (serial arithmetic): the sender is behind
+        else:  # older (serial arithmetic): the sender is behind
             self._trickles[key].reset(now)
             self._arm(key)
-        else:
-            self._trickles[key].hear_consistent()
+
+    def _is_jump(self, heard: int, held: int) -> bool:
+        """Whether ``heard`` lies more than ``drip_max_version_step`` versions away
+        from ``held`` on the u32 circle, ahead or behind."""
+        step = self.ctx.config.drip_max_version_step
+        d = (heard - held) & _M32
+        return step < d < (1 << 32) - step
 
     def _pending_for(self, key: ItemKey, version: int, src: int) -> _Pending | None:
         """The pending entry of ``key`` at ``version`` (made if newer than a pending
@@ -483,6 +511,7 @@ class Dissemination(Component):
         self._digest = (self._digest - digest_term(victim[0], victim[1], old.version)) & _M32
         del self._trickles[victim], self._changed[victim]
         self._sigs.pop(victim, None)
+        self._anchored.discard(victim)
         self.timers.cancel(("item", *victim))
 
     def _arm(self, key: ItemKey) -> None:
