@@ -168,7 +168,7 @@ def build(motes: int, seed: int, duration: float) -> AwareLoad:
     """The network, every core from the fleet's :class:`KindsFactory`."""
     d = deployment(motes, seed, duration)
     factory = KindsFactory()
-    net = VirtualNetwork(d.radio_model(), d.seed)
+    net = VirtualNetwork(d.radio_model(), d.seed, **d.medium)
     load = AwareLoad(net, d)
     net.on_event = load.tally.on_event
     for spec in d.nodes:
