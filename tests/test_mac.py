@@ -211,8 +211,8 @@ def test_deployment_keys_mac_and_collisions(tmp_path: Path) -> None:
     assert (d.mac, d.collisions) == ("csma", "sinr")
     f.write_text('mac = "aloha"\ncollisions = "none"\n' + base)
     d = load_deployment(f)
-    assert d.medium == {"mac": "aloha", "collisions": "none"}
-    net = VirtualNetwork(d.radio_model(), d.seed, **d.medium)
+    assert (d.mac, d.collisions) == ("aloha", "none")
+    net = VirtualNetwork(d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions)
     assert net.mac_params.kind == "aloha" and net.collisions == "none"
     f.write_text('mac = "tdma"\n' + base)
     with pytest.raises(DeploymentError, match=r"d.toml: unknown mac 'tdma' \(known: csma, aloha\)"):
@@ -223,3 +223,15 @@ def test_deployment_keys_mac_and_collisions(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="unknown collisions 'x'"):
         VirtualNetwork(RadioModel(CC2420, 1), 1, collisions="x")
     assert math.isfinite(CC2420.capture_threshold_db)
+
+
+def test_bench_mac_aloha_follows_theory_and_csma_doubles_it() -> None:
+    from awaremw.bench import mac as bench
+
+    r = bench.run(senders=30, frame_times=4000, sweep=(0.25, 0.5, 1.0, 1.5))
+    for pt in r["aloha"]:
+        assert abs(pt["S"] - pt["G"] * math.exp(-2 * pt["G"])) < 0.03, pt
+        assert pt["G_tx"] == pytest.approx(pt["G"], abs=0.06)
+    assert r["aloha_max_error"] < 0.03
+    assert r["csma_best"] >= 2 * r["aloha_best"]
+    assert r["theory"][1] == {"G": 0.5, "S": 0.5 * math.exp(-1.0)}

@@ -121,11 +121,6 @@ class Deployment:
     collisions: str = "sinr"  # radio/mac.py COLLISION_MODES: "sinr" or "none"
 
     @property
-    def medium(self) -> dict[str, str]:
-        """The keyword arguments of the virtual medium (``VirtualNetwork(..., **d.medium)``)."""
-        return {"mac": self.mac, "collisions": self.collisions}
-
-    @property
     def preset(self) -> RadioPreset:
         return PRESETS[self.radio]
 
