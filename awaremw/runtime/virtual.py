@@ -17,6 +17,13 @@ heap and the per-packet loop over a static sender's receivers (the hot path:
 :meth:`RadioModel.decide <awaremw.radio.model.RadioModel.decide>` inlined),
 which is what makes 1,000 motes run at least 10x faster than real time.
 Moving motes are evaluated afresh at every frame.
+
+Channel access and collisions are :mod:`awaremw.radio.mac`'s (the core the
+Zenoh medium is to share): each mote's :class:`~awaremw.radio.mac.MacSender`
+says when to assess the channel and when its attempt goes on the air; the
+network's :class:`~awaremw.radio.mac.Air` holds the frames on the air, answers
+the assessments, and at each frame's end says which receptions survived
+(``VirtualNetwork(..., mac="csma"|"aloha", collisions="sinr"|"none")``).
 """
 
 from __future__ import annotations
