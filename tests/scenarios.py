@@ -73,9 +73,21 @@ class Scenario:
     config: MiddlewareConfig = field(default_factory=MiddlewareConfig)
     preset: RadioPreset = LOSSLESS
     link_range: float = LOSSLESS_RANGE  # for ground-truth connectivity
+    # The medium (docs/radio.md, "Medium access and collisions"). None: on the
+    # lossless preset the medium before issue 13 (mac = "aloha", collisions =
+    # "none": no carrier sense, no collisions, no channel access failures) -- the
+    # protocol tests on it are about the protocol's logic on perfect links, not
+    # about the channel; on any other preset the defaults ("csma", "sinr").
+    mac: str | None = None
+    collisions: str | None = None
 
     def __post_init__(self) -> None:
-        self.net = VirtualNetwork(RadioModel(self.preset, self.seed), self.seed)
+        perfect = self.preset is LOSSLESS
+        mac = self.mac or ("aloha" if perfect else "csma")
+        collisions = self.collisions or ("none" if perfect else "sinr")
+        self.net = VirtualNetwork(
+            RadioModel(self.preset, self.seed), self.seed, mac=mac, collisions=collisions
+        )
         self.motes: dict[int, AwareMote] = {}
         self.apps: dict[int, ScriptedApp] = {}
         self.events: list[tuple[float, int, object]] = []

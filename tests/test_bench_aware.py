@@ -24,6 +24,11 @@ KEYS = {
     "mean_neighbours",
     "dropped_loss",
     "dropped_distance",
+    "collisions",
+    "cca_busy",
+    "mac_drops",
+    "mac",
+    "collisions_model",
     "preset",
     "seed",
     "spacing_m",
@@ -49,6 +54,7 @@ def test_aware_workload_tracks_and_delivers(tmp_path: Path) -> None:
     assert out["record_delivery"] > 0.9
     assert out["records_delivered"] <= out["records_produced"]
     assert out["records_untracked"] == 0
+    assert out["mac"] == "csma" and out["collisions_model"] == "sinr" and out["collisions"] > 0
     # The profile holds the protocol's own functions (the run went through them).
     stats = pstats.Stats(str(prof))
     funcs = {f"{Path(file).name}:{name}" for file, _, name in stats.stats}  # type: ignore[attr-defined]

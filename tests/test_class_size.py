@@ -25,6 +25,7 @@ HOLD_DATA = {
     "protocol.frames.DataRecord",
     "radio.model.RadioPreset",
     "radio.counters.MoteCounters",
+    "radio.mac.MacParams",
     "radio.envelope.Envelope",
     "runtime.deployment.NodeSpec",
     "runtime.deployment.Deployment",

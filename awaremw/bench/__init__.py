@@ -13,4 +13,5 @@ BENCHMARKS: dict[str, str] = {
     "aggregation": "awaremw.bench.aggregation",
     "dissemination": "awaremw.bench.dissemination",
     "bridge": "awaremw.bench.bridge",
+    "mac": "awaremw.bench.mac",
 }

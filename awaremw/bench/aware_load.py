@@ -56,7 +56,14 @@ MAX_TRACKED = 200_000  # records remembered by the tally (a 2 s channel: ~110 h 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
 
 
-def deployment(motes: int, seed: int, duration: float, spacing: float = SPACING_M) -> Deployment:
+def deployment(
+    motes: int,
+    seed: int,
+    duration: float,
+    spacing: float = SPACING_M,
+    mac: str = "csma",
+    collisions: str = "sinr",
+) -> Deployment:
     """``motes`` motes on a square grid, the gateway's at (0, 0)-ish, a fire crossing."""
     if motes < 2:
         raise ValueError("the aware workload needs at least 2 motes (a gateway and a sensor)")
@@ -82,6 +89,8 @@ def deployment(motes: int, seed: int, duration: float, spacing: float = SPACING_
         "radio": "cc2420",
         "seed": seed,
         "tx_power_dbm": 0.0,
+        "mac": mac,
+        "collisions": collisions,
         "area": [w, h],
         "world": {"ambient_temperature": 20.0, "fires": [fire]},
         "nodes": nodes,
@@ -164,11 +173,13 @@ def _key(r: DataRecord) -> RecordKey:
     return (r.channel, r.group_type, r.group_id, r.epoch)
 
 
-def build(motes: int, seed: int, duration: float) -> AwareLoad:
+def build(
+    motes: int, seed: int, duration: float, mac: str = "csma", collisions: str = "sinr"
+) -> AwareLoad:
     """The network, every core from the fleet's :class:`KindsFactory`."""
-    d = deployment(motes, seed, duration)
+    d = deployment(motes, seed, duration, mac=mac, collisions=collisions)
     factory = KindsFactory()
-    net = VirtualNetwork(d.radio_model(), d.seed)
+    net = VirtualNetwork(d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions)
     load = AwareLoad(net, d)
     net.on_event = load.tally.on_event
     for spec in d.nodes:

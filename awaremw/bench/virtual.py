@@ -15,7 +15,9 @@ JSON keys: ``motes``, ``sim_seconds``, ``wall_seconds``, ``speedup``
 shared machine, ``sim_seconds / cpu_seconds`` is the speed-up it would have
 alone), ``frames_tx``, ``deliveries`` (frames received by
 a core), ``mean_neighbours`` (table size at the end), ``dropped_loss``,
-``dropped_distance``, ``preset``, ``seed``, ``spacing_m``, ``workload``. With
+``dropped_distance``, ``collisions``, ``cca_busy``, ``mac_drops`` (totals of
+the counters), ``mac`` and ``collisions_model`` (``--mac csma|aloha``,
+``--collisions sinr|none``), ``preset``, ``seed``, ``spacing_m``, ``workload``. With
 ``--workload aware`` also ``records_produced``, ``records_delivered``,
 ``record_delivery`` (delivered / produced, records produced in the last 10 s
 left out), ``leaders``, ``records_untracked``, ``channel_period_s``;
@@ -43,11 +45,16 @@ WORKLOADS = ("hello", "aware")
 
 
 def build(
-    motes: int, seed: int, radio: str = "cc2420", spacing: float = SPACING_M
+    motes: int,
+    seed: int,
+    radio: str = "cc2420",
+    spacing: float = SPACING_M,
+    mac: str = "csma",
+    collisions: str = "sinr",
 ) -> VirtualNetwork:
     """A grid of HelloMotes (period 1 s) on a fresh virtual network."""
     p = preset(radio)
-    net = VirtualNetwork(RadioModel(p, seed), seed)
+    net = VirtualNetwork(RadioModel(p, seed), seed, mac=mac, collisions=collisions)
     cols = max(1, math.ceil(math.sqrt(motes)))
     for i in range(motes):
         core = HelloMote(i, 1.0, random.Random(seed * 1_000_003 + i), p.mtu)
@@ -63,16 +70,19 @@ def run(
     seed: int = 1,
     workload: str = "hello",
     profile: str | None = None,
+    mac: str = "csma",
+    collisions: str = "sinr",
 ) -> dict[str, Any]:
     """Run the benchmark. Also accepts the parsed CLI arguments (bench registry)."""
     if isinstance(motes, argparse.Namespace):
         ns = motes
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
         workload, profile = str(ns.workload), ns.profile
+        mac, collisions = str(ns.mac), str(ns.collisions)
     if workload not in WORKLOADS:
         raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
-    load = aware_load.build(motes, seed, duration) if workload == "aware" else None
-    net = load.net if load is not None else build(motes, seed)
+    load = aware_load.build(motes, seed, duration, mac, collisions) if workload == "aware" else None
+    net = load.net if load is not None else build(motes, seed, mac=mac, collisions=collisions)
     t0 = time.perf_counter()
     c0 = time.process_time()
     with profiled(profile):
@@ -101,6 +111,11 @@ def run(
         "mean_neighbours": round(sum(tables) / max(1, len(tables)), 2),
         "dropped_loss": sum(c.dropped_loss for c in counters.values()),
         "dropped_distance": sum(c.dropped_distance for c in counters.values()),
+        "collisions": sum(c.collisions for c in counters.values()),
+        "cca_busy": sum(c.cca_busy for c in counters.values()),
+        "mac_drops": sum(c.mac_drops for c in counters.values()),
+        "mac": mac,
+        "collisions_model": collisions,
         "preset": net.preset.name,
         "seed": seed,
         "spacing_m": SPACING_M,
@@ -122,3 +137,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="hello: beacons only (the radio); aware: the whole middleware tracking a fire",
     )
     parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
+    parser.add_argument("--mac", choices=("csma", "aloha"), default="csma", help="medium access")
+    parser.add_argument(
+        "--collisions", choices=("sinr", "none"), default="sinr", help="collision model"
+    )

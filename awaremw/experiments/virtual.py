@@ -78,7 +78,7 @@ class VirtualRun:
         self.scenario = scenario
         self.recorder = recorder or Recorder()
         d = scenario.deployment
-        self.net = VirtualNetwork(d.radio_model(), d.seed)
+        self.net = VirtualNetwork(d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions)
         self.net.on_event = self.recorder.on_event
         self.cores: dict[int, MoteCore] = {}
         gw_id = scenario.gateway

@@ -33,6 +33,9 @@ class MoteCounters:
     acks_rx: int = 0
     duplicates: int = 0  # retried unicasts received again (not passed to the core)
     refused: int = 0  # received but refused by link security (bad MIC, replay; radio/security.py)
+    collisions: int = 0  # would have been received; lost to overlapping frames or own TX
+    cca_busy: int = 0  # clear channel assessments that found the channel busy
+    mac_drops: int = 0  # frames given up after too many busy assessments (channel access failure)
 
     def energy_mj(self, preset: RadioPreset, tx_power_dbm: float | None = None) -> float:
         """Radio energy in mJ: V * I * airtime, for TX (frames + ACKs) and RX (same)."""

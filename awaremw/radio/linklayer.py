@@ -143,6 +143,18 @@ def settle(st: LinkStation, acked: bool, max_retries: int) -> bool:
     return False
 
 
+def give_up(st: LinkStation) -> Transmission | None:
+    """Channel access failure (radio/mac.py: too many busy assessments): the frame
+    on the air is dropped (``mac_drops += 1``, no retry) and the radio is idle.
+    Returns it (a unicast's outcome goes to the core as not acknowledged)."""
+    tx = st.cur
+    st.counters.mac_drops += 1
+    st.busy = False
+    st.cur = None
+    st.air = b""
+    return tx
+
+
 def battery_spent(st: LinkStation, preset: RadioPreset) -> bool:
     """Rule 9: a mote on the air whose battery budget is spent (checked after each
     of its transmissions and receptions); the caller switches it off."""

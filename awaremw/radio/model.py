@@ -133,6 +133,11 @@ class RadioPreset:
     tx_current_ma: float
     rx_current_ma: float
     tx_current_table: tuple[tuple[float, float], ...] = field(default=())
+    # SINR (dB) a frame needs, at every instant of its reception, to survive
+    # overlapping frames (capture; radio/mac.py). Son, Krishnamachari and
+    # Heidemann (SenSys 2006) measured a threshold of a few dB on CC1000 motes,
+    # with a grey region of about 6 dB across radios: docs/radio.md.
+    capture_threshold_db: float = 4.0
 
     def __post_init__(self) -> None:
         if self.modulation not in ("oqpsk", "ncfsk"):

@@ -311,14 +311,30 @@ class Neighbourhood(Generic[S]):
         return out
 
 
+# Collision check of one reception (radio/mac.py, Air.survives bound to the frame
+# and receiver): given the packet's RSSI, did it survive the frames overlapping it?
+Survive = Callable[[float], bool]
+
+
 def deliver(
-    model: RadioModel, rc: MoteCounters, mean: float, link_h: int, n: int, bits: int, key: int
+    model: RadioModel,
+    rc: MoteCounters,
+    mean: float,
+    link_h: int,
+    n: int,
+    bits: int,
+    key: int,
+    survive: Survive | None = None,
 ) -> float | None:
-    """Rule 5 for one receiver in range: the model decides; lost -> ``dropped_loss``,
+    """Rule 5 for one receiver in range: the model decides; lost -> ``dropped_loss``;
+    received but destroyed by overlapping frames (``survive``) -> ``collisions``;
     delivered -> ``frames_rx``, ``bytes_rx`` and the packet's RSSI is returned."""
     ok, rssi = model.decide(link_h, mean, bits, key)
     if not ok:
         rc.dropped_loss += 1
+        return None
+    if survive is not None and not survive(rssi):
+        rc.collisions += 1
         return None
     rc.frames_rx += 1
     rc.bytes_rx += n
@@ -336,6 +352,7 @@ def hear(
     n: int,
     bits: int,
     key: int,
+    survive: Survive | None = None,
 ) -> float | None:
     """Rules 4 and 5 for one receiver at distance ``d``, from scratch (moving motes,
     unicasts): beyond ``range_m`` -> ``dropped_distance``, else :func:`deliver`."""
@@ -343,11 +360,17 @@ def hear(
         rc.dropped_distance += 1
         return None
     mean = model.mean_rssi(src, dst, d, tx_power)
-    return deliver(model, rc, mean, model.fading_link_hash(src, dst), n, bits, key)
+    return deliver(model, rc, mean, model.fading_link_hash(src, dst), n, bits, key, survive)
 
 
 def hear_link(
-    model: RadioModel, link: Link[S], range_m: float, n: int, bits: int, key: int
+    model: RadioModel,
+    link: Link[S],
+    range_m: float,
+    n: int,
+    bits: int,
+    key: int,
+    survive: Survive | None = None,
 ) -> float | None:
     """:func:`hear` on a cached link (:meth:`Neighbourhood.link`) of a sender whose
     range is ``range_m``."""
@@ -355,4 +378,4 @@ def hear_link(
     if d > range_m:
         r.counters.dropped_distance += 1
         return None
-    return deliver(model, r.counters, mean, link_h, n, bits, key)
+    return deliver(model, r.counters, mean, link_h, n, bits, key, survive)

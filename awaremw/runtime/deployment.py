@@ -23,6 +23,7 @@ from pathlib import Path as FsPath
 from typing import Any
 
 from awaremw.protocol.frames import MAX_NODE_ID
+from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
 from awaremw.radio.model import PRESETS, RadioModel, RadioPreset
 from awaremw.world.mobility import Mobility, Path, Static
 
@@ -30,7 +31,10 @@ Point = tuple[float, float]
 
 DEFAULT_RADIO = "cc2420"
 
-_TOP_VALUES = {"name", "description", "radio", "seed", "tx_power_dbm", "area", "nodes", "grid"}
+_TOP_VALUES = {
+    "name", "description", "radio", "seed", "tx_power_dbm", "area", "nodes", "grid", "mac",
+    "collisions",
+}  # fmt: skip
 _RAW_TABLES = ("world", "groups", "channels", "middleware")
 _NODE_KEYS = {
     "id",
@@ -113,6 +117,8 @@ class Deployment:
     description: str = ""
     extra: Mapping[str, Any] = field(default_factory=dict)  # other top-level tables
     path: FsPath | None = None
+    mac: str = "csma"  # radio/mac.py MAC_KINDS: "csma" (the preset's CSMA/CA) or "aloha"
+    collisions: str = "sinr"  # radio/mac.py COLLISION_MODES: "sinr" or "none"
 
     @property
     def preset(self) -> RadioPreset:
@@ -333,6 +339,14 @@ class _Parser:
             raise self._fail("", f"unknown radio preset {radio!r} (known: {', '.join(PRESETS)})")
         self.preset = PRESETS[radio]
         seed = self._integer("", d, "seed", 0)
+        mac = self._string("", d, "mac", "csma")
+        if mac not in MAC_KINDS:
+            raise self._fail("", f"unknown mac {mac!r} (known: {', '.join(MAC_KINDS)})")
+        collisions = self._string("", d, "collisions", "sinr")
+        if collisions not in COLLISION_MODES:
+            raise self._fail(
+                "", f"unknown collisions {collisions!r} (known: {', '.join(COLLISION_MODES)})"
+            )
         tx_power = self._number("", d, "tx_power_dbm", self.preset.tx_power_dbm)
         self._check_power("", tx_power)
         if "area" not in d:
@@ -387,6 +401,8 @@ class _Parser:
             description=description,
             extra=extra,
             path=self.path,
+            mac=mac,
+            collisions=collisions,
         )
 
     def _node(self, i: int, entry: Any) -> tuple[NodeSpec, str]:

@@ -17,6 +17,13 @@ heap and the per-packet loop over a static sender's receivers (the hot path:
 :meth:`RadioModel.decide <awaremw.radio.model.RadioModel.decide>` inlined),
 which is what makes 1,000 motes run at least 10x faster than real time.
 Moving motes are evaluated afresh at every frame.
+
+Channel access and collisions are :mod:`awaremw.radio.mac`'s (the core the
+Zenoh medium is to share): each mote's :class:`~awaremw.radio.mac.MacSender`
+says when to assess the channel and when its attempt goes on the air; the
+network's :class:`~awaremw.radio.mac.Air` holds the frames on the air, answers
+the assessments, and at each frame's end says which receptions survived
+(``VirtualNetwork(..., mac="csma"|"aloha", collisions="sinr"|"none")``).
 """
 
 from __future__ import annotations
@@ -33,6 +40,16 @@ from awaremw.radio import linklayer
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
+from awaremw.radio.mac import (
+    COLLISION_MODES,
+    GIVE_UP,
+    SENSE,
+    TRANSMIT,
+    Air,
+    MacSender,
+    OnAir,
+    mac_params,
+)
 from awaremw.radio.model import (
     _GOLDEN,
     _M64,
@@ -41,10 +58,9 @@ from awaremw.radio.model import (
     _SHIFT,
     _U32,
     RadioModel,
-    packet_hash,
     packet_key,
 )
-from awaremw.radio.neighbourhood import Neighbourhood, adjacent, hear, hear_link
+from awaremw.radio.neighbourhood import Neighbourhood, Survive, adjacent, hear, hear_link
 from awaremw.radio.security import FrameGuard, Opened, RadioSecurity
 from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
 from awaremw.world.mobility import Mobility, Static
@@ -55,14 +71,16 @@ T = TypeVar("T")
 EventHook = Callable[[int, object, float], None]
 TransmitHook = Callable[[int, Transmission, float], None]
 
-_TIMER, _TX_END, _UC_DONE, _START, _CALL = range(5)
+_TIMER, _TX_END, _UC_DONE, _START, _CALL, _CCA = range(6)
 _MAX_FIRINGS_AT_ONE_TIME = 100_000
 
 
 class _Node(LinkStation):
     """Driver-side state of one mote incarnation: its radio, core and timer."""
 
-    __slots__ = ("armed", "backoff_h", "core", "fire_count", "fire_t", "started", "timer_gen")
+    __slots__ = (
+        "armed", "core", "fire_count", "fire_t", "mac", "onair", "started", "timer_gen",
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -76,7 +94,8 @@ class _Node(LinkStation):
         super().__init__(core.node_id, mobility, tx_power, range_m, counters, battery)
         self.core = core
         self.started = False
-        self.backoff_h = 0
+        self.mac: MacSender | None = None  # set by VirtualNetwork.add
+        self.onair: OnAir | None = None  # the frame this mote has on the air (Air)
         self.timer_gen = 0
         self.armed: float | None = None
         self.fire_t = -1.0
@@ -87,10 +106,20 @@ class VirtualNetwork:
     """Motes on a virtual clock, talking through the in-memory medium."""
 
     def __init__(
-        self, model: RadioModel, seed: int | None = None, *, security: RadioSecurity | None = None
+        self,
+        model: RadioModel,
+        seed: int | None = None,
+        *,
+        security: RadioSecurity | None = None,
+        mac: str = "csma",
+        collisions: str = "sinr",
     ) -> None:
         if seed is not None and seed != model.seed:
             raise ValueError(f"seed {seed} differs from the radio model's seed {model.seed}")
+        if collisions not in COLLISION_MODES:
+            raise ValueError(
+                f"unknown collisions {collisions!r}; known: {', '.join(COLLISION_MODES)}"
+            )
         self.model = model
         self.seed = model.seed
         self.preset = model.preset
@@ -116,7 +145,14 @@ class VirtualNetwork:
         self._sigma_f = p.fading_sigma_db
         self._overhead = p.phy_overhead_bytes
         self._byte_s = 8.0 / p.bitrate_bps
-        self._backoff_max = p.mac_backoff_s
+        # Medium access and collisions (radio/mac.py): the MAC of every mote, and
+        # the frames on the air when anything needs them (carrier sense, SINR).
+        self.mac_params = mac_params(p, mac)
+        self.collisions = collisions
+        self._sense = self.mac_params.kind == "csma"
+        self._collide = collisions == "sinr"
+        self._track = self._sense or self._collide
+        self._air = Air(model, p.capture_threshold_db, p.airtime_s(p.mtu) + 1e-3)
         # Link-layer security (awaremw.radio.security): frames sealed on the air,
         # opened and checked for replays off it; the cores get mtu - overhead bytes.
         self.guard: FrameGuard | None = None if security is None else FrameGuard(security)
@@ -168,7 +204,7 @@ class VirtualNetwork:
         counters = self._counters.setdefault(nid, MoteCounters())
         battery = None if battery_mj is None else Battery(battery_mj)
         node = _Node(core, counters, mobility, txp, self.model.max_range_m(txp), battery)
-        node.backoff_h = self.model.backoff_link_hash(nid)
+        node.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self._nodes[nid] = node
         self._cores[nid] = core
         self._push(t, _START, node, None)
@@ -180,6 +216,9 @@ class VirtualNetwork:
             node.started = True  # a mote killed before booting never boots
             return
         linklayer.silence(node)
+        if self._track:
+            self._air.cut(node_id, self._now)
+            node.onair = None
         self._nb.remove(node)
         if self.on_event is not None:
             self.on_event(node_id, MoteDown(reason), self._now)
@@ -253,6 +292,8 @@ class VirtualNetwork:
                 self._timer(node, data)  # type: ignore[arg-type]
             elif kind == _UC_DONE:
                 self._uc_done(node, data)  # type: ignore[arg-type]
+            elif kind == _CCA:
+                self._cca(node)  # type: ignore[arg-type]
             elif kind == _START:
                 self._start(node)  # type: ignore[arg-type]
             else:
@@ -332,14 +373,62 @@ class VirtualNetwork:
         self._schedule_attempt(node, len(node.air), node.cur_seq, 0)
 
     def _schedule_attempt(self, node: _Node, n: int, seq: int, attempt: int) -> None:
-        h = packet_hash(node.backoff_h, (seq << 8) | (attempt << 1))  # packet_key(seq, attempt)
-        t = (
-            self._now
-            + (h & 0xFFFFFFFF) * _U32 * self._backoff_max
-            + (n + self._overhead) * self._byte_s
-        )
+        """The MAC (radio/mac.py) takes the attempt: first assessment, or ALOHA's start."""
+        t = node.mac.begin(seq, attempt, self._now)  # type: ignore[union-attr]
+        if self._sense:
+            self._push(t, _CCA, node, None)
+        else:
+            self._go(node, t, n)
+
+    def _go(self, node: _Node, start: float, n: int) -> None:
+        """The attempt goes on the air at ``start`` (known to the Air from now on)."""
+        end = start + (n + self._overhead) * self._byte_s
+        if self._track:
+            air = self._air
+            air.prune(self._now)
+            if not node.static:
+                self._nb.locate(node, self._now)
+            key = packet_key(node.cur_seq, node.cur_attempt)
+            node.onair = air.add(node.node_id, node.x, node.y, node.tx_power, start, end, key)
         self._seq += 1
-        heapq.heappush(self._heap, (t, self._seq, _TX_END, node, None))
+        heapq.heappush(self._heap, (end, self._seq, _TX_END, node, None))
+
+    def _cca(self, node: _Node) -> None:
+        """A clear channel assessment of ``node`` ends now: transmit, back off or give up."""
+        if node.cur is None or not node.alive:
+            return  # switched off while backing off
+        now = self._now
+        if not node.static:
+            self._nb.locate(node, now)
+        p = self.mac_params
+        busy = self._air.busy(
+            node.node_id, node.x, node.y, now - p.cca_s, now, p.cca_threshold_dbm, p.carrier_sense
+        )
+        if busy:
+            node.counters.cca_busy += 1
+        action, t = node.mac.cca(busy, now)  # type: ignore[union-attr]
+        if action == TRANSMIT:
+            self._go(node, t, len(node.air))
+        elif action == SENSE:
+            self._push(t, _CCA, node, None)
+        else:
+            assert action == GIVE_UP
+            tx = linklayer.give_up(node)
+            if tx is not None and tx.dest != BROADCAST:
+                try:
+                    node.core.link_result(tx, False, now)
+                except Exception as e:
+                    self._contain(node, "link_result", e)
+                self._after(node)
+            if node.alive and not node.busy:
+                self._start_next(node)
+
+    def _survivor(self, f: OnAir | None, others: list[OnAir] | None, r: _Node) -> Survive | None:
+        """The collision check of frame ``f`` at receiver ``r`` (None: nothing overlapped)."""
+        if f is None or not others:
+            return None
+        air = self._air
+        return lambda rssi: air.survives(f, rssi, r.node_id, r.x, r.y, others)
 
     # ------------------------------------------------------------------ the medium
 
@@ -351,6 +440,9 @@ class VirtualNetwork:
         frame = s.air
         n = len(frame)
         c = s.counters
+        f = s.onair
+        s.onair = None
+        others = self._air.overlapping(f) if self._collide and f is not None else None
         c.frames_tx += 1
         c.bytes_tx += n
         if self.on_transmit is not None:
@@ -358,17 +450,28 @@ class VirtualNetwork:
         if tx.dest == BROADCAST:
             s.busy = False
             s.cur = None
-            self._broadcast(s, frame, n, seq << 8)  # packet_key(seq, 0)
+            self._broadcast(s, frame, n, seq << 8, f, others or None)  # packet_key(seq, 0)
             if s.battery is not None:
                 self._check_battery(s)
             if s.queue and s.alive and not s.busy:
                 self._start_next(s)
         else:
-            self._unicast(s, tx, frame, n, seq, s.cur_attempt)
+            self._unicast(s, tx, frame, n, seq, s.cur_attempt, f, others or None)
             self._check_battery(s)
 
-    def _broadcast(self, s: _Node, frame: bytes, n: int, key: int) -> None:
+    def _broadcast(
+        self,
+        s: _Node,
+        frame: bytes,
+        n: int,
+        key: int,
+        f: OnAir | None,
+        others: list[OnAir] | None,
+    ) -> None:
+        """Rules 3 to 5 for a broadcast that just ended; ``others``: the frames that
+        overlapped it (None: none, or collisions off)."""
         g = self.guard
+        air = self._air
         op = None if g is None else g.open(s.node_id, BROADCAST, key >> 8, frame)
         sid = s.node_id
         bits = 8 * (n + self._overhead)
@@ -406,6 +509,9 @@ class VirtualNetwork:
                         continue
                 if not r.alive:
                     continue
+                if others is not None and not air.survives(f, rssi, r.node_id, r.x, r.y, others):  # type: ignore[arg-type]
+                    rc.collisions += 1
+                    continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 core = r.core
@@ -425,13 +531,13 @@ class VirtualNetwork:
                     self._check_battery(r)
             if nb.moving:
                 for r in list(nb.moving):
-                    self._hear(s, r, frame, n, bits, key, op)
+                    self._hear(s, r, frame, n, bits, key, op, f, others)
         else:
             nb.locate(s, now)
             candidates = [r for lst in nb.cells_around(s.cell) for r in lst]
             candidates.extend(nb.moving)  # filtered by cell in _hear
             for r in candidates:
-                self._hear(s, r, frame, n, bits, key, op)
+                self._hear(s, r, frame, n, bits, key, op, f, others)
 
     def _hear(
         self,
@@ -442,6 +548,8 @@ class VirtualNetwork:
         bits: int,
         key: int,
         op: Opened | None,
+        f: OnAir | None,
+        others: list[OnAir] | None,
     ) -> None:
         """One receiver of a broadcast, evaluated from scratch (moving motes)."""
         if r is s or not r.alive:
@@ -452,7 +560,17 @@ class VirtualNetwork:
             return  # not subscribed to the sender's cell: hears nothing, counts nothing
         d = math.hypot(r.x - s.x, r.y - s.y)
         rssi = hear(
-            self.model, r.counters, s.node_id, r.node_id, d, s.tx_power, s.range_m, n, bits, key
+            self.model,
+            r.counters,
+            s.node_id,
+            r.node_id,
+            d,
+            s.tx_power,
+            s.range_m,
+            n,
+            bits,
+            key,
+            self._survivor(f, others, r),
         )
         if rssi is None:
             return
@@ -466,7 +584,17 @@ class VirtualNetwork:
         self._after(r)
         self._check_battery(r)
 
-    def _unicast(self, s: _Node, tx: Transmission, frame: bytes, n: int, seq: int, a: int) -> None:
+    def _unicast(
+        self,
+        s: _Node,
+        tx: Transmission,
+        frame: bytes,
+        n: int,
+        seq: int,
+        a: int,
+        f: OnAir | None,
+        others: list[OnAir] | None,
+    ) -> None:
         now = self._now
         p = self.preset
         m = self.model
@@ -476,7 +604,8 @@ class VirtualNetwork:
             link = self._nb.link(s, r, now)  # None: r does not listen to s's cell
             if link is not None:
                 bits = 8 * (n + self._overhead)
-                rssi = hear_link(m, link, s.range_m, n, bits, packet_key(seq, a))
+                survive = self._survivor(f, others, r)
+                rssi = hear_link(m, link, s.range_m, n, bits, packet_key(seq, a), survive)
                 if rssi is not None:
                     g = self.guard
                     op = None if g is None else g.open(s.node_id, tx.dest, seq, frame)
