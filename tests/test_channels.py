@@ -170,6 +170,28 @@ def test_slots_deeper_first_all_within_the_period() -> None:
     assert h.c.slot_time(1, 7, d + 5) == h.c.slot_time(1, 7, d)  # deeper motes share slot 0
 
 
+def test_partials_spread_over_the_slot_jitter_and_leave_the_rest_for_retries() -> None:
+    """A ring's members pick their send times over the first ``slot_jitter`` of the
+    slot (not half of it): under CSMA, siblings that start within one backoff unit
+    of each other collide (docs/protocol-groups.md, "Epochs and slots")."""
+    offsets = []
+    for nid in range(300):
+        h = H(nid)
+        h.groups.set(1, 500, hops=2, parent=5)
+        h.c.define(1, chan(period_ms=2000), 0.0)
+        h.advance(2.0)  # epoch 1 starts: the send timer is set
+        t = h.c.timers.get(("send", (1, 1, 500, 1)))
+        assert t is not None
+        offsets.append(t - h.c.slot_time(1, 1, 2))
+    d = MiddlewareConfig().max_group_depth
+    slot = 2.0 / (d + 1)
+    frac = MiddlewareConfig().slot_jitter
+    assert 0.5 < frac < 1.0
+    assert min(offsets) >= 0.0 and max(offsets) < frac * slot
+    assert max(offsets) > 0.9 * frac * slot  # the whole window is used
+    assert sum(o > slot / 2 for o in offsets) > 0.2 * len(offsets)  # beyond half a slot
+
+
 # --------------------------------------------------------------------------- members
 
 

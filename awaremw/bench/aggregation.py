@@ -33,7 +33,9 @@ throw-away keys, every frame sealed with a frame counter and an 8-byte MIC,
 definitions signed by the gateway), ``security_overhead_bytes`` (per frame),
 ``payload_mtu``, ``bytes_per_epoch`` (radio bytes of the counted frames,
 overhead included) and ``energy_mj_per_epoch`` (radio energy of every mote,
-ACKs included).
+ACKs included); ``mac`` and ``collisions_model`` (``--mac csma|aloha``,
+``--collisions sinr|none``), ``collisions_per_epoch``, ``cca_busy_per_epoch``,
+``mac_drops_per_epoch`` (the MAC counters of every mote over the window).
 
 How beacons are paced to meet the targets: a leader beacon costs one frame per
 member (the leader's, and one re-broadcast per member), so beacons add
@@ -56,6 +58,7 @@ import time
 from collections import Counter
 from typing import Any
 
+from awaremw.bench.medium import add_medium_arguments, mac_totals, medium_of
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.config import MiddlewareConfig
@@ -120,6 +123,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
     )
+    add_medium_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -134,7 +138,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         security, key = RadioSecurity.throwaway()
         signer = ItemSigner(key)
         cfg = dataclasses.replace(cfg, gateway_public_key=security.gateway_public_key)
-    net = VirtualNetwork(RadioModel(radio, seed), seed, security=security)
+    mac, collisions = medium_of(args)
+    net = VirtualNetwork(
+        RadioModel(radio, seed), seed, security=security, mac=mac, collisions=collisions
+    )
     cfg = dataclasses.replace(cfg, mtu=net.payload_mtu)
     far = spacing * (side - 1)
     centre = (far - float(args.radius) * 0.9, far - float(args.radius) * 0.9)
@@ -185,11 +192,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     end = start + int(args.epochs) * period
     net.run_until(start)
     acks0 = _acks(net)
+    mac0 = mac_totals(net.counters.values())
     energy0 = _energy(net)
     stats0 = _channel_stats(motes)
     window[0], window[1] = start, end
     net.run_until(end)
     acks = _acks(net) - acks0
+    mac_window = {k: v - mac0[k] for k, v in mac_totals(net.counters.values()).items()}
     energy = _energy(net) - energy0
     stats = _channel_stats(motes) - stats0
     wall = time.perf_counter() - t0
@@ -212,6 +221,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "no_aggregation_per_epoch": no_agg,
         "by_frame_per_epoch": {k: v / epochs for k, v in sorted(by_type.items())},
         "acks_per_epoch": acks / epochs,
+        "collisions_per_epoch": mac_window["collisions"] / epochs,
+        "cca_busy_per_epoch": mac_window["cca_busy"] / epochs,
+        "mac_drops_per_epoch": mac_window["mac_drops"] / epochs,
+        "mac": mac,
+        "collisions_model": collisions,
         "channel_stats": dict(sorted(stats.items())),
         "members": n_members,
         "members_expected": len(members_truth),

@@ -28,7 +28,10 @@ JSON keys:
   mote; the signature travels in 2 DripSig frames, counted in the Drip
   figures), ``security_overhead_bytes`` (per frame; 0 when off),
   ``payload_mtu`` (the MTU the middleware's frames get),
-  ``bytes_tx_per_mote_per_hour`` (radio bytes in the window, overhead included).
+  ``bytes_tx_per_mote_per_hour`` (radio bytes in the window, overhead included);
+* ``mac``, ``collisions_model`` (``--mac csma|aloha``, ``--collisions
+  sinr|none``), ``window_collisions``, ``window_cca_busy``,
+  ``window_mac_drops`` (MAC counters of every mote over the window).
 
 The scenario helpers (grid of motes with optional periodic traffic, route and
 connectivity checks) are shared with the tests.
@@ -43,6 +46,7 @@ from collections import deque
 from collections.abc import Iterable
 from typing import Any
 
+from awaremw.bench.medium import add_medium_arguments, mac_totals, medium_of
 from awaremw.protocol.collection import ParentChanged
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
@@ -148,12 +152,16 @@ def build_grid(
     overrides: dict[str, Any] | None = None,
     security: RadioSecurity | None = None,
     signer: ItemSigner | None = None,
+    mac: str = "csma",
+    collisions: str = "sinr",
 ) -> tuple[VirtualNetwork, dict[int, TrafficMote], list[Event]]:
     """``side`` x ``side`` TrafficMotes (ids row by row); returns the network, the
     motes and the list the network's events are appended to. With ``security``
     the radio is secured, the motes get the payload MTU and verify items with
     its gateway public key, and the roots sign with ``signer``."""
-    net = VirtualNetwork(RadioModel(preset(radio), seed), seed, security=security)
+    net = VirtualNetwork(
+        RadioModel(preset(radio), seed), seed, security=security, mac=mac, collisions=collisions
+    )
     events: list[Event] = []
     net.on_event = lambda node, e, t: events.append((node, e, t))
     rng = random.Random(seed)
@@ -228,8 +236,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if secure:
         security, key = RadioSecurity.throwaway()
         signer = ItemSigner(key)
+    mac, collisions = medium_of(args)
     net, motes, events = build_grid(
-        side, float(args.spacing), (0,), seed, radio=args.radio, security=security, signer=signer
+        side,
+        float(args.spacing),
+        (0,),
+        seed,
+        radio=args.radio,
+        security=security,
+        signer=signer,
+        mac=mac,
+        collisions=collisions,
     )
     counts = {"drip": 0, "ctp": 0, "wave": 0}
     counting = [False]
@@ -268,9 +285,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     counting[0] = True
     window = float(args.window)
     bytes0 = sum(c.bytes_tx for c in net.counters.values())
+    mac0 = mac_totals(net.counters.values())
     net.run_until(net.now + window)
     counting[0] = False
     bytes_tx = sum(c.bytes_tx for c in net.counters.values()) - bytes0
+    mac_window = {k: v - mac0[k] for k, v in mac_totals(net.counters.values()).items()}
     n = len(motes)
     per_hour = 3600.0 / window / n
     parent_changes = sum(1 for _, e, _ in events if isinstance(e, ParentChanged))
@@ -299,6 +318,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "security_overhead_bytes": 0 if security is None else security.overhead,
         "payload_mtu": net.payload_mtu,
         "parent_changes": parent_changes,
+        "mac": mac,
+        "collisions_model": collisions,
+        "window_collisions": mac_window["collisions"],
+        "window_cca_busy": mac_window["cca_busy"],
+        "window_mac_drops": mac_window["mac_drops"],
         "wall_seconds": round(time.perf_counter() - t_wall, 2),
     }
 
@@ -324,3 +348,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
     )
+    add_medium_arguments(parser)

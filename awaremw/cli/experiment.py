@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
+from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
 
 REALTIME = ("romeo4r", "fire")  # experiments that also run in real time over Zenoh
 
@@ -59,6 +60,18 @@ def register(sub: Any) -> None:
         help="with --virtual: run every seed (A-B, or a comma list) and summarise (summary.json)",
     )
     p.add_argument("--jobs", type=int, default=1, help="parallel processes for --seeds")
+    p.add_argument(
+        "--mac",
+        choices=MAC_KINDS,
+        default=None,
+        help="override the deployment's medium access (csma: 802.15.4 CSMA/CA; aloha)",
+    )
+    p.add_argument(
+        "--collisions",
+        choices=COLLISION_MODES,
+        default=None,
+        help="override the deployment's collision model (sinr: overlap and capture; none)",
+    )
     p.set_defaults(func=main)
 
 
@@ -66,7 +79,7 @@ def main(args: argparse.Namespace) -> int:
     if getattr(args, "verbose", 0) < 2:
         # The embedded broker logs every refused protocol probe at WARNING.
         logging.getLogger("amqtt").setLevel(logging.ERROR)
-    from awaremw.experiments.scenario import load_scenario
+    from awaremw.experiments.scenario import load_scenario, scenario_of
     from awaremw.runtime.deployment import DeploymentError
 
     name: str = args.name
@@ -76,6 +89,11 @@ def main(args: argparse.Namespace) -> int:
     except DeploymentError as e:
         print(f"awaremw experiment: {e}", file=sys.stderr)
         return 2
+    medium = _medium(args)
+    if medium:
+        from awaremw.experiments.seeds import with_medium
+
+        sc = scenario_of(with_medium(sc.deployment, medium))
     if args.speed <= 0:
         print("awaremw experiment: --speed must be > 0", file=sys.stderr)
         return 2
@@ -117,6 +135,8 @@ def main(args: argparse.Namespace) -> int:
             secrets=args.secrets,
         )
     metrics = analysis(name)(result, out)
+    metrics["mac"] = sc.deployment.mac
+    metrics["collisions"] = sc.deployment.collisions
     metrics["wall_s"] = round(time.monotonic() - started, 2)
     metrics["command"] = (
         " ".join(["awaremw", "experiment", *sys.argv[2:]])
@@ -151,9 +171,16 @@ def _main_seeds(args: argparse.Namespace, name: str, out: Path) -> int:
         )
 
     started = time.monotonic()
-    summary = run_seeds(name, seeds, out, args.jobs, args.deployment, args.duration, progress)
+    summary = run_seeds(
+        name, seeds, out, args.jobs, args.deployment, args.duration, progress, _medium(args)
+    )
     summary["wall_s"] = round(time.monotonic() - started, 2)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     print(json.dumps(summary, indent=2))
     print(f"wrote {out}/summary.json, {out}/seeds.png and seed-*/metrics.json", file=sys.stderr)
     return 0
+
+
+def _medium(args: argparse.Namespace) -> dict[str, str]:
+    """The deployment keys ``--mac`` and ``--collisions`` override (only those given)."""
+    return {k: v for k in ("mac", "collisions") if (v := getattr(args, k, None)) is not None}

@@ -21,12 +21,13 @@ import json
 import math
 import statistics
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
+from awaremw.runtime.deployment import Deployment
 
 MAX_SEEDS = 1000
 
@@ -63,14 +64,20 @@ def ideal_ids(name: str) -> int | None:
 
 
 def run_seed(
-    name: str, seed: int, out: Path, deployment: str | None = None, duration: float | None = None
+    name: str,
+    seed: int,
+    out: Path,
+    deployment: str | None = None,
+    duration: float | None = None,
+    medium: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
-    """One virtual run of experiment ``name`` with the deployment's seed set to ``seed``."""
+    """One virtual run of experiment ``name`` with the deployment's seed set to ``seed``
+    (and its ``mac`` / ``collisions`` keys replaced by ``medium``'s, if given)."""
     from awaremw.experiments.scenario import load_scenario, scenario_of
     from awaremw.experiments.virtual import VirtualRun
 
     sc = load_scenario(deployment or EXPERIMENTS[name][0])
-    sc = scenario_of(dataclasses.replace(sc.deployment, seed=seed))
+    sc = scenario_of(with_medium(dataclasses.replace(sc.deployment, seed=seed), medium))
     run = VirtualRun(sc)
     prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
     if prepare is not None:
@@ -78,11 +85,24 @@ def run_seed(
     result = run.run(duration)
     metrics = analysis(name)(result, out)
     metrics["seed"] = seed
+    metrics["mac"] = sc.deployment.mac
+    metrics["collisions"] = sc.deployment.collisions
     write_metrics(out, metrics)
     return metrics
 
 
-def _run_one(args: tuple[str, int, Path, str | None, float | None]) -> dict[str, Any]:
+def with_medium(d: Deployment, medium: Mapping[str, str] | None) -> Deployment:
+    """``d`` with its ``mac`` and ``collisions`` keys replaced by ``medium``'s (if any)."""
+    if not medium:
+        return d
+    return dataclasses.replace(
+        d, mac=medium.get("mac", d.mac), collisions=medium.get("collisions", d.collisions)
+    )
+
+
+def _run_one(
+    args: tuple[str, int, Path, str | None, float | None, Mapping[str, str] | None],
+) -> dict[str, Any]:
     return run_seed(*args)
 
 
@@ -94,12 +114,15 @@ def run_seeds(
     deployment: str | None = None,
     duration: float | None = None,
     progress: Callable[[dict[str, Any]], None] | None = None,
+    medium: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """Run every seed (``jobs`` processes), write the per-seed metrics, the summary
-    and the figure; return the summary."""
+    and the figure; return the summary. ``medium``: deployment keys ``mac`` and
+    ``collisions`` to override."""
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
-    tasks = [(name, s, out / f"seed-{s}", deployment, duration) for s in seeds]
+    med = dict(medium) if medium else None
+    tasks = [(name, s, out / f"seed-{s}", deployment, duration, med) for s in seeds]
     per_seed: list[dict[str, Any]] = []
     if jobs == 1 or len(tasks) == 1:
         for t in tasks:
@@ -113,6 +136,8 @@ def run_seeds(
                 if progress is not None:
                     progress(m)
     summary = summarise(name, per_seed)
+    for key in ("mac", "collisions"):
+        summary[key] = sorted({str(m.get(key)) for m in per_seed})[0] if per_seed else None
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     figure(out / "seeds.png", name, per_seed, summary)

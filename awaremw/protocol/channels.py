@@ -10,8 +10,10 @@ Epochs are ``e = floor(now / period)`` on the fleet's shared clock (the
 emulation shares time the way FTSP would). Within an epoch the period is cut
 into ``max_group_depth + 1`` slots, TAG style: a mote ``h`` hops from its
 leader samples at the epoch start and sends in slot ``D - h`` (deeper motes
-first, with a random offset in the first half of the slot), merging whatever
-its children sent before; the leader finalises in the middle of slot ``D``.
+first, at a uniform offset in the first ``slot_jitter`` (0.8) of the slot, so
+that the motes of one ring rarely contend for the channel at once; the rest
+is left for CSMA and retries), merging whatever its children sent before; the
+leader finalises in the middle of slot ``D``.
 A partial that arrives after its receiver already sent is forwarded on alone
 (and counted as late); one that reaches the leader after the record went out
 is counted and dropped.
@@ -225,9 +227,10 @@ class Channels(Component):
         if m.is_leader:
             self.timers.set(("final", key), self.slot_time(cid, e, 0))
         elif ("send", key) not in self.timers:
-            p = self.period(cid)
-            slot = p / (max(1, self.ctx.config.max_group_depth) + 1)
-            t = self.slot_time(cid, e, m.hops) + self.ctx.rng.uniform(0, slot / 2)
+            cfg = self.ctx.config
+            slot = self.period(cid) / (max(1, cfg.max_group_depth) + 1)
+            jitter = slot * min(max(cfg.slot_jitter, 0.0), 1.0)
+            t = self.slot_time(cid, e, m.hops) + self.ctx.rng.uniform(0, jitter)
             self.timers.set(("send", key), t)
 
     def _claim(self, key: _Key) -> tuple[_Pending, Membership] | None:

@@ -60,12 +60,18 @@ class MiddlewareConfig:
     forward_jitter: float = 0.05  # max random delay before re-broadcasting a leader beacon
     report_every_beacons: int = 5  # leader's GroupReport to the gateway, in beacon periods
     max_group_types: int = 8
-    max_group_depth: int = 16  # hops; TAG slots per epoch are planned for this depth
+    # Hops; TAG slots per epoch are planned for this depth (docs/protocol-groups.md,
+    # "Epochs and slots": 8, not 16, so that a slot is wide enough to spread a ring's
+    # partials under carrier sense and collisions).
+    max_group_depth: int = 8
     handover_grace: float = 0.2  # after the ACK, wait this long for a refusal before leaving
     group_link_rssi_floor: float = -90.0  # dBm; weaker links are a group parent of last resort
 
     # Channels
     max_channels: int = 8
+    # A member sends its partial at a uniform offset in the first ``slot_jitter`` of
+    # its TAG slot; the rest of the slot is left for CSMA and the link layer's retries.
+    slot_jitter: float = 0.8
     min_period_s: float = 0.5
 
     # Attributes served by the middleware
