@@ -33,14 +33,17 @@ from __future__ import annotations
 
 import math
 import struct
+from collections import deque
 from pathlib import Path
 from typing import BinaryIO, Protocol
 
 from awaremw.protocol.frames import BROADCAST
+from awaremw.radio.security import Opened
 
 LINKTYPE_IEEE802_15_4_NOFCS = 230
 DEFAULT_PAN_ID = 0x0022  # TinyOS's default AM group (TOS_AM_GROUP)
 DEFAULT_MAX_BUFFER = 256 * 1024  # bytes held in memory before a write to the file
+RECENT = 8  # attempts per sender remembered to record each once
 MAX_COMMENT = 200  # characters of a packet comment (bounded; ours are far shorter)
 
 # Loss causes the media report (``None``: delivered to the mote's core).
@@ -144,7 +147,7 @@ class PcapngWriter:
         if self._file is None or not math.isfinite(ts):
             self.dropped += 1
             return False
-        ns = max(0, int(round(ts * 1e9)))
+        ns = max(0, round(ts * 1e9))
         body = struct.pack("<IIIII", iface, ns >> 32, ns & 0xFFFFFFFF, len(data), len(data))
         body += data + b"\0" * _pad4(len(data))
         if comment:
@@ -226,6 +229,9 @@ class Capture:
         # Per sender, the last frame it put on the air: MAC frame and comment stem
         # (bound: node ids, at most 0x8000).
         self._last: dict[int, tuple[bytes, str]] = {}
+        # Per sender, its last RECENT attempts: several media of one process may share
+        # this capture, and each reports the frames it hears (recorded once).
+        self._recent: dict[int, deque[tuple[bytes, str]]] = {}
 
     @classmethod
     def to_file(
@@ -240,10 +246,18 @@ class Capture:
         return cls(PcapngWriter(path, max_bytes=max_bytes), epoch=epoch, receptions=receptions)
 
     def on_air(self, t: float, src: int, dest: int, seq: int, attempt: int, frame: bytes) -> None:
-        mac = mac_header(src, dest, seq, self.pan_id) + frame
         to = "broadcast" if dest == BROADCAST else str(dest)
         stem = f"src={src} dst={to} seq={seq} attempt={attempt}"
+        recent = self._recent.get(src)
+        if recent is None:
+            recent = self._recent[src] = deque(maxlen=RECENT)
+        for seen in recent:
+            if seen[1] == stem:  # an attempt already recorded (media sharing a capture)
+                self._last[src] = seen
+                return
+        mac = mac_header(src, dest, seq, self.pan_id) + frame
         self._last[src] = (mac, stem)
+        recent.append((mac, stem))
         self.writer.write_packet(self._air, self.epoch + t, mac, f"tx {stem}")
 
     def reception(
@@ -273,6 +287,14 @@ class Capture:
         return self.writer.packets
 
 
-def refusal(payload_ok: bool) -> str:
-    """The loss cause of a frame link security refused: a bad MIC, else a replay."""
-    return "replay" if payload_ok else "mic"
+def lost(beyond_range: bool) -> str:
+    """The cause of a frame the radio model dropped: out of range, else path loss."""
+    return "distance" if beyond_range else "path_loss"
+
+
+def refused(data: bytes | None, opened: Opened | None) -> str | None:
+    """None if the core got the frame (``data``), else why link security refused it:
+    a bad or short MIC, else a replayed counter (or a full sender table)."""
+    if data is not None:
+        return None
+    return "mic" if opened is None or opened.payload is None else "replay"
