@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 from collections import deque
 from pathlib import Path
 from typing import BinaryIO, Protocol
@@ -70,6 +71,7 @@ _IF_TSRESOL = 9
 # destination (bits 10-11 = 2) and source (bits 14-15 = 2) addresses; ACK request (bit 5).
 FCF_DATA = 0x0001 | 0x0040 | (2 << 10) | (2 << 14)  # 0x8841
 FCF_ACK_REQUEST = 0x0020
+FCF_ACK = 0x0002  # an ACK frame (no addresses)
 _MHR = struct.Struct("<HBHHH")  # FCF, DSN, dst PAN, dst addr, src addr (9 bytes)
 
 
@@ -225,6 +227,7 @@ class Capture:
         self.epoch = epoch
         self.receptions = receptions
         self._air = writer.add_interface("air")
+        self._flushed = time.monotonic()
         self._motes: dict[int, int] = {}  # mote id -> interface id (bound: node ids)
         # Per sender, the last frame it put on the air: MAC frame and comment stem
         # (bound: node ids, at most 0x8000).
@@ -245,7 +248,19 @@ class Capture:
         """A capture to a new pcapng file at ``path``."""
         return cls(PcapngWriter(path, max_bytes=max_bytes), epoch=epoch, receptions=receptions)
 
-    def on_air(self, t: float, src: int, dest: int, seq: int, attempt: int, frame: bytes) -> None:
+    def on_air(
+        self,
+        t: float,
+        src: int,
+        dest: int,
+        seq: int,
+        attempt: int,
+        frame: bytes,
+        *,
+        note: str = "",
+    ) -> None:
+        if self.writer.closed:
+            return  # a medium still running after the capture closed
         to = "broadcast" if dest == BROADCAST else str(dest)
         stem = f"src={src} dst={to} seq={seq} attempt={attempt}"
         recent = self._recent.get(src)
@@ -258,12 +273,24 @@ class Capture:
         mac = mac_header(src, dest, seq, self.pan_id) + frame
         self._last[src] = (mac, stem)
         recent.append((mac, stem))
-        self.writer.write_packet(self._air, self.epoch + t, mac, f"tx {stem}")
+        tail = f" {note}" if note else ""
+        self.writer.write_packet(self._air, self.epoch + t, mac, f"tx {stem}{tail}")
+
+    def ack(self, t: float, src: int, dest: int, seq: int, note: str = "") -> None:
+        """The 802.15.4 ACK ``src`` sent for ``dest``'s frame ``seq`` (its 3 bytes:
+        frame control, DSN; an ACK carries no addresses, so they go in the comment)."""
+        if self.writer.closed:
+            return
+        tail = f" {note}" if note else ""
+        data = struct.pack("<HB", FCF_ACK, seq & 0xFF)
+        self.writer.write_packet(
+            self._air, self.epoch + t, data, f"ack src={src} dst={dest} seq={seq}{tail}"
+        )
 
     def reception(
         self, t: float, src: int, dst: int, rssi: float | None, cause: str | None
     ) -> None:
-        if not self.receptions:
+        if not self.receptions or self.writer.closed:
             return
         last = self._last.get(src)
         if last is None:
@@ -278,6 +305,14 @@ class Capture:
 
     def flush(self) -> None:
         self.writer.flush()
+
+    def flush_if_due(self, every_s: float = 1.0) -> None:
+        """Flush if the last flush is ``every_s`` wall seconds old (live captures:
+        the file stays readable while it grows)."""
+        now = time.monotonic()
+        if now - self._flushed >= every_s:
+            self._flushed = now
+            self.writer.flush()
 
     def close(self) -> None:
         self.writer.close()
