@@ -300,3 +300,28 @@ def test_sniff_captures_a_real_fleet_over_zenoh_and_stops_cleanly_on_sigterm(
     sniffed = {(d, c.split()[1]) for _, _, d, c in packets}
     fleet_air = {(d, c.split()[1]) for i, _, d, c in f_packets if i == 0}
     assert sniffed <= fleet_air  # the sniffer saw frames the fleet put on the air
+
+
+def test_sniffer_checks_and_strips_the_mic_and_counts_garbage(tmp_path: Path) -> None:
+    from awaremw.radio.envelope import Kind, encode_envelope
+    from awaremw.radio.security import FrameGuard, RadioSecurity
+    from awaremw.radio.sniffer import Sniffer
+
+    sec, _ = RadioSecurity.throwaway()
+    sealed = FrameGuard(sec).seal(4, BROADCAST, 9, msgpack.packb([1, 4, BROADCAST, 3]))
+    forged = sealed[:-1] + bytes([sealed[-1] ^ 1])
+    cap = Capture.to_file(tmp_path / "s.pcapng", receptions=False)
+    sn = Sniffer(None, cap, security=sec)  # type: ignore[arg-type]  # handle() needs no session
+    for seq, frame in ((9, sealed), (10, forged)):
+        sn.handle(encode_envelope(Kind.FRAME, 4, 1.0, 2.0, 0.0, seq, 0, 5.0, BROADCAST, frame), 7.0)
+    sn.handle(encode_envelope(Kind.ACK, 2, 1.0, 2.0, 0.0, 10, 0, 5.1, 4, b""), 7.5)
+    sn.handle(b"\xc1garbage", 8.0)
+    sn.close()
+    assert (sn.stats.mic_ok, sn.stats.mic_bad, sn.stats.acks, sn.stats.malformed) == (1, 1, 1, 1)
+    _, packets = read_pcapng(tmp_path / "s.pcapng")
+    assert len(packets) == 3
+    (_, ns, ok, c_ok), (_, _, bad, c_bad), (_, _, ack, c_ack) = packets
+    assert ns == 7_000_000_000
+    assert ok[9:] == msgpack.packb([1, 4, BROADCAST, 3]) and "mic=ok counter=1" in c_ok
+    assert bad[9:] == forged and "mic=bad" in c_bad
+    assert ack == bytes.fromhex("02000a") and c_ack.startswith("ack src=2 dst=4 seq=10")
