@@ -325,3 +325,20 @@ def test_sniffer_checks_and_strips_the_mic_and_counts_garbage(tmp_path: Path) ->
     assert ok[9:] == msgpack.packb([1, 4, BROADCAST, 3]) and "mic=ok counter=1" in c_ok
     assert bad[9:] == forged and "mic=bad" in c_bad
     assert ack == bytes.fromhex("02000a") and c_ack.startswith("ack src=2 dst=4 seq=10")
+
+
+@pytest.mark.zenoh
+def test_fleet_with_worker_processes_pcap_sniffs_the_router(tmp_path: Path) -> None:
+    pcap = tmp_path / "multi.pcapng"
+    p = subprocess.run(
+        [*AWAREMW, "fleet", "grid_small", "--processes", "2", "--hello", "--listen",
+         free_tcp_endpoint(), "--duration", "6", "--speed", "2", "--pcap", str(pcap)],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    tx = int(re.search(r"frames tx=(\d+)", p.stdout).group(1))  # type: ignore[union-attr]
+    _, packets = read_pcapng(pcap)
+    # HelloMote only broadcasts, and every broadcast goes through Zenoh: the sniffer
+    # joined before the shared start, so it sees (nearly) all of them.
+    assert tx > 50 and 0.9 * tx <= len(packets) <= tx
+    assert f"{len(packets)} packets to {pcap}" in p.stdout
