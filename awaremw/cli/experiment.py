@@ -59,6 +59,12 @@ def register(sub: Any) -> None:
         help="with --virtual: run every seed (A-B, or a comma list) and summarise (summary.json)",
     )
     p.add_argument("--jobs", type=int, default=1, help="parallel processes for --seeds")
+    p.add_argument(
+        "--pcap",
+        default=None,
+        metavar="FILE",
+        help="write the radio traffic to FILE (pcapng, IEEE 802.15.4; docs/capture.md)",
+    )
     p.set_defaults(func=main)
 
 
@@ -80,6 +86,9 @@ def main(args: argparse.Namespace) -> int:
         print("awaremw experiment: --speed must be > 0", file=sys.stderr)
         return 2
     if args.seeds is not None:
+        if args.pcap is not None:
+            print("awaremw experiment: --pcap records one run, not --seeds", file=sys.stderr)
+            return 2
         return _main_seeds(args, name, out)
     if args.secrets is not None and not args.virtual:
         from awaremw.security.material import check_secrets
@@ -100,7 +109,17 @@ def main(args: argparse.Namespace) -> int:
         prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
         if prepare is not None:
             prepare(run)
-        result = run.run(args.duration)
+        capture = None
+        if args.pcap is not None:
+            from awaremw.radio.capture import Capture
+
+            capture = run.net.tap = Capture.to_file(args.pcap)
+        try:
+            result = run.run(args.duration)
+        finally:
+            if capture is not None:
+                capture.close()
+                print(f"wrote {capture.packets} packets to {args.pcap}", file=sys.stderr)
     else:
         if name not in REALTIME:
             print(f"awaremw experiment: {name} runs only with --virtual", file=sys.stderr)
@@ -115,6 +134,7 @@ def main(args: argparse.Namespace) -> int:
             plain=args.plain,
             robot_mqtt=args.robot_mqtt,
             secrets=args.secrets,
+            pcap=args.pcap,
         )
     metrics = analysis(name)(result, out)
     metrics["wall_s"] = round(time.monotonic() - started, 2)
