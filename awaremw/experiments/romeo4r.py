@@ -45,6 +45,12 @@ def threshold_of(sc: Scenario) -> tuple[float, float]:
 
 def analyse(result: RunResult, out: Path) -> dict[str, Any]:
     """Metrics and figures of a finished run; writes them into ``out``."""
+    return analyse_tracking(result, out, "romeo4r", "Group tracking Romeo 4R")
+
+
+def analyse_tracking(result: RunResult, out: Path, prefix: str, title: str) -> dict[str, Any]:
+    """The robot-tracking metrics of any scenario with a robot and an
+    ``rssi:<robot> >`` group; figures named ``<prefix>_*.png``."""
     sc = result.scenario
     rec = result.recorder
     truth = sc.truth()
@@ -68,7 +74,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
     metrics = M.run_metrics(result, s, gtype, t0, t1, settle)
     metrics["pass_s"] = [t0, t1]
     metrics["robot_entry_s"] = t0
-    _figures(sc, rec, truth, series, out, settle)
+    _figures(sc, rec, truth, series, out, settle, prefix, title)
     return M.rounded(metrics)
 
 
@@ -79,6 +85,8 @@ def _figures(
     series: list[M.Instant],
     out: Path,
     settle: float,
+    prefix: str,
+    title: str,
 ) -> None:
     gtype = sc.tracking_group
     defn = sc.group_def()
@@ -88,18 +96,18 @@ def _figures(
         t0 for t0 in M.instants(series[0].t, series[-1].t, (series[-1].t - series[0].t) / 5)
     ]
     plots.tracking_snapshots(
-        out / "romeo4r_snapshots.png", rec, truth, gtype, defn, snaps, sc.sensors, robot,
+        out / f"{prefix}_snapshots.png", rec, truth, gtype, defn, snaps, sc.sensors, robot,
         sc.field, settle=0.0,
-        title="Group tracking Romeo 4R (colour: group id; star: leader; ring: true member)",
+        title=f"{title} (colour: group id; star: leader; ring: true member)",
     )  # fmt: skip
     thr, hyst = threshold_of(sc)
     motes = [int(m) for m in sc.get("rssi_motes", [])]
     if motes:
         plots.rssi_traces(
-            out / "romeo4r_rssi.png", rec, truth, robot, motes, thr, hyst, gtype,
+            out / f"{prefix}_rssi.png", rec, truth, robot, motes, thr, hyst, gtype,
             max(0.0, series[0].t - 10), min(series[-1].t + 15, sc.duration),
         )  # fmt: skip
     plots.membership_sizes(
-        out / "romeo4r_membership.png", series,
+        out / f"{prefix}_membership.png", series,
         title=f"Tracking group size vs truth (members compared {settle:g} s later)",
     )  # fmt: skip
