@@ -83,19 +83,30 @@ def _draw_motes(
 
     assert isinstance(ax, Axes)
     members = rec.members_at(gtype, t)
+    # One scatter per look (not per mote): 1,024 motes draw in a blink. Markers
+    # shrink with the mote count so that a large field stays legible.
+    k = min(1.0, LABELLED_MOTES / max(1, len(ids)))
+    looks: dict[tuple[str, bool], tuple[list[float], list[float], list[str]]] = {}
     for n in ids:
         x, y = truth.position(n, t)
-        s = members.get(n)
-        ring = "black" if n in true_members else "none"
-        if s is None or s.gid is None:
-            ax.scatter([x], [y], s=70, c="#dddddd", edgecolors=ring, linewidths=1.6, zorder=2)
-        else:
-            ax.scatter(
-                [x], [y], s=240 if s.leader else 90, c=colours(s.gid),
-                marker="*" if s.leader else "o", edgecolors=ring, linewidths=1.6, zorder=3,
-            )  # fmt: skip
-        if labels:
+        st = members.get(n)
+        look = ("#dddddd", False) if st is None or st.gid is None else (colours(st.gid), st.leader)
+        xs, ys, rings = looks.setdefault(look, ([], [], []))
+        xs.append(x)
+        ys.append(y)
+        rings.append("black" if n in true_members else "none")
+        if labels and len(ids) <= LABELLED_MOTES:
             ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=FS_TICK)
+    for (colour, leader), (xs, ys, rings) in looks.items():
+        plain = colour == "#dddddd"
+        size = 70 if plain else 240 if leader else 90
+        ax.scatter(
+            xs, ys, s=size * k, c=colour, marker="*" if leader else "o", edgecolors=rings,
+            linewidths=1.6 * k**0.5, zorder=2 if plain else 3,
+        )  # fmt: skip
+
+
+LABELLED_MOTES = 100  # above this many motes, no id labels and smaller markers
 
 
 def _legend(
