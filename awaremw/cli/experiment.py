@@ -19,13 +19,13 @@ from typing import Any
 
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
 
-REALTIME = ("romeo4r", "fire")  # experiments that also run in real time over Zenoh
+REALTIME = ("romeo4r", "fire", "large")  # experiments that also run in real time over Zenoh
 
 
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "experiment",
-        help="reproduce the paper's experiments (romeo4r, fire) with figures and metrics",
+        help="reproduce the paper's experiments (romeo4r, fire, large, ...) with figures and metrics",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
