@@ -199,7 +199,8 @@ async def _paced(
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(arrivals.event.wait(), 1.0)
             if len(arrivals.times) < n:
-                raise RuntimeError(f"bench bridge: {len(arrivals.times)} of {n} paced records arrived")
+                got = len(arrivals.times)
+                raise RuntimeError(f"bench bridge: {got} of {n} paced records arrived")
             return [arrivals.times[k] - sent[k] for k in sent], svc.mqtt.stats.protocol
     finally:
         sub.cancel()
