@@ -313,8 +313,9 @@ def median_run(runs: Sequence[Result], headline: str) -> tuple[int, list[Any]]:
 
     def order(i: int) -> tuple[int, float]:
         v = values[i]
-        ok = isinstance(v, int | float) and not isinstance(v, bool)
-        return (0, float(v)) if ok else (1, 0.0)
+        if isinstance(v, int | float) and not isinstance(v, bool):
+            return (0, float(v))
+        return (1, 0.0)
 
     ranked = sorted(range(len(runs)), key=order)
     return ranked[(len(ranked) - 1) // 2], values
