@@ -56,17 +56,11 @@ def test_readme_figures_rows_are_exactly_run_all_rows() -> None:
 def test_markdown_from_a_report_has_every_row_and_the_machine() -> None:
     ra = _run_all()
     run = {"timer_lag_p99_ms": 2.0, "timer_lag_p50_ms": 0.6, "motes": 2000, "processes": 2}
-    report: dict[str, Any] = {
-        "repeat": 3,
-        "machine": {"cores": 2, "cpu_model": "X", "python": "3.11.7",
-                    "packages": {"eclipse-zenoh": "1.0"}},  # fmt: skip
-        "rows": {
-            "scale-hello": {
-                "command": ra.ROWS[0].command, "runs": [run, run, run], "median": run,
-                "headline_values": [2.0, 2.0, 2.0], "errors": [],
-            },  # fmt: skip
-        },
-    }
+    pk = {"eclipse-zenoh": "1.0"}
+    machine = {"cores": 2, "cpu_model": "X", "python": "3.11.7", "packages": pk}
+    row = {"command": ra.ROWS[0].command, "runs": [run, run, run], "median": run,
+           "headline_values": [2.0, 2.0, 2.0], "errors": []}  # fmt: skip
+    report: dict[str, Any] = {"repeat": 3, "machine": machine, "rows": {"scale-hello": row}}
     md = ra.markdown(report)
     rows = _table_rows(md)
     assert [r[0] for r in rows] == [row.label for row in ra.ROWS]
