@@ -288,3 +288,7 @@ def test_truth_reach_shortcut_is_exact() -> None:
             assert truth.value(n, attr, t) == slow
             far_none += slow is None
     assert far_none > 500  # most of the field cannot hear the robot
+    defn = sc.group_def()
+    for t in (0.0, 33.3, 60.0, 119.5):
+        brute = frozenset(n for n in sc.sensors if truth.satisfies(n, defn, t))
+        assert truth.members(defn, t, sc.sensors) == brute and 2 <= len(brute) <= 12

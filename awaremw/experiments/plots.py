@@ -96,7 +96,9 @@ def _draw_motes(
         ys.append(y)
         rings.append("black" if n in true_members else "none")
         if labels and len(ids) <= LABELLED_MOTES:
-            ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=FS_TICK)
+            label = ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points",
+                                fontsize=FS_TICK, annotation_clip=True)  # fmt: skip
+            label.set_in_layout(False)  # the axes fit the motes; labels need no layout pass
     for (colour, leader), (xs, ys, rings) in looks.items():
         plain = colour == "#dddddd"
         size = 70 if plain else 240 if leader else 90

@@ -142,12 +142,32 @@ class GroundTruth:
         key = (defn, t, pool)
         got = self._members.get(key)
         if got is None:
-            ids = self.nodes if pool is None else pool
+            ids = self._in_reach(defn, t, self.nodes if pool is None else pool)
             got = frozenset(n for n in ids if self.satisfies(n, defn, t))
             if len(self._members) >= MEMBERS_CACHE_MAX:
                 self._members.clear()  # pure function of the key: recomputable
             self._members[key] = got
         return got
+
+    def _in_reach(self, defn: GroupTypeDef, t: float, ids: Iterable[int]) -> Iterable[int]:
+        """``ids`` without the motes that cannot hear the source of an ``rssi:<src>``
+        condition of ``defn`` (their value is None: the condition, and so the
+        definition, fails there); all of ``ids`` without such a condition."""
+        for c in defn.conditions:
+            if not A.is_rssi(c.attr):
+                continue
+            s = self.nodes.get(c.attr & MAX_NODE_ID)
+            if s is None:
+                return ()
+            sx, sy = s.mobility.position(t)
+            out = []
+            for n in ids:
+                node = self.nodes[n]
+                x, y = node.mobility.position(t)
+                if math.hypot(x - sx, y - sy) <= self._reach(node.radio, s.tx_power):
+                    out.append(n)
+            return out
+        return ids
 
     def regions(
         self, defn: GroupTypeDef, t: float, among: Iterable[int] | None = None
