@@ -15,6 +15,12 @@ Two measurements, one JSON object (``--json``):
   of the epoch (the leader finalises in its slot, up to one period after the
   sample), the collection tree and the bridge; the delivery time only the
   collection tree, gateway and broker.
+* **bridge latency**: ``--samples`` synthetic records (default 1,000) handed
+  to the gateway service at a steady ``--rate`` (records/s, default 100, a
+  tenth of the bridge's throughput on a quiet machine), each timed from the hand-over (the
+  gateway mote's ``Delivered`` event) to its arrival at the subscriber: the
+  bridge's own latency (gateway, broker, subscriber), with enough samples for
+  a p99;
 * **bridge throughput**: ``--records`` synthetic records handed to the
   gateway as fast as it takes them; sustained records/s until the subscriber
   has every one of them.
@@ -22,7 +28,9 @@ Two measurements, one JSON object (``--json``):
 Keys: ``latency_p50_ms``, ``latency_p99_ms`` (sample at the leader -> MQTT
 subscriber), ``delivery_p50_ms``, ``delivery_p99_ms`` (leader's record ->
 subscriber), ``latency_records`` (records measured end to end),
-``records_per_s`` (bridge throughput), ``throughput_records``,
+``bridge_p50_ms``, ``bridge_p99_ms``, ``bridge_max_ms`` (gateway hand-over ->
+subscriber, paced), ``bridge_samples`` (records timed, all of them arrived),
+``bridge_rate_per_s``, ``records_per_s`` (bridge throughput), ``throughput_records``,
 ``broker`` (``embedded`` or the URL without password), ``mqtt_protocol``,
 ``deployment``, ``period_s``, ``speed``. Latency keys are ``null`` with
 ``--no-fleet``.
@@ -59,6 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     p.add_argument("--records", type=int, default=5000, help="records for the throughput run")
+    p.add_argument("--samples", type=int, default=1000, help="records timed by the paced run")
+    p.add_argument("--rate", type=float, default=100.0, help="records/s of the paced run")
     p.add_argument("--deployment", default="grid_small", help="fleet for the end-to-end run")
     p.add_argument("--duration", type=float, default=40.0, help="emulated seconds end to end")
     p.add_argument("--period", type=float, default=1.0, help="channel period, s")
@@ -153,6 +163,51 @@ async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[floa
             await sub
 
 
+async def _paced(
+    url: str, sub_url: str, prefix: str, n: int, rate: float
+) -> tuple[list[float], str]:
+    """Bridge latencies (s) of ``n`` records handed to the gateway ``rate`` per second."""
+    if n < 1 or not rate > 0:
+        raise ValueError("--samples must be >= 1 and --rate > 0")
+    svc = GatewayService(
+        [0],
+        settings=GatewaySettings(prefix=prefix),
+        mqtt=MqttSettings.from_url(url, client_id="awaremw-bench-paced", persistent_session=False),
+    )
+    svc.bind(lambda node, inj: None, lambda: 0.0)
+    arrivals = _Arrivals({}, asyncio.Event())
+    ready = asyncio.Event()
+    sent: dict[str, float] = {}
+    sub = asyncio.create_task(_subscriber(sub_url, f"{prefix}/data/#", ready, arrivals))
+    try:
+        await asyncio.wait_for(ready.wait(), 10)
+        async with svc:
+            assert svc.mqtt is not None
+            await asyncio.wait_for(svc.mqtt.connected.wait(), 10)
+            t0 = time.monotonic()
+            for i in range(n):
+                # Group id 2 (the throughput run uses 1..16 on channel 1): channel 2 here.
+                rec = DataRecord(2, 1, 2, i, 0, float(i), 1, 1)
+                due = t0 + i / rate
+                if (wait := due - time.monotonic()) > 0:
+                    await asyncio.sleep(wait)
+                sent[f"{prefix}/data/2/1/2/{i}"] = time.monotonic()
+                svc.on_event(0, _Delivered(rec, float(i)), float(i))
+            deadline = time.monotonic() + 30.0
+            while len(arrivals.times) < n and time.monotonic() < deadline:
+                arrivals.event.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(arrivals.event.wait(), 1.0)
+            if len(arrivals.times) < n:
+                got = len(arrivals.times)
+                raise RuntimeError(f"bench bridge: {got} of {n} paced records arrived")
+            return [arrivals.times[k] - sent[k] for k in sent], svc.mqtt.stats.protocol
+    finally:
+        sub.cancel()
+        with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+            await sub
+
+
 @dataclass(frozen=True)
 class _Delivered:
     payload: DataRecord
@@ -182,6 +237,12 @@ async def _main(args: argparse.Namespace) -> dict[str, Any]:
             out["latency_p99_ms"] = _ms(percentile(lat, 99))
             out["delivery_p50_ms"] = _ms(percentile(dlv, 50))
             out["delivery_p99_ms"] = _ms(percentile(dlv, 99))
+        paced, _ = await _paced(url, sub_url, args.prefix, args.samples, args.rate)
+        out["bridge_p50_ms"] = _ms(percentile(paced, 50))
+        out["bridge_p99_ms"] = _ms(percentile(paced, 99))
+        out["bridge_max_ms"] = _ms(max(paced))
+        out["bridge_samples"] = len(paced)
+        out["bridge_rate_per_s"] = args.rate
         rate, proto = await _throughput(url, sub_url, args.prefix, args.records)
         out["records_per_s"] = round(rate, 1)
         out["throughput_records"] = args.records
