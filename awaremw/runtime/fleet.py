@@ -70,6 +70,7 @@ from awaremw.runtime.router import EmbeddedRouter
 from awaremw.runtime.workers import (
     LaunchError,
     WorkerParams,
+    WorkerPlugin,
     WorkerPool,
     WorkerResult,
 )
@@ -100,6 +101,7 @@ __all__ = [
     "NodeFilter",
     "WorkerFilter",
     "WorkerParams",
+    "WorkerPlugin",
     "WorkerResult",
     "XStripe",
     "hello_core",
@@ -368,6 +370,8 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
     progress: asyncio.Task[None] | None = None
     try:
         await fleet.setup()
+        if p.plugin is not None:
+            p.plugin.setup(fleet)
         conn.send(("ready", len(fleet.runners)))
         while True:
             kind, arg = await inbox.get()
@@ -377,6 +381,8 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
                     cpu0, wall0 = time.process_time(), time.perf_counter()
                     if fleet.lag is not None:
                         fleet.lag.clear()
+                    if p.plugin is not None:
+                        p.plugin.started(fleet)
                     if p.progress_s:
                         progress = asyncio.create_task(_report(fleet, conn, p.progress_s))
                 case "lagreset":
@@ -400,6 +406,12 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
         extra: dict[str, Any] = {}
         if medium is not None and medium.links is not None:
             extra["links"] = [(a, b, n) for (a, b), n in sorted(medium.links.items())]
+        if p.plugin is not None:
+            try:
+                extra["plugin"] = p.plugin.result()
+            except Exception as e:
+                log.exception("worker %s: plugin result failed", p.name)
+                error = error or f"plugin result: {type(e).__name__}: {e}"
         result = WorkerResult(
             name=p.name,
             motes=len(fleet.runners),
@@ -435,7 +447,9 @@ class FleetLauncher:
     ``settings.listen`` (default: a free loopback port), available as
     :attr:`endpoint` for gateways and ``awaremw fleet-ctl``.
     ``on_progress`` gets the merged snapshot of all workers every
-    ``settings.progress_s``.
+    ``settings.progress_s``. ``plugin`` (a :class:`WorkerPlugin`, picklable)
+    runs in every worker beside its fleet; each worker's ``plugin.result()``
+    is in :meth:`plugin_results` after the launcher exited.
     """
 
     def __init__(
@@ -445,11 +459,13 @@ class FleetLauncher:
         settings: LauncherSettings,
         *,
         on_progress: Callable[[FleetSnapshot], None] | None = None,
+        plugin: WorkerPlugin | None = None,
     ) -> None:
         self.deployment = deployment
         self.core_factory = core_factory
         self.settings = settings
         self.on_progress = on_progress
+        self.plugin = plugin
         self.clock = EmulatedClock(settings.speed)
         self.router: EmbeddedRouter | None = None
         self.endpoint = ""
@@ -504,6 +520,7 @@ class FleetLauncher:
                     stripe=stripe,
                     exclude_kinds=s.exclude_kinds,
                     progress_s=s.progress_s,
+                    plugin=self.plugin,
                 )
             )
         loop = asyncio.get_running_loop()
@@ -587,6 +604,11 @@ class FleetLauncher:
             for a, b, n in r.extra.get("links", ()):
                 out[(a, b)] = out.get((a, b), 0) + n
         return out
+
+    def plugin_results(self) -> list[Any]:
+        """Each worker's ``plugin.result()``, in worker order (after the launcher
+        exited; a worker that returned none is left out)."""
+        return [r.extra["plugin"] for r in self.results if "plugin" in r.extra]
 
     def counters(self) -> dict[int, MoteCounters]:
         """Per-mote counters merged from every worker (after the launcher exited)."""

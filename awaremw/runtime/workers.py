@@ -14,12 +14,15 @@ import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from awaremw.protocol.core import MoteCore
 from awaremw.runtime.deployment import Deployment, NodeSpec
 from awaremw.runtime.fleet_settings import FleetSettings
 from awaremw.runtime.partition import IdModulo, XStripe
+
+if TYPE_CHECKING:
+    from awaremw.runtime.fleet import Fleet
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +35,24 @@ class LaunchError(RuntimeError):
     """A worker process failed to start, to set up or to run."""
 
 
+class WorkerPlugin(Protocol):
+    """Code a launcher runs inside every worker beside its fleet (picklable: each
+    worker gets its own copy), e.g. a benchmark's event tally.
+
+    ``setup(fleet)`` once the fleet is set up (motes built, before the start):
+    register event hooks here. ``started(fleet)`` right after the shared start
+    (schedule work on the loop here). ``result()`` when the worker stops: a
+    picklable summary, returned in ``WorkerResult.extra["plugin"]``. An
+    exception in any of them fails the worker (it is our bug, or the plugin's).
+    """
+
+    def setup(self, fleet: Fleet) -> None: ...
+
+    def started(self, fleet: Fleet) -> None: ...
+
+    def result(self) -> Any: ...
+
+
 @dataclass(frozen=True)
 class WorkerParams:
     """Everything a worker process needs (pickled to it)."""
@@ -42,6 +63,7 @@ class WorkerParams:
     stripe: XStripe | IdModulo
     exclude_kinds: frozenset[str] = frozenset()
     progress_s: float | None = None
+    plugin: WorkerPlugin | None = None
 
     @property
     def name(self) -> str:
