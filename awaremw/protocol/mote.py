@@ -43,7 +43,7 @@ from awaremw.protocol.frames import (
     ItemKind,
     LeaderBeacon,
     Partial,
-    decode,
+    decode_shared,
 )
 from awaremw.protocol.groups import Groups
 from awaremw.protocol.timers import TimerWatch
@@ -105,7 +105,7 @@ class AwareMote:
 
     def receive(self, frame: bytes, rssi_dbm: float, now: float) -> None:
         try:
-            f = decode(frame)
+            f = decode_shared(frame)
         except FrameError as e:
             self.ctx.emit(MalformedFrame(str(e), len(frame)))
             return
