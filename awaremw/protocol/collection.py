@@ -100,7 +100,14 @@ class DataDropped:
 
 @dataclass(slots=True)
 class Neighbour:
-    """What a mote knows about one neighbour (mutable routing-table entry)."""
+    """What a mote knows about one neighbour (mutable routing-table entry).
+
+    ``link`` and ``path`` cache :meth:`Collection.link_cost` and the path cost
+    through it (NO_ROUTE, or ``cost + link`` saturated at MAX_COST): the
+    collection recomputes them whenever it changes ``cost``, ``rssi`` or
+    ``ack_etx``, so the parent choice reads them instead of recomputing every
+    neighbour's link cost on every beacon. Only the collection mutates entries.
+    """
 
     node: int
     cost: int = NO_ROUTE  # its advertised path cost
@@ -109,6 +116,8 @@ class Neighbour:
     ack_etx: float = float(ETX_ONE)  # EWMA of unicast outcomes, x10
     failures: int = 0  # consecutive failed unicasts to it
     last_heard: float = 0.0
+    link: int = 0  # cached link cost (set by the collection)
+    path: int = NO_ROUTE  # cached path cost through it (set by the collection)
 
 
 @dataclass(slots=True)
@@ -207,6 +216,12 @@ class Collection(Component):
         """ETX x 10 of the link to ``n``: max of the RSSI mapping and the ACK EWMA."""
         return max(self._rssi_cost(n.rssi), round(n.ack_etx))
 
+    def _recost(self, n: Neighbour) -> None:
+        """Refresh ``n``'s cached link and path costs (after any change of
+        its cost, RSSI or ACK estimate)."""
+        n.link = link = max(self._rssi_cost(n.rssi), round(n.ack_etx))
+        n.path = NO_ROUTE if n.cost >= NO_ROUTE else min(n.cost + link, MAX_COST)
+
     # ------------------------------------------------------------------ Component hooks
 
     def start(self, now: float) -> None:
@@ -244,11 +259,13 @@ class Collection(Component):
             if n is not None:
                 n.failures = 0
                 n.ack_etx = (1 - a) * n.ack_etx + a * ETX_ONE
+                self._recost(n)
         else:
             pkt.attempts += 1
             if n is not None:
                 n.failures += 1
                 n.ack_etx = (1 - a) * n.ack_etx + a * cfg.ctp_fail_etx
+                self._recost(n)
                 if n.failures >= cfg.ctp_evict_after_failures:
                     self._evict(n.node, now)
             if pkt.attempts >= cfg.ctp_max_retries:
@@ -275,6 +292,7 @@ class Collection(Component):
         n = self._neighbours.get(node)
         if n is None:
             n = Neighbour(node, cost, parent, rssi, last_heard=now)
+            self._recost(n)
             if len(self._neighbours) >= self.ctx.config.ctp_neighbours:
                 # Full table: replace the worst entry (never the parent) if worse.
                 others = [x for x in self._neighbours.values() if x.node != self._parent]
@@ -289,6 +307,7 @@ class Collection(Component):
         n.cost, n.parent, n.last_heard = cost, parent, now
         a = self.ctx.config.ctp_rssi_alpha
         n.rssi = rssi if n.rssi is None else a * rssi + (1 - a) * n.rssi
+        self._recost(n)
 
     def _rssi_cost(self, rssi: float | None) -> int:
         cfg = self.ctx.config
@@ -300,9 +319,7 @@ class Collection(Component):
         return ETX_ONE + round((cfg.ctp_rssi_max_etx - ETX_ONE) * x**3)
 
     def _path_via(self, n: Neighbour) -> int:
-        if n.cost >= NO_ROUTE:
-            return NO_ROUTE
-        return min(n.cost + self.link_cost(n), MAX_COST)
+        return n.path  # kept current by _recost
 
     def _best(
         self,
@@ -317,18 +334,12 @@ class Collection(Component):
         best: Neighbour | None = None
         best_path = NO_ROUTE
         limit = NO_ROUTE if below is None else below
-        # No link costs less than this (see _rssi_cost; link_cost is at least it),
-        # so a neighbour whose cost plus it already exceeds the best path so far
-        # cannot win nor tie: skip its link cost (same choice, fewer calls).
-        floor = min(ETX_ONE, self.ctx.config.ctp_rssi_max_etx)
         for n in self._neighbours.values():
             if n.cost >= limit or n.parent == me or n.node == exclude:
                 continue
             if n.last_heard < fresh_since:
                 continue
-            if best is not None and min(n.cost + floor, MAX_COST) > best_path:
-                continue
-            p = self._path_via(n)
+            p = n.path  # cached (see _recost)
             if p < best_path or (p == best_path and best is not None and n.node < best.node):
                 best, best_path = n, p
         return best, best_path
