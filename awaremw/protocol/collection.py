@@ -167,6 +167,9 @@ class Collection(Component):
         # Neighbours must have been heard since our last route loss to be chosen:
         # older entries may be dead motes (a dead mote never says so).
         self._fresh_since = float("-inf")
+        # The answer of _best() with its defaults and fresh_since=_fresh_since,
+        # kept current entry by entry (_changed); None: recompute on next use.
+        self._best_cache: tuple[Neighbour | None, int] | None = None
         self._holddown_until = float("-inf")
         self.stats = CollectionStats()
 
@@ -260,12 +263,14 @@ class Collection(Component):
                 n.failures = 0
                 n.ack_etx = (1 - a) * n.ack_etx + a * ETX_ONE
                 self._recost(n)
+                self._changed(n)
         else:
             pkt.attempts += 1
             if n is not None:
                 n.failures += 1
                 n.ack_etx = (1 - a) * n.ack_etx + a * cfg.ctp_fail_etx
                 self._recost(n)
+                self._changed(n)
                 if n.failures >= cfg.ctp_evict_after_failures:
                     self._evict(n.node, now)
             if pkt.attempts >= cfg.ctp_max_retries:
@@ -302,12 +307,15 @@ class Collection(Component):
                 if self._path_via(n) >= self._path_via(worst):
                     return
                 del self._neighbours[worst.node]
+                self._best_cache = None
             self._neighbours[node] = n
+            self._changed(n)
             return
         n.cost, n.parent, n.last_heard = cost, parent, now
         a = self.ctx.config.ctp_rssi_alpha
         n.rssi = rssi if n.rssi is None else a * rssi + (1 - a) * n.rssi
         self._recost(n)
+        self._changed(n)
 
     def _rssi_cost(self, rssi: float | None) -> int:
         cfg = self.ctx.config
@@ -344,10 +352,34 @@ class Collection(Component):
                 best, best_path = n, p
         return best, best_path
 
+    def _changed(self, n: Neighbour) -> None:
+        """Entry ``n`` (in the table) changed: keep the cached best choice.
+
+        The choice is the entry with the smallest ``(path, node)`` among those
+        that qualify, whatever the order of the table. If ``n`` was the choice,
+        it may have got worse: recompute on next use. Otherwise only ``n``
+        can have become the choice: compare it with the cached one.
+        """
+        c = self._best_cache
+        if c is None:
+            return
+        best, best_path = c
+        if best is n:
+            self._best_cache = None
+            return
+        if n.cost >= NO_ROUTE or n.parent == self.ctx.node_id or n.last_heard < self._fresh_since:
+            return
+        p = n.path
+        if p < best_path or (p == best_path and best is not None and n.node < best.node):
+            self._best_cache = (n, p)
+
     def _update_route(self, now: float) -> None:
         if self.is_root:
             return
-        best, best_path = self._best(fresh_since=self._fresh_since)
+        cached = self._best_cache
+        if cached is None:
+            cached = self._best_cache = self._best(fresh_since=self._fresh_since)
+        best, best_path = cached
         if self._parent is not None:
             cur = self._path_via(self._neighbours[self._parent])
             threshold = self.ctx.config.ctp_parent_switch_threshold
@@ -388,6 +420,7 @@ class Collection(Component):
         self._lost_cost = self._cost
         self._lost_parent = old
         self._fresh_since = now
+        self._best_cache = None
         self._parent = None
         self._cost = NO_ROUTE
         self._holddown_until = now + self.ctx.config.ctp_holddown
@@ -399,6 +432,7 @@ class Collection(Component):
     def _evict(self, node: int, now: float) -> None:
         self.stats.evictions += 1
         del self._neighbours[node]
+        self._best_cache = None
         if node == self._parent:
             self._lose_parent(now)
 
