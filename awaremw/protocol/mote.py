@@ -116,17 +116,21 @@ class AwareMote:
 
     def handle_timer(self, now: float) -> None:
         for c in self._components:
-            for name in c.timers.due(now):
-                c.on_timer(name, now)
+            names = c.timers.due(now)
+            if names:
+                for name in names:
+                    c.on_timer(name, now)
 
     def next_deadline(self) -> float | None:
         w = self._timer_watch
         if w.changed:
             w.changed = False
-            self._next_deadline = min(
-                (d for c in self._components if (d := c.timers.next_deadline()) is not None),
-                default=None,
-            )
+            best: float | None = None
+            for c in self._components:
+                d = c.timers.next_deadline()
+                if d is not None and (best is None or d < best):
+                    best = d
+            self._next_deadline = best
         return self._next_deadline
 
     def drain(self) -> list[Transmission]:

@@ -74,7 +74,10 @@ class TimerSet:
     def due(self, now: float) -> list[Hashable]:
         """Remove and return the names due at ``now``, earliest first (equal
         deadlines in the order they were first set)."""
-        m = self.next_deadline()
+        if self._stale:  # next_deadline(), inlined: due() runs for every component
+            self._min = min(self._deadlines.values(), default=None)
+            self._stale = False
+        m = self._min
         if m is None or m > now:
             return []
         d = self._deadlines
