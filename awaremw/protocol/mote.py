@@ -116,10 +116,11 @@ class AwareMote:
 
     def handle_timer(self, now: float) -> None:
         for c in self._components:
-            names = c.timers.due(now)
-            if names:
-                for name in names:
-                    c.on_timer(name, now)
+            t = c.timers
+            if t.soonest > now:  # a lower bound of its earliest deadline: none due
+                continue
+            for name in t.due(now):
+                c.on_timer(name, now)
 
     def next_deadline(self) -> float | None:
         w = self._timer_watch

@@ -3,16 +3,19 @@
 Components ask for timers (``set``), the mote asks the set for its earliest
 deadline, and ``due(now)`` pops the names whose time has come, in time order.
 
-The earliest deadline is cached (kept exact by ``set`` when it can be, else
-recomputed on the next ask), so ``next_deadline`` and a ``due`` with nothing
-due cost O(1): the mote asks both far more often than timers change. A
+The earliest deadline is cached (``soonest``: kept exact by ``set`` when it
+can be, else a lower bound recomputed on the next ask), so ``next_deadline``
+and a ``due`` with nothing due cost O(1): the mote asks both far more often than timers change. A
 :class:`TimerWatch` shared by the sets of one mote is marked on every change,
 so the mote can cache its own earliest deadline too.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Hashable
+
+_INF = math.inf
 
 
 class TimerWatch:
@@ -25,11 +28,16 @@ class TimerWatch:
 
 
 class TimerSet:
-    __slots__ = ("_deadlines", "_min", "_stale", "_watch")
+    """Named deadlines. ``soonest`` is a lower bound of the earliest deadline
+    (``inf`` when there is none), exact unless a change moved the earliest one
+    later; a caller may skip the set when ``soonest > now`` (nothing is due)
+    without a call."""
+
+    __slots__ = ("_deadlines", "_stale", "_watch", "soonest")
 
     def __init__(self) -> None:
         self._deadlines: dict[Hashable, float] = {}
-        self._min: float | None = None  # the earliest deadline, when not _stale
+        self.soonest = _INF  # lower bound of the earliest deadline; exact unless _stale
         self._stale = False
         self._watch = TimerWatch()
 
@@ -43,11 +51,9 @@ class TimerSet:
         d = self._deadlines
         old = d.get(name)
         d[name] = when
-        if self._stale:
-            return
-        m = self._min
-        if m is None or when <= m:
-            self._min = when
+        m = self.soonest
+        if when <= m:
+            self.soonest = when  # a lower bound still; exact if it was
         elif old is not None and old <= m:
             self._stale = True  # the earliest timer moved later
 
@@ -56,7 +62,7 @@ class TimerSet:
         if old is None:
             return
         self._watch.changed = True
-        if not self._stale and self._min is not None and old <= self._min:
+        if old <= self.soonest:
             self._stale = True
 
     def get(self, name: Hashable) -> float | None:
@@ -67,19 +73,20 @@ class TimerSet:
 
     def next_deadline(self) -> float | None:
         if self._stale:
-            self._min = min(self._deadlines.values(), default=None)
+            self.soonest = min(self._deadlines.values(), default=_INF)
             self._stale = False
-        return self._min
+        return self.soonest if self._deadlines else None
 
     def due(self, now: float) -> list[Hashable]:
         """Remove and return the names due at ``now``, earliest first (equal
         deadlines in the order they were first set)."""
-        if self._stale:  # next_deadline(), inlined: due() runs for every component
-            self._min = min(self._deadlines.values(), default=None)
-            self._stale = False
-        m = self._min
-        if m is None or m > now:
+        if self.soonest > now:  # a lower bound: nothing is due
             return []
+        if self._stale:
+            self.soonest = min(self._deadlines.values(), default=_INF)
+            self._stale = False
+            if self.soonest > now:
+                return []
         d = self._deadlines
         names = [n for n, t in d.items() if t <= now]
         if len(names) > 1:
