@@ -532,9 +532,11 @@ class Groups(Component):
 
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
-        return all(
-            condition_holds(c, self.ctx.read(c.attr, now), relax) for c in st.defn.conditions
-        )
+        read = self.ctx.read
+        for c in st.defn.conditions:  # a plain loop: checked every period on every mote
+            if not condition_holds(c, read(c.attr, now), relax):
+                return False
+        return True
 
     def _check(self, st: _TypeState, now: float) -> None:
         role = st.role

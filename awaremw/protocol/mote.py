@@ -48,6 +48,8 @@ from awaremw.protocol.frames import (
 from awaremw.protocol.groups import Groups
 from awaremw.protocol.timers import TimerWatch
 
+_INF = float("inf")
+
 __all__ = ["AwareMote", "Component", "MoteContext", "RssiSample"]  # the contract is re-exported
 
 
@@ -94,6 +96,10 @@ class AwareMote:
         for c in self._components:
             c.timers.watch(self._timer_watch)
         self._next_deadline: float | None = None  # valid while not _timer_watch.changed
+        # Read on every frame heard (the config is frozen, the table never replaced).
+        self._rssi = self.ctx.rssi
+        self._rssi_alpha = self.config.rssi_alpha
+        self._rssi_ttl = self.config.rssi_ttl
         self.started = False
 
     # ----------------------------------------------------------------- MoteCore
@@ -126,12 +132,17 @@ class AwareMote:
         w = self._timer_watch
         if w.changed:
             w.changed = False
-            best: float | None = None
+            best = _INF
             for c in self._components:
-                d = c.timers.next_deadline()
-                if d is not None and (best is None or d < best):
-                    best = d
-            self._next_deadline = best
+                t = c.timers
+                if t.stale:
+                    t.next_deadline()  # refreshes soonest
+                if t.soonest < best:
+                    best = t.soonest  # exact: not stale
+            if best == _INF and any(len(c.timers) for c in self._components):
+                self._next_deadline = best  # a timer at infinity is still a timer
+            else:
+                self._next_deadline = None if best == _INF else best
         return self._next_deadline
 
     def drain(self) -> list[Transmission]:
@@ -167,12 +178,13 @@ class AwareMote:
     # ----------------------------------------------------------------- internals
 
     def _note_rssi(self, src: int, rssi_dbm: float, now: float) -> None:
-        old = self.ctx.rssi.get(src)
-        a = self.config.rssi_alpha
-        if old is None or now - old.last_heard > self.config.rssi_ttl:
-            self.ctx.rssi[src] = RssiSample(rssi_dbm, now)
+        table = self._rssi
+        old = table.get(src)
+        if old is None or now - old.last_heard > self._rssi_ttl:
+            table[src] = RssiSample(rssi_dbm, now)
         else:
-            self.ctx.rssi[src] = RssiSample(a * rssi_dbm + (1 - a) * old.dbm, now)
+            a = self._rssi_alpha
+            table[src] = RssiSample(a * rssi_dbm + (1 - a) * old.dbm, now)
 
     def _on_item(self, kind: ItemKind, item_id: int, item: ItemBody | None, now: float) -> None:
         handler: Callable[[int, ItemBody | None, float], None] = {

@@ -29,16 +29,17 @@ class TimerWatch:
 
 class TimerSet:
     """Named deadlines. ``soonest`` is a lower bound of the earliest deadline
-    (``inf`` when there is none), exact unless a change moved the earliest one
-    later; a caller may skip the set when ``soonest > now`` (nothing is due)
-    without a call."""
+    (``inf`` when there is none), exact unless ``stale`` (a change moved the
+    earliest one later; :meth:`next_deadline` refreshes it); a caller may skip
+    the set when ``soonest > now`` (nothing is due) without a call. Both are
+    read-only outside this class."""
 
-    __slots__ = ("_deadlines", "_stale", "_watch", "soonest")
+    __slots__ = ("_deadlines", "stale", "_watch", "soonest")
 
     def __init__(self) -> None:
         self._deadlines: dict[Hashable, float] = {}
-        self.soonest = _INF  # lower bound of the earliest deadline; exact unless _stale
-        self._stale = False
+        self.soonest = _INF  # lower bound of the earliest deadline; exact unless stale
+        self.stale = False
         self._watch = TimerWatch()
 
     def watch(self, w: TimerWatch) -> None:
@@ -55,7 +56,7 @@ class TimerSet:
         if when <= m:
             self.soonest = when  # a lower bound still; exact if it was
         elif old is not None and old <= m:
-            self._stale = True  # the earliest timer moved later
+            self.stale = True  # the earliest timer moved later
 
     def cancel(self, name: Hashable) -> None:
         old = self._deadlines.pop(name, None)
@@ -63,7 +64,7 @@ class TimerSet:
             return
         self._watch.changed = True
         if old <= self.soonest:
-            self._stale = True
+            self.stale = True
 
     def get(self, name: Hashable) -> float | None:
         return self._deadlines.get(name)
@@ -71,10 +72,13 @@ class TimerSet:
     def __contains__(self, name: Hashable) -> bool:
         return name in self._deadlines
 
+    def __len__(self) -> int:
+        return len(self._deadlines)
+
     def next_deadline(self) -> float | None:
-        if self._stale:
+        if self.stale:
             self.soonest = min(self._deadlines.values(), default=_INF)
-            self._stale = False
+            self.stale = False
         return self.soonest if self._deadlines else None
 
     def due(self, now: float) -> list[Hashable]:
@@ -82,9 +86,9 @@ class TimerSet:
         deadlines in the order they were first set)."""
         if self.soonest > now:  # a lower bound: nothing is due
             return []
-        if self._stale:
+        if self.stale:
             self.soonest = min(self._deadlines.values(), default=_INF)
-            self._stale = False
+            self.stale = False
             if self.soonest > now:
                 return []
         d = self._deadlines
@@ -93,6 +97,6 @@ class TimerSet:
             names.sort(key=d.__getitem__)
         for n in names:
             del d[n]
-        self._stale = True
+        self.stale = True
         self._watch.changed = True
         return names
