@@ -24,8 +24,9 @@ radio's ``delivery_ratio`` in the target (``frames_expected`` and
 ``--profile FILE``: cProfile of the run (this process only).
 
 Target (``--search``): timer lag p99 below ``--max-p99-ms`` (50) and delivery
-(``record_delivery`` with ``--workload aware``) at least ``--min-delivery`` (0.99). ``--search`` doubles ``--motes`` while the
-target holds, then bisects between the last pass and the first failure.
+(``record_delivery`` with ``--workload aware``) at least ``--min-delivery``
+(0.99). ``--search`` doubles ``--motes`` while the target holds, then bisects
+between the last pass and the first failure.
 
 JSON keys (one object; with ``--search`` the best passing run's keys plus
 ``search`` = the list of trials):

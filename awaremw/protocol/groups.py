@@ -533,10 +533,7 @@ class Groups(Component):
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
         read = self.ctx.read
-        for c in st.defn.conditions:  # a plain loop: checked every period on every mote
-            if not condition_holds(c, read(c.attr, now), relax):
-                return False
-        return True
+        return all(condition_holds(c, read(c.attr, now), relax) for c in st.defn.conditions)
 
     def _check(self, st: _TypeState, now: float) -> None:
         role = st.role

@@ -92,6 +92,7 @@ class AwareMote:
             Handover.TYPE: self.groups,
             Partial.TYPE: self.channels,
         }
+        self._timed = tuple((c, c.timers) for c in self._components)  # set once per component
         self._timer_watch = TimerWatch()
         for c in self._components:
             c.timers.watch(self._timer_watch)
@@ -121,8 +122,7 @@ class AwareMote:
         self._by_type[f.TYPE].on_frame(f, rssi_dbm, now)
 
     def handle_timer(self, now: float) -> None:
-        for c in self._components:
-            t = c.timers
+        for c, t in self._timed:
             if t.soonest > now:  # a lower bound of its earliest deadline: none due
                 continue
             for name in t.due(now):
@@ -133,8 +133,7 @@ class AwareMote:
         if w.changed:
             w.changed = False
             best = _INF
-            for c in self._components:
-                t = c.timers
+            for _c, t in self._timed:
                 if t.stale:
                     t.next_deadline()  # refreshes soonest
                 if t.soonest < best:

@@ -34,7 +34,7 @@ class TimerSet:
     the set when ``soonest > now`` (nothing is due) without a call. Both are
     read-only outside this class."""
 
-    __slots__ = ("_deadlines", "stale", "_watch", "soonest")
+    __slots__ = ("_deadlines", "_watch", "soonest", "stale")
 
     def __init__(self) -> None:
         self._deadlines: dict[Hashable, float] = {}
