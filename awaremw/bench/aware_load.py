@@ -171,7 +171,7 @@ def inject_definitions(root: MoteCore, now: float) -> None:
 
 class AwarePlugin:
     """The aware load inside each worker process of a launcher
-    (:class:`~awaremw.runtime.workers.WorkerPlugin`): tallies the records of
+    (:class:`~awaremw.runtime.fleet_settings.WorkerPlugin`): tallies the records of
     the motes it runs and, in the worker running the gateway's mote, injects
     the definitions at :data:`DEFINE_AT_S`, exactly as in one process."""
 

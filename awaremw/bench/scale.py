@@ -221,8 +221,8 @@ async def run_once(
                 speed=speed,
                 handler=h,
                 layout="interleaved" if layout == "interleaved" else "stripes",
+                plugin=aware_load.AwarePlugin() if aware else None,
             ),
-            plugin=aware_load.AwarePlugin() if aware else None,
         ) as launcher:
             await launcher.run(warmup)
             launcher.reset_lag()

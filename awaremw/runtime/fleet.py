@@ -56,7 +56,7 @@ from awaremw.runtime.fleet_motes import (
     NodeFilter,
     hello_core,
 )
-from awaremw.runtime.fleet_settings import FleetSettings, LauncherSettings
+from awaremw.runtime.fleet_settings import FleetSettings, LauncherSettings, WorkerPlugin
 from awaremw.runtime.fleet_stats import FleetSnapshot, FleetStats, merge_snapshots
 from awaremw.runtime.partition import (
     IdModulo,
@@ -70,7 +70,6 @@ from awaremw.runtime.router import EmbeddedRouter
 from awaremw.runtime.workers import (
     LaunchError,
     WorkerParams,
-    WorkerPlugin,
     WorkerPool,
     WorkerResult,
 )
@@ -447,9 +446,9 @@ class FleetLauncher:
     ``settings.listen`` (default: a free loopback port), available as
     :attr:`endpoint` for gateways and ``awaremw fleet-ctl``.
     ``on_progress`` gets the merged snapshot of all workers every
-    ``settings.progress_s``. ``plugin`` (a :class:`WorkerPlugin`, picklable)
-    runs in every worker beside its fleet; each worker's ``plugin.result()``
-    is in :meth:`plugin_results` after the launcher exited.
+    ``settings.progress_s``. ``settings.plugin`` (a :class:`WorkerPlugin`,
+    picklable) runs in every worker beside its fleet; each worker's
+    ``plugin.result()`` is in :meth:`plugin_results` after the launcher exited.
     """
 
     def __init__(
@@ -459,13 +458,11 @@ class FleetLauncher:
         settings: LauncherSettings,
         *,
         on_progress: Callable[[FleetSnapshot], None] | None = None,
-        plugin: WorkerPlugin | None = None,
     ) -> None:
         self.deployment = deployment
         self.core_factory = core_factory
         self.settings = settings
         self.on_progress = on_progress
-        self.plugin = plugin
         self.clock = EmulatedClock(settings.speed)
         self.router: EmbeddedRouter | None = None
         self.endpoint = ""
@@ -520,7 +517,7 @@ class FleetLauncher:
                     stripe=stripe,
                     exclude_kinds=s.exclude_kinds,
                     progress_s=s.progress_s,
-                    plugin=self.plugin,
+                    plugin=s.plugin,
                 )
             )
         loop = asyncio.get_running_loop()

@@ -14,15 +14,12 @@ import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any
 
 from awaremw.protocol.core import MoteCore
 from awaremw.runtime.deployment import Deployment, NodeSpec
-from awaremw.runtime.fleet_settings import FleetSettings
+from awaremw.runtime.fleet_settings import FleetSettings, WorkerPlugin
 from awaremw.runtime.partition import IdModulo, XStripe
-
-if TYPE_CHECKING:
-    from awaremw.runtime.fleet import Fleet
 
 log = logging.getLogger(__name__)
 
@@ -33,24 +30,6 @@ _ESSENTIAL = frozenset({"ready", "result", "gone"})  # at most one each per work
 
 class LaunchError(RuntimeError):
     """A worker process failed to start, to set up or to run."""
-
-
-class WorkerPlugin(Protocol):
-    """Code a launcher runs inside every worker beside its fleet (picklable: each
-    worker gets its own copy), e.g. a benchmark's event tally.
-
-    ``setup(fleet)`` once the fleet is set up (motes built, before the start):
-    register event hooks here. ``started(fleet)`` right after the shared start
-    (schedule work on the loop here). ``result()`` when the worker stops: a
-    picklable summary, returned in ``WorkerResult.extra["plugin"]``. An
-    exception in any of them fails the worker (it is our bug, or the plugin's).
-    """
-
-    def setup(self, fleet: Fleet) -> None: ...
-
-    def started(self, fleet: Fleet) -> None: ...
-
-    def result(self) -> Any: ...
 
 
 @dataclass(frozen=True)
