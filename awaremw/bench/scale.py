@@ -322,7 +322,14 @@ async def search(args: argparse.Namespace) -> dict[str, Any]:
             else:
                 hi = mid
         best = lo
-    keys = ("motes", "timer_lag_p99_ms", "delivery_ratio", "record_delivery", "meets_target")
+    keys = (
+        "motes",
+        "timer_lag_p99_ms",
+        "delivery_ratio",
+        "records_produced",
+        "record_delivery",
+        "meets_target",
+    )
     summary = [{k: t[k] for k in keys if k in t} for t in trials]
     out: dict[str, Any]
     if best is None:
