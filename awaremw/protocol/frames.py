@@ -779,3 +779,26 @@ def decode(data: bytes) -> Frame:
         raise
     except (ValueError, TypeError, KeyError, IndexError, OverflowError) as e:
         raise BadField(f"{cls.__name__}: {e}") from None
+
+
+# The frame a transmission carries is decoded once for all its receivers: a
+# medium hands the same bytes to every receiver of a broadcast (and to every
+# mote overhearing a unicast) one after another, and frames are immutable
+# (frozen dataclasses whose fields are ints, floats, bytes, tuples and frozen
+# records), so the receivers can share the decoded object. One entry, replaced
+# atomically (a tuple), compared by value: no unbounded cache, no stale hit.
+_last: tuple[bytes, Frame] | None = None
+
+
+def decode_shared(data: bytes) -> Frame:
+    """:func:`decode`, sharing the result with the previous call on equal bytes.
+
+    Malformed input raises :class:`FrameError` every time (failures are not kept).
+    """
+    global _last
+    last = _last
+    if last is not None and last[0] == data:
+        return last[1]
+    f = decode(data)
+    _last = (bytes(data), f)
+    return f

@@ -532,9 +532,8 @@ class Groups(Component):
 
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
-        return all(
-            condition_holds(c, self.ctx.read(c.attr, now), relax) for c in st.defn.conditions
-        )
+        read = self.ctx.read
+        return all(condition_holds(c, read(c.attr, now), relax) for c in st.defn.conditions)
 
     def _check(self, st: _TypeState, now: float) -> None:
         role = st.role
@@ -553,14 +552,19 @@ class Groups(Component):
 
     def _purge(self, st: _TypeState, now: float) -> None:
         ttl = self._timeout()
-        for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
-            del st.nearby[gid]
-        for n in [n for n, u in st.upstream.items() if now - u.t > ttl]:
-            del st.upstream[n]
-        for n in [n for n, t in st.failed.items() if now - t > ttl]:
-            del st.failed[n]
-        for n in [n for n, c in st.children.items() if now - c[0] > ttl]:
-            del st.children[n]
+        # Most motes hear no group most of the time: skip the empty tables.
+        if st.nearby:
+            for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
+                del st.nearby[gid]
+        if st.upstream:
+            for n in [n for n, u in st.upstream.items() if now - u.t > ttl]:
+                del st.upstream[n]
+        if st.failed:
+            for n in [n for n, t in st.failed.items() if now - t > ttl]:
+                del st.failed[n]
+        if st.children:
+            for n in [n for n, c in st.children.items() if now - c[0] > ttl]:
+                del st.children[n]
 
     def _best_nearby(self, st: _TypeState, now: float) -> tuple[int, _Heard] | None:
         ttl = self._timeout()
