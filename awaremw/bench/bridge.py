@@ -50,7 +50,6 @@ from typing import Any
 
 import aiomqtt
 
-from awaremw.gateway.bridge import Inject
 from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings
@@ -127,17 +126,18 @@ async def _subscriber(url: str, topic: str, ready: asyncio.Event, out: _Arrivals
                 out.event.set()
 
 
-async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[float, str]:
+@contextlib.asynccontextmanager
+async def _gateway_and_subscriber(
+    url: str, sub_url: str, prefix: str, client_id: str
+) -> AsyncIterator[tuple[GatewayService, _Arrivals]]:
+    """A gateway service (no motes) connected to the broker at ``url``, and a
+    subscriber to its data topics recording arrival times, both ready."""
     svc = GatewayService(
         [0],
         settings=GatewaySettings(prefix=prefix),
-        mqtt=MqttSettings.from_url(url, client_id="awaremw-bench-gw", persistent_session=False),
+        mqtt=MqttSettings.from_url(url, client_id=client_id, persistent_session=False),
     )
-
-    def inject(node: int, inj: Inject) -> None:
-        pass
-
-    svc.bind(inject, lambda: 0.0)
+    svc.bind(lambda node, inj: None, lambda: 0.0)
     arrivals = _Arrivals({}, asyncio.Event())
     ready = asyncio.Event()
     sub = asyncio.create_task(_subscriber(sub_url, f"{prefix}/data/#", ready, arrivals))
@@ -146,21 +146,27 @@ async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[floa
         async with svc:
             assert svc.mqtt is not None
             await asyncio.wait_for(svc.mqtt.connected.wait(), 10)
-            t0 = time.monotonic()
-            for i in range(n):
-                rec = DataRecord(1, 1, 1 + i % 16, i, 0, float(i), 1, 1)
-                svc.on_event(0, _Delivered(rec, float(i)), float(i))
-                if i % 200 == 199:
-                    await asyncio.sleep(0)  # let the sender and subscriber run
-            while len(arrivals.times) < n:
-                arrivals.event.clear()
-                await asyncio.wait_for(arrivals.event.wait(), 30)
-            elapsed = time.monotonic() - t0
-            return n / elapsed, svc.mqtt.stats.protocol
+            yield svc, arrivals
     finally:
         sub.cancel()
         with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
             await sub
+
+
+async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[float, str]:
+    async with _gateway_and_subscriber(url, sub_url, prefix, "awaremw-bench-gw") as (svc, arr):
+        t0 = time.monotonic()
+        for i in range(n):
+            rec = DataRecord(1, 1, 1 + i % 16, i, 0, float(i), 1, 1)
+            svc.on_event(0, _Delivered(rec, float(i)), float(i))
+            if i % 200 == 199:
+                await asyncio.sleep(0)  # let the sender and subscriber run
+        while len(arr.times) < n:
+            arr.event.clear()
+            await asyncio.wait_for(arr.event.wait(), 30)
+        elapsed = time.monotonic() - t0
+        assert svc.mqtt is not None
+        return n / elapsed, svc.mqtt.stats.protocol
 
 
 async def _paced(
@@ -169,43 +175,26 @@ async def _paced(
     """Bridge latencies (s) of ``n`` records handed to the gateway ``rate`` per second."""
     if n < 1 or not rate > 0:
         raise ValueError("--samples must be >= 1 and --rate > 0")
-    svc = GatewayService(
-        [0],
-        settings=GatewaySettings(prefix=prefix),
-        mqtt=MqttSettings.from_url(url, client_id="awaremw-bench-paced", persistent_session=False),
-    )
-    svc.bind(lambda node, inj: None, lambda: 0.0)
-    arrivals = _Arrivals({}, asyncio.Event())
-    ready = asyncio.Event()
     sent: dict[str, float] = {}
-    sub = asyncio.create_task(_subscriber(sub_url, f"{prefix}/data/#", ready, arrivals))
-    try:
-        await asyncio.wait_for(ready.wait(), 10)
-        async with svc:
-            assert svc.mqtt is not None
-            await asyncio.wait_for(svc.mqtt.connected.wait(), 10)
-            t0 = time.monotonic()
-            for i in range(n):
-                # Group id 2 (the throughput run uses 1..16 on channel 1): channel 2 here.
-                rec = DataRecord(2, 1, 2, i, 0, float(i), 1, 1)
-                due = t0 + i / rate
-                if (wait := due - time.monotonic()) > 0:
-                    await asyncio.sleep(wait)
-                sent[f"{prefix}/data/2/1/2/{i}"] = time.monotonic()
-                svc.on_event(0, _Delivered(rec, float(i)), float(i))
-            deadline = time.monotonic() + 30.0
-            while len(arrivals.times) < n and time.monotonic() < deadline:
-                arrivals.event.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(arrivals.event.wait(), 1.0)
-            if len(arrivals.times) < n:
-                got = len(arrivals.times)
-                raise RuntimeError(f"bench bridge: {got} of {n} paced records arrived")
-            return [arrivals.times[k] - sent[k] for k in sent], svc.mqtt.stats.protocol
-    finally:
-        sub.cancel()
-        with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
-            await sub
+    async with _gateway_and_subscriber(url, sub_url, prefix, "awaremw-bench-paced") as (svc, arr):
+        t0 = time.monotonic()
+        for i in range(n):
+            # Group id 2 (the throughput run uses 1..16 on channel 1): channel 2 here.
+            rec = DataRecord(2, 1, 2, i, 0, float(i), 1, 1)
+            due = t0 + i / rate
+            if (wait := due - time.monotonic()) > 0:
+                await asyncio.sleep(wait)
+            sent[f"{prefix}/data/2/1/2/{i}"] = time.monotonic()
+            svc.on_event(0, _Delivered(rec, float(i)), float(i))
+        deadline = time.monotonic() + 30.0
+        while len(arr.times) < n and time.monotonic() < deadline:
+            arr.event.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(arr.event.wait(), 1.0)
+        if len(arr.times) < n:
+            raise RuntimeError(f"bench bridge: {len(arr.times)} of {n} paced records arrived")
+        assert svc.mqtt is not None
+        return [arr.times[k] - sent[k] for k in sent], svc.mqtt.stats.protocol
 
 
 @dataclass(frozen=True)
