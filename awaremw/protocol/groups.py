@@ -63,6 +63,8 @@ MAX_GROUP_ID = 0xFFFE
 MAX_WEIGHT = 0xFFFFFFFF
 MAX_HOPS = 0xFF
 ELECTION_BACKOFF_FACTOR = 3.0  # creation backoff after a lost leader, x create_backoff
+TENTATIVE_CREATE_SPREAD = 0.5  # spontaneous creation backoff with tentative ids, x create_backoff
+TENTATIVE_BEACONS = 2  # a would-be group announces its id this many times, evenly spread
 
 
 # --------------------------------------------------------------------------- public values
@@ -243,7 +245,7 @@ class _TypeState:
     former: int = 0  # an established group (weight > 0) we left by a merge ...
     former_until: float = -math.inf  # ... and until when a split may take its id back
     tent_gid: int = 0  # WAITING: the id this mote announced tentatively (0: none)
-    tent_answered: bool = False  # our tentative beacon was re-sent to a lighter one
+    tent_sent: int = 0  # tentative beacons sent for tent_gid
     tent_heard: dict[int, float] = field(default_factory=dict)  # tentative id -> heard at
 
 
@@ -506,6 +508,12 @@ class Groups(Component):
             else:
                 self._create(st, now)
         elif kind == "confirm" and st.role is Role.WAITING and st.tent_gid:
+            if st.tent_sent < TENTATIVE_BEACONS:
+                # Once more half-way: one lost frame (ours, or the answer) on a
+                # marginal link must not let a contender take its id.
+                self._send_tentative(st)
+                self.timers.set(name, now + self._tentative_hold() / TENTATIVE_BEACONS)
+                return
             # The would-be group heard no established group and no heavier
             # would-be group for a tentative period: its id is taken now.
             gid, st.tent_gid = st.tent_gid, 0
@@ -595,6 +603,10 @@ class Groups(Component):
         # last beacon: a wider backoff spreads their claims so that the first new
         # group's flood reaches the others before they create contenders.
         spread = ELECTION_BACKOFF_FACTOR if cause is ElectionCause.ELECTION else 1.0
+        if cause is ElectionCause.CREATED and self._tentative_hold() > 0:
+            # The tentative period resolves contention now: half the backoff
+            # gives back part of the time it costs before the first record.
+            spread = TENTATIVE_CREATE_SPREAD
         backoff = self.ctx.rng.uniform(0, spread * self.ctx.config.create_backoff)
         self.timers.set(("create", st.gtype), now + backoff)
 
@@ -678,9 +690,9 @@ class Groups(Component):
             return
         # Tentative ids: announce the id and take it one tentative period later
         # unless an established group answers or a heavier would-be group is heard.
-        st.tent_gid, st.tent_answered = gid, False
+        st.tent_gid, st.tent_sent = gid, 0
         self._send_tentative(st)
-        self.timers.set(("confirm", st.gtype), now + hold)
+        self.timers.set(("confirm", st.gtype), now + hold / TENTATIVE_BEACONS)
 
     def _tentative_hold(self) -> float:
         c = self.ctx.config
@@ -689,6 +701,7 @@ class Groups(Component):
     def _send_tentative(self, st: _TypeState) -> None:
         me = self.ctx.node_id
         self.send(LeaderBeacon(me, BROADCAST, st.gtype, st.tent_gid, me, 0, 0, 0, True))
+        st.tent_sent += 1
         self.stats.tentative_sent += 1
 
     def _withdraw(self, st: _TypeState) -> None:
@@ -712,9 +725,8 @@ class Groups(Component):
                 self._withdraw(st)
                 backoff = self.ctx.rng.uniform(0, self.ctx.config.create_backoff)
                 self.timers.set(("create", st.gtype), now + self._tentative_hold() + backoff)
-            elif not st.tent_answered:
-                st.tent_answered = True  # it may not have heard ours: once more
-                self._send_tentative(st)
+            elif st.tent_sent <= TENTATIVE_BEACONS:
+                self._send_tentative(st)  # it may not have heard ours: once more
 
     def _become_leader(
         self, st: _TypeState, gid: int, weight: int, seq: int, now: float, cause: ElectionCause
