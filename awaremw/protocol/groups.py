@@ -18,8 +18,12 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
   thresholds relaxed by the definition's hysteresis, a non-member needs the
   strict conditions;
 * a qualifying mote joins the heaviest group of its type heard within the
-  leader timeout, else waits ``U(0, create_backoff)`` and creates one (leader,
-  weight 0, random 16-bit id avoiding ids heard nearby);
+  leader timeout, else waits ``U(0, create_backoff / 2)`` and creates one (leader,
+  weight 0, random 16-bit id avoiding ids heard nearby) -- after announcing the
+  id for ``tentative_periods`` beacon periods (tentative beacons, never joined
+  nor forwarded): an established group in range answers and is joined, the
+  higher of two would-be ids goes on, so contention at a group's birth ends
+  before any mote holds the losing id;
 * members forward only the heaviest group they know: a member hearing a heavier
   group of its type (``(weight, group id)`` compared) switches to it, a leader
   hearing one yields (reports GONE with the survivor's id) and joins it;
