@@ -307,6 +307,32 @@ def test_of_two_would_be_groups_the_higher_id_goes_on_and_the_other_joins_it() -
     assert isinstance(again, LeaderBeacon) and again.tentative and again.group_id == wa.group_id
 
 
+def test_a_mote_between_two_would_be_groups_relays_the_higher_announcement_once() -> None:
+    """Fire seed 15: two motes of a leaderless part, two hops apart, announce at
+    once; the mote between them hears both."""
+    h = H(temp=20.0, tentative_periods=1.0)
+    h.g.define(1, HOT, 0.0)
+    h.advance(1.0)
+    h.hear(tentative(src=30, gid=900))
+    assert h.sent() == []  # one announcement: nothing to relay
+    h.hear(tentative(src=31, gid=400))
+    (r,) = h.sent()
+    assert isinstance(r, LeaderBeacon) and r.tentative
+    assert (r.src, r.group_id, r.leader, r.hops) == (10, 900, 30, 1)
+    h.hear(tentative(src=31, gid=400))  # repeated: relayed once only
+    h.hear(tentative(src=30, gid=900))
+    assert h.sent() == []
+    # The lower announcer withdraws on the relayed copy.
+    low = H(nid=31, tentative_periods=1.0)
+    a = announce(low)
+    relayed = LeaderBeacon(10, BROADCAST, 1, 0xFFFE, 30, 0, 0, 1, True)
+    assert a.group_id < 0xFFFE
+    low.hear(relayed)
+    assert low.g.stats.tentative_withdrawn == 1
+    low.advance(low.now + low.cfg.beacon_period)
+    assert low.events() == [] and low.g.membership(1) is None
+
+
 def test_a_waiting_mote_that_heard_an_announcement_does_not_announce_a_contender() -> None:
     h = H(temp=20.0, tentative_periods=1.0)
     h.g.define(1, HOT, 0.0)

@@ -251,6 +251,8 @@ class _TypeState:
     tent_gid: int = 0  # WAITING: the id this mote announced tentatively (0: none)
     tent_sent: int = 0  # tentative beacons sent for tent_gid
     tent_heard: dict[int, float] = field(default_factory=dict)  # tentative id -> heard at
+    tent_leader: dict[int, int] = field(default_factory=dict)  # tentative id -> announcer
+    tent_relayed: int = 0  # the would-be id whose announcement we relayed last
 
 
 def seq_newer(a: int, b: int) -> bool:
@@ -587,6 +589,7 @@ class Groups(Component):
             del st.children[n]
         for g in [g for g, t in st.tent_heard.items() if now - t > ttl]:
             del st.tent_heard[g]
+            st.tent_leader.pop(g, None)
 
     def _best_nearby(self, st: _TypeState, now: float) -> tuple[int, _Heard] | None:
         ttl = self._timeout()
@@ -716,8 +719,19 @@ class Groups(Component):
 
     def _on_tentative(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
         """A would-be group's announcement: never joined, never forwarded."""
+        hold = self._tentative_hold()
+        rivals = [g for g, t in st.tent_heard.items() if now - t <= hold and g != f.group_id]
         st.tent_heard[f.group_id] = now
+        st.tent_leader[f.group_id] = f.leader
         role = st.role
+        if role in (Role.IDLE, Role.WAITING) and not st.tent_gid and rivals:
+            # Two would-be groups around us, maybe out of each other's range:
+            # relay the higher one's announcement once, the lower one withdraws.
+            top = max([*rivals, f.group_id])
+            if top != st.tent_relayed:
+                st.tent_relayed = top
+                me, who = self.ctx.node_id, st.tent_leader.get(top, 0)
+                self.send(LeaderBeacon(me, BROADCAST, st.gtype, top, who, 0, 0, 1, True))
         if role in (Role.MEMBER, Role.LEADER):
             # An established group is in range: answer with our beacon, the
             # would-be group joins us instead of taking its id.
