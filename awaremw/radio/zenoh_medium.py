@@ -63,6 +63,7 @@ import zenoh
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
+from awaremw.radio.capture import RadioTap, lost, refused
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import (
     EnvelopeLimits,
@@ -229,6 +230,8 @@ class ZenohMedium:
         # experiments (who heard whom); None = not tracked (the default). Bound:
         # senders (< 32768 ids) x local motes; only tests turn it on.
         self.links: dict[tuple[int, int], int] | None = None
+        # A capture (awaremw.radio.capture): frames on the air here, local receptions.
+        self.tap: RadioTap | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -445,6 +448,8 @@ class ZenohMedium:
             self._malformed(key, str(e))
             return
         now = self.clock.now()
+        if self.tap is not None and env.kind is Kind.FRAME:
+            self.tap.on_air(now, env.src, env.dest, env.seq, env.attempt, env.frame)
         if env.kind is Kind.ACK:
             self._ack_in(env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.dest, now)
         elif env.dest == BROADCAST:
@@ -489,6 +494,7 @@ class ZenohMedium:
         nb = self._nb
         c = nb.sender(src, sx, sy, txp)
         links = self.links
+        tap = self.tap
         heard = False
         if c.near or c.far_loss or c.far_dist:
             heard = True
@@ -500,12 +506,16 @@ class ZenohMedium:
                 ok, rssi = decide(lh, mean, bits, key)
                 if not ok:
                     rc.dropped_loss += 1
+                    if tap is not None:
+                        tap.reception(now, src, r.node_id, rssi, "path_loss")
                     continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 if links is not None:
                     _tally(links, src, r.node_id)
                 data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+                if tap is not None:
+                    tap.reception(now, src, r.node_id, rssi, refused(data, op))
                 if data is not None:
                     r.sink.radio_receive(data, rssi, now)
                 if r.battery is not None:
@@ -523,11 +533,15 @@ class ZenohMedium:
                 heard = True
                 d = math.hypot(r.x - sx, r.y - sy)
                 got = hear(m, r.counters, src, r.node_id, d, txp, rng, n, bits, key)
+                if tap is not None and got is None:
+                    tap.reception(now, src, r.node_id, None, lost(d > rng))
                 if got is None:
                     continue
                 if links is not None:
                     _tally(links, src, r.node_id)
                 data = frame if op is None else g.accept(r.node_id, r.counters, src, op)  # type: ignore[union-attr]
+                if tap is not None:
+                    tap.reception(now, src, r.node_id, got, refused(data, op))
                 if data is not None:
                     r.sink.radio_receive(data, got, now)
                 self._check_battery(r, now)
@@ -561,7 +575,10 @@ class ZenohMedium:
         bits = 8 * (n + self._overhead)
         key = packet_key(seq, attempt)
         rssi = hear(m, rc, src, r.node_id, d, txp, m.max_range_m(txp), n, bits, key)
+        tap = self.tap
         if rssi is None:
+            if tap is not None:
+                tap.reception(now, src, r.node_id, None, lost(d > m.max_range_m(txp)))
             return False
         if self.links is not None:
             _tally(self.links, src, r.node_id)
@@ -571,10 +588,16 @@ class ZenohMedium:
             # Bad MIC: dropped before the duplicate filter (it cannot poison it);
             # the hardware ACK goes out all the same (802.15.4 ACKs are not secured).
             g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+            if tap is not None:
+                tap.reception(now, src, r.node_id, rssi, "mic")
         elif linklayer.accept_unicast(r, src, seq):
             data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+            if tap is not None:
+                tap.reception(now, src, r.node_id, rssi, refused(data, op))
             if data is not None:
                 r.sink.radio_receive(data, rssi, now)
+        elif tap is not None:
+            tap.reception(now, src, r.node_id, rssi, "duplicate")
         if not linklayer.send_ack(r):  # switched off by whoever handled the frame
             return False
         self._check_battery(r, now)
@@ -638,6 +661,8 @@ class ZenohMedium:
         c.bytes_tx += n
         now = self.clock.now()
         self._nb.locate(r, now)
+        if self.tap is not None:
+            self.tap.on_air(now, r.node_id, tx.dest, seq, attempt, frame)
         if tx.dest == BROADCAST:
             self._publish(r, Kind.FRAME, seq, 0, now, BROADCAST, frame)
             r.busy = False
