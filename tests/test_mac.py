@@ -270,3 +270,24 @@ def test_air_decides_the_same_whatever_order_frames_are_learnt_in() -> None:
     rnd.shuffle(shuffled)
     assert decisions(shuffled) == first
     assert 0 < sum(first) < len(first)  # some captured, some lost: the test means something
+
+
+def test_a_retransmission_backs_off_over_the_wide_window() -> None:
+    """CC2420: a first attempt waits 0..7 unit backoffs (macMinBE 3); a retransmission
+    0..31 (retry_be = macMaxBE 5), so that hidden senders that collided and retry
+    after the same ACK timeout rarely meet again. ALOHA keeps its uniform backoff."""
+    p = mac_params(CC2420, "csma")
+    assert p.retry_be == 5 and p.min_be == 3
+    first, retry = set(), set()
+    for src in range(40):
+        m = MacSender(p, src * 7919 + 1)
+        for seq in range(50):
+            first.add(round((m.begin(seq, 0, 1.0) - 1.0 - p.cca_s) / p.unit_backoff_s))
+            retry.add(round((m.begin(seq, 1, 1.0) - 1.0 - p.cca_s) / p.unit_backoff_s))
+    assert first == set(range(8))
+    assert retry == set(range(32))
+    a = mac_params(CC2420, "aloha")
+    m = MacSender(a, 12345)
+    assert 0.0 <= m.begin(3, 2, 0.0) < a.aloha_backoff_s
+    with pytest.raises(ValueError, match="retry_be"):
+        dataclasses.replace(p, retry_be=6)

@@ -67,6 +67,9 @@ class MacParams:
     periods, assess the channel for ``cca_s``; clear: turn the radio around
     (``turnaround_s``) and transmit; busy: ``NB += 1``, ``BE = min(BE + 1,
     max_be)``, and if ``NB > max_backoffs`` give up, else back off again.
+    A retransmission (``attempt >= 1``) starts with ``BE = retry_be`` instead
+    (``None``: ``min_be``), so that two hidden senders that collided, and
+    retry after the same ACK timeout, draw from a wider window.
     The channel is busy when the energy on it reaches ``cca_threshold_dbm``
     or, with ``carrier_sense``, when a frame at or above the sensitivity is
     being received. ALOHA (``kind = "aloha"``): no assessment; the attempt
@@ -83,12 +86,17 @@ class MacParams:
     cca_threshold_dbm: float
     carrier_sense: bool
     aloha_backoff_s: float
+    # BE of a retransmission's first backoff (attempt >= 1); None: min_be, as
+    # 802.15.4-2006 has it for every attempt.
+    retry_be: int | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in MAC_KINDS:
             raise ValueError(f"unknown mac {self.kind!r}; known: {', '.join(MAC_KINDS)}")
         if not 0 <= self.min_be <= self.max_be <= 16 or self.max_backoffs < 0:
             raise ValueError("need 0 <= min_be <= max_be <= 16 and max_backoffs >= 0")
+        if self.retry_be is not None and not self.min_be <= self.retry_be <= self.max_be:
+            raise ValueError("need min_be <= retry_be <= max_be")
         for name in ("unit_backoff_s", "cca_s", "turnaround_s", "aloha_backoff_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
@@ -99,7 +107,10 @@ def mac_params(preset: RadioPreset, kind: str = "csma") -> MacParams:
 
     ``cc2420``: 802.15.4 unslotted CSMA/CA defaults (macMinBE 3, macMaxBE 5,
     macMaxCSMABackoffs 4, aUnitBackoffPeriod 20 symbols = 320 us, CCA over
-    8 symbols = 128 us, aTurnaroundTime 12 symbols = 192 us), CCA threshold
+    8 symbols = 128 us, aTurnaroundTime 12 symbols = 192 us), except that a
+    retransmission's first backoff uses macMaxBE (0..31 unit backoffs, 0..9.9
+    ms, the range of TinyOS 2's CC2420 initial backoff): with macMinBE, hidden
+    senders that collided re-collide on most retries (docs/radio.md), CCA threshold
     -77 dBm (the chip's reset CCA_THR) in CCA mode 3 (energy or a frame being
     received). Any other preset (``cc1000``): a B-MAC-like CSMA, a fixed
     window of 32 slots of one byte time (about the preset's 12.8 ms initial
@@ -121,6 +132,7 @@ def mac_params(preset: RadioPreset, kind: str = "csma") -> MacParams:
             cca_threshold_dbm=-77.0,
             carrier_sense=True,
             aloha_backoff_s=preset.mac_backoff_s,
+            retry_be=5,
         )
     byte_s = 8.0 / preset.bitrate_bps
     return MacParams(
@@ -164,7 +176,7 @@ class MacSender:
             return now + uniform(h) * p.aloha_backoff_s
         self.h = h
         self.nb = 0
-        self.be = p.min_be
+        self.be = p.min_be if attempt == 0 or p.retry_be is None else p.retry_be
         return self._backoff(now)
 
     def _backoff(self, now: float) -> float:
