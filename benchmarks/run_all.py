@@ -125,7 +125,7 @@ def _virtual_cell(r: Result) -> str:
             f"; **{_n(r.get('records_delivered'))} of {_n(r.get('records_produced'))} records** "
             f"delivered (`record_delivery` {_n(r.get('record_delivery'), 3)})"
         )
-    return out
+    return out + _medium(r, "collisions", "in all")
 
 
 def _large_cell(r: Result) -> str:
@@ -156,6 +156,17 @@ def _aggregation_cell(r: Result) -> str:
         f"**{_n(r.get('no_aggregation_ratio'), 1)}**; {_n(r.get('bytes_per_epoch'), 0)} radio bytes"
         f" and {_n(r.get('energy_mj_per_epoch'), 1)} mJ per epoch; records carry "
         f"{_n(100 * float(r.get('completeness') or 0), 1)} % of the members' readings"
+        f"{_medium(r, 'collisions_per_epoch', 'per epoch')}"
+    )
+
+
+def _medium(r: Result, key: str, per: str) -> str:
+    """The medium of a run (``--mac``, ``--collisions``) and its collision count."""
+    if r.get("collisions_model") is None:
+        return ""
+    return (
+        f"; medium `{r.get('mac')}`, collisions `{r.get('collisions_model')}`: "
+        f"{_n(r.get(key), 1)} collisions {per}"
     )
 
 
@@ -169,6 +180,7 @@ def _dissemination_cell(r: Result) -> str:
         f"hour** (Drip {_n(r.get('drip_tx_per_mote_per_hour'), 1)}, collection beacons "
         f"{_n(r.get('ctp_beacons_per_mote_per_hour'), 1)}), "
         f"{_n(r.get('bytes_tx_per_mote_per_hour'), 0)} radio bytes per mote per hour"
+        f"{_medium(r, 'window_collisions', 'in the steady-state window')}"
     )
 
 
@@ -228,6 +240,12 @@ ROWS: tuple[Row, ...] = (
          "--json"),
         ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12", "--json"),
         "speedup", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99"),
+    Row("virtual-aware-no-collisions", "virtual clock, whole middleware, no collisions",
+        ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "120",
+         "--collisions", "none", "--json"),
+        ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12",
+         "--collisions", "none", "--json"),
+        "speedup", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99"),
     Row("experiment-large", "tracking at scale (`large.toml`)",
         ("experiment", "large", "--virtual", "--duration", "120"),
         ("experiment", "large", "--virtual", "--duration", "3"),
@@ -236,6 +254,11 @@ ROWS: tuple[Row, ...] = (
         ("bench", "aggregation", "--json"),
         ("bench", "aggregation", "--side", "6", "--radius", "12", "--warmup", "30", "--epochs",
          "3", "--json"),
+        "lower_bound_ratio", _aggregation_cell, "<= 1.5, >= 5", repeat=1, why_once=_ONCE),
+    Row("aggregation-no-collisions", "aggregation, no collisions",
+        ("bench", "aggregation", "--collisions", "none", "--json"),
+        ("bench", "aggregation", "--collisions", "none", "--side", "6", "--radius", "12",
+         "--warmup", "30", "--epochs", "3", "--json"),
         "lower_bound_ratio", _aggregation_cell, "<= 1.5, >= 5", repeat=1, why_once=_ONCE),
     Row("aggregation-secure", "aggregation, secured",
         ("bench", "aggregation", "--secure", "--json"),
@@ -246,6 +269,11 @@ ROWS: tuple[Row, ...] = (
         ("bench", "dissemination", "--json"),
         ("bench", "dissemination", "--side", "5", "--warmup", "20", "--settle", "30", "--window",
          "60", "--json"),
+        "seconds_per_hop", _dissemination_cell, "", repeat=1, why_once=_ONCE),
+    Row("dissemination-no-collisions", "dissemination, no collisions",
+        ("bench", "dissemination", "--collisions", "none", "--json"),
+        ("bench", "dissemination", "--collisions", "none", "--side", "5", "--warmup", "20",
+         "--settle", "30", "--window", "60", "--json"),
         "seconds_per_hop", _dissemination_cell, "", repeat=1, why_once=_ONCE),
     Row("dissemination-secure", "dissemination, secured",
         ("bench", "dissemination", "--secure", "--json"),
