@@ -241,6 +241,8 @@ class Fleet:
             prefix=s.prefix,
             handler=s.handler,
             security=s.security,
+            mac=self.deployment.mac,
+            collisions=self.deployment.collisions,
         )
         self._medium = medium
         medium.open()
