@@ -614,7 +614,10 @@ class ZenohMedium:
                 and self._ack_heard(r.node_id, r.x, r.y, r.tx_power, s, fr.seq, fr.attempt)
             )
             if s.alive and s.cur is not None and (s.cur_seq, s.cur_attempt) == (fr.seq, fr.attempt):
-                t = linklayer.outcome_time(self.preset, fr.end, acked)
+                # The sender resumes when the virtual medium's sender would, unless
+                # the decision itself came later (the guard is longer than the ACK
+                # exchange): then now -- a radio does not act in the past.
+                t = max(linklayer.outcome_time(self.preset, fr.end, acked), now)
                 s.handle = self.loop.call_at(self.clock.to_monotonic(t), self._uc_done, s, acked, t)
         elif got and r is not None:
             # The destination got it: its auto-ACK goes back to the sender's process.
@@ -890,14 +893,13 @@ class ZenohMedium:
             self.clock.to_monotonic(end) + wall, self._uc_done, r, False, t
         )
 
-    def _uc_done(self, r: Radio, acked: bool, t: float) -> None:
-        """The outcome of a unicast attempt, known at emulated ``t`` (the sender
-        resumes at ``t``, or now if the loop runs this later)."""
+    def _uc_done(self, r: Radio, acked: bool, now: float) -> None:
+        """The outcome of a unicast attempt, known at emulated ``now`` (the time
+        the timer stands for: the sender resumes from it)."""
         r.handle = None
         tx = r.cur
         if not r.alive or tx is None or self._closed:
             return
-        now = max(t, self.clock.now())
         if linklayer.settle(r, acked, 0 if self._frozen else self.preset.max_retries):
             self._schedule_attempt(r, now)
             return
