@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import heapq
 import logging
 import math
 from collections import deque
@@ -287,6 +288,11 @@ class ZenohMedium:
             guard_s + AIR_SLACK_S
         )
         self._air = Air(model, model.preset.capture_threshold_db, horizon)
+        # Frames awaiting their decision: (loop time due, order, frame); bound MAX_ON_AIR.
+        self._decisions: list[tuple[float, int, _OnAirFrame]] = []
+        self._decision_seq = 0
+        self._decision_timer: asyncio.TimerHandle | None = None
+        self._decision_at = 0.0
         self.stats = MediumStats()
         self.radios: dict[int, Radio] = {}
         self._counters: dict[int, MoteCounters] = {}
@@ -350,6 +356,10 @@ class ZenohMedium:
             self._poll.cancel()
         if self._mobility_handle is not None:
             self._mobility_handle.cancel()
+        if self._decision_timer is not None:
+            self._decision_timer.cancel()
+            self._decision_timer = None
+        self._decisions.clear()
         self._inbox.clear()
 
     def freeze(self) -> None:
@@ -576,18 +586,41 @@ class ZenohMedium:
         return air.add(src, x, y, txp, start, end, packet_key(seq, attempt))
 
     def _schedule_decision(self, fr: _OnAirFrame) -> None:
-        """Decide ``fr``'s local receptions at its end + the guard (at once if that is past)."""
+        """Decide ``fr``'s local receptions at its end + the guard (at once if that is
+        past). One heap of pending decisions and one loop timer for its head: far
+        cheaper than a loop timer per frame (asyncio compares its handles in Python)."""
         due = self.clock.to_monotonic(fr.end) + self._decide_after
         loop = self.loop
         if due < loop.time() and self._collide:
             self.stats.late += 1
-        loop.call_at(due, self._decide_guarded, fr)
+        q = self._decisions
+        if len(q) >= MAX_ON_AIR:  # bound: a frame per envelope accepted
+            self.stats.air_full += 1
+            self.rejected.count("decisions full", f"{MAX_ON_AIR} frames awaiting a decision")
+            return
+        self._decision_seq += 1
+        heapq.heappush(q, (due, self._decision_seq, fr))
+        h = self._decision_timer
+        if h is None or due < self._decision_at:
+            if h is not None:
+                h.cancel()
+            self._decision_at = due
+            self._decision_timer = loop.call_at(due, self._run_decisions)
 
-    def _decide_guarded(self, fr: _OnAirFrame) -> None:
-        try:
-            self._decide(fr)
-        except Exception as e:
-            self.faults.count(f"decide: {type(e).__name__}", f"frame of {fr.src}: {e}", e)
+    def _run_decisions(self) -> None:
+        """Decide every frame whose time has come, in order; re-arm for the next."""
+        self._decision_timer = None
+        q = self._decisions
+        now = self.loop.time()
+        while q and q[0][0] <= now:
+            fr = heapq.heappop(q)[2]
+            try:
+                self._decide(fr)
+            except Exception as e:
+                self.faults.count(f"decide: {type(e).__name__}", f"frame of {fr.src}: {e}", e)
+        if q and not self._closed:
+            self._decision_at = q[0][0]
+            self._decision_timer = self.loop.call_at(self._decision_at, self._run_decisions)
 
     def _decide(self, fr: _OnAirFrame) -> None:
         """Rules 3 to 7 for the local motes ``fr`` concerns, now that every frame
