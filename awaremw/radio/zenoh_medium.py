@@ -45,6 +45,19 @@ reception on the reverse link. The sender waits ``preset.ack_timeout_s``
 (emulated) but never less than ``ack_wait_floor_s`` of wall time for remote
 destinations (Zenoh and the loops need that long to answer), then retries up
 to ``preset.max_retries`` times and reports the outcome to the core.
+
+Channel access and collisions (``mac``, ``collisions``; ``docs/radio.md``,
+"Across processes and hosts") are :mod:`awaremw.radio.mac`'s, driven through
+:mod:`awaremw.radio.linklayer` as the virtual medium drives them; this module
+only turns their answers into timers and envelopes. An attempt's envelope is
+published as soon as its start is decided, carrying that start time; every
+process puts the frame on its :class:`~awaremw.radio.mac.Air` (carrier sense
+and interference) and decides its own motes' receptions ``guard_s`` of wall
+time after the frame's end, when every overlapping frame's envelope has
+arrived -- so every process decides from the same frames. Timers carry the
+emulated time they stand for and the MAC runs on it, so loop lag does not
+move backoffs or starts. An envelope that comes after its end + guard is
+decided at once and counted (``MediumStats.late``).
 """
 
 from __future__ import annotations
