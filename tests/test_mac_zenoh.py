@@ -332,3 +332,23 @@ async def test_a_late_envelope_is_counted_and_decided_at_once_an_early_one_refus
         medium.close()
         close_quietly(s2)
         close_quietly(s1)
+
+
+async def test_a_fleet_takes_mac_and_collisions_from_its_deployment(router: str) -> None:
+    from awaremw.runtime.deployment import parse_deployment
+    from awaremw.runtime.fleet import Fleet, FleetSettings
+
+    def dep(**keys: str) -> Any:
+        nodes = [{"id": 1, "kind": "x", "position": [0.0, 0.0]}]
+        return parse_deployment(
+            {"name": "m", "seed": 1, "area": [10.0, 10.0], "nodes": nodes, **keys}
+        )
+
+    def silent(spec: Any, d: Any) -> Sink:
+        return Sink(spec.id, set())
+
+    for keys, kind, coll in (({}, "csma", "sinr"), ({"mac": "aloha", "collisions": "none"},
+                             "aloha", "none")):  # fmt: skip
+        settings = FleetSettings(connect=(router,), control=False)
+        async with Fleet(dep(**keys), silent, settings) as f:  # type: ignore[arg-type]
+            assert f.medium.mac_params.kind == kind and f.medium.collisions == coll
