@@ -28,7 +28,7 @@ from awaremw.protocol.frames import BROADCAST
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.envelope import Kind, encode_envelope
 from awaremw.radio.model import CC2420, RadioModel, cell_of
-from awaremw.radio.zenoh_medium import Radio, ZenohMedium
+from awaremw.radio.zenoh_medium import MacSettings, Radio, ZenohMedium
 from awaremw.runtime.router import EmbeddedRouter
 from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.runtime.zenoh_session import (
@@ -215,13 +215,12 @@ async def test_same_seed_same_collisions_virtual_and_zenoh_in_one_process(
     # Guard 5 ms wall = 0.25 ms emulated: shorter than the ACK exchange (0.54 ms),
     # so an acknowledged sender resumes when the virtual one does (with a longer
     # guard it resumes at end + guard: same rules, later times).
-    z = Media(model, [session], f"t1{mac}", mac=mac, collisions="sinr", guard_s=0.005)
+    z = Media(model, [session], f"t1{mac}", access=MacSettings(mac, "sinr", 0.005))
     try:
         z.attach(0, pos)
         t_end = z.play(script)
         await z.settle(t_end)
-        z_counts = z.counters()
-        assert z.media[0].stats.late == 0
+        z_counts = z.counters()  # (late decisions cannot matter: no frame comes from elsewhere)
     finally:
         z.close()
         close_quietly(session)
@@ -253,7 +252,9 @@ async def two_processes(
     """Motes ``pos1`` on one session's medium, ``pos2`` on another's; play ``script``."""
     s1 = open_session(SessionSettings("peer", (router,)))
     s2 = open_session(SessionSettings("peer", (router,)))
-    z = Media(RadioModel(FLAT, 4), [s1, s2], prefix, mac=mac, collisions="sinr")
+    # A 40 ms wall guard (2 ms emulated): a loaded test machine's loop lag must not
+    # make an envelope late (which would be counted, and decided without waiting).
+    z = Media(RadioModel(FLAT, 4), [s1, s2], prefix, access=MacSettings(mac, "sinr", 0.04))
     try:
         z.attach(0, pos1)
         z.attach(1, pos2)

@@ -79,6 +79,7 @@ from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import (
+    Envelope,
     EnvelopeLimits,
     Kind,
     MalformedEnvelope,
@@ -90,6 +91,7 @@ from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.mac import (
     COLLISION_MODES,
     GIVE_UP,
+    MAC_KINDS,
     MAX_ON_AIR,
     SENSE,
     TRANSMIT,
@@ -156,46 +158,44 @@ class MediumStats:
     subscriptions: int = 0
     late: int = 0  # frames whose envelope came after end + guard: decided at once
     early: int = 0  # envelopes refused: the frame starts too far ahead (EARLY_LIMIT_S)
-    air_full: int = 0  # envelopes refused: MAX_ON_AIR frames already on the Air
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
 
 
 class _OnAirFrame:
-    """A frame whose receptions this process decides at ``end`` + guard."""
+    """A frame (its envelope) whose local receptions are decided at ``end`` + guard."""
 
-    __slots__ = (
-        "attempt", "cancelled", "dest", "end", "f", "frame", "sender", "seq", "src", "txp", "x",
-        "y",
-    )  # fmt: skip
+    __slots__ = ("cancelled", "end", "env", "f", "sender")
 
-    def __init__(
-        self,
-        src: int,
-        x: float,
-        y: float,
-        txp: float,
-        seq: int,
-        attempt: int,
-        dest: int,
-        frame: bytes,
-        end: float,
-        f: OnAir | None,
-        sender: Radio | None,
-    ) -> None:
-        self.src = src
-        self.x = x
-        self.y = y
-        self.txp = txp
-        self.seq = seq
-        self.attempt = attempt
-        self.dest = dest
-        self.frame = frame
+    def __init__(self, env: Envelope, end: float, f: OnAir | None, sender: Radio | None) -> None:
+        self.env = env
         self.end = end
-        self.f = f  # on the Air (None: carrier sense and collisions off, or Air full)
+        self.f = f  # on the Air (None: carrier sense and collisions off)
         self.sender = sender  # the local sender of a unicast to a local mote, else None
         self.cancelled = False  # its local sender was switched off before its end
+
+
+@dataclass(frozen=True, slots=True)
+class MacSettings:
+    """Channel access and collisions of a Zenoh medium (``docs/radio.md``, "Medium
+    access and collisions"): ``mac`` ("csma" or "aloha"), ``collisions`` ("sinr"
+    or "none"), and ``guard_s``, the wall seconds after a frame's end before its
+    receptions are decided."""
+
+    mac: str = "csma"
+    collisions: str = "sinr"
+    guard_s: float = DEFAULT_GUARD_S
+
+    def __post_init__(self) -> None:
+        if self.mac not in MAC_KINDS:
+            raise ValueError(f"unknown mac {self.mac!r}; known: {', '.join(MAC_KINDS)}")
+        if self.collisions not in COLLISION_MODES:
+            raise ValueError(
+                f"unknown collisions {self.collisions!r}; known: {', '.join(COLLISION_MODES)}"
+            )
+        if not 0.0 <= self.guard_s < 1.0:
+            raise ValueError(f"guard_s {self.guard_s} outside [0, 1) s")
 
 
 class Radio(LinkStation):
@@ -262,19 +262,15 @@ class ZenohMedium:
         handler: Handler = DEFAULT_HANDLER,
         ack_wait_floor_s: float = DEFAULT_ACK_WAIT_FLOOR_S,
         security: RadioSecurity | None = None,
-        mac: str = "csma",
-        collisions: str = "sinr",
-        guard_s: float = DEFAULT_GUARD_S,
+        access: MacSettings | None = None,
     ) -> None:
         if "*" in prefix or prefix.endswith("/") or not prefix:
             raise ValueError(f"bad key prefix {prefix!r}")
-        if collisions not in COLLISION_MODES:
+        access = access or MacSettings()
+        mac, collisions, guard_s = access.mac, access.collisions, access.guard_s
+        if not guard_s < ack_wait_floor_s:
             raise ValueError(
-                f"unknown collisions {collisions!r}; known: {', '.join(COLLISION_MODES)}"
-            )
-        if not 0.0 <= guard_s < ack_wait_floor_s:
-            raise ValueError(
-                f"need 0 <= guard_s ({guard_s}) < ack_wait_floor_s ({ack_wait_floor_s}): "
+                f"need guard_s ({guard_s}) < ack_wait_floor_s ({ack_wait_floor_s}): "
                 "a remote ACK comes after the guard"
             )
         self.session = session
@@ -581,19 +577,17 @@ class ZenohMedium:
         if env.dest != BROADCAST and env.dest not in self.radios:
             self.stats.ignored += 1  # a unicast to a mote elsewhere: only its airtime counts
             return
-        fr = _OnAirFrame(env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.dest,
-                         env.frame, end, f, None)  # fmt: skip
+        fr = _OnAirFrame(env, end, f, None)
         self._schedule_decision(fr)
 
     def _air_add(
         self, src: int, x: float, y: float, txp: float, start: float, end: float, seq: int,
         attempt: int,
     ) -> OnAir | None:  # fmt: skip
-        """A remote frame on the Air; None (counted ``air_full``) if the Air is full."""
+        """A remote frame on the Air; None (``rejected["air full"]``) if the Air is full."""
         air = self._air
         air.prune(self.clock.now())
         if len(air.frames) >= MAX_ON_AIR:
-            self.stats.air_full += 1
             self.rejected.count("air full", f"{MAX_ON_AIR} frames on the air")
             return None
         return air.add(src, x, y, txp, start, end, packet_key(seq, attempt))
@@ -608,7 +602,6 @@ class ZenohMedium:
             self.stats.late += 1
         q = self._decisions
         if len(q) >= MAX_ON_AIR:  # bound: a frame per envelope accepted
-            self.stats.air_full += 1
             self.rejected.count("decisions full", f"{MAX_ON_AIR} frames awaiting a decision")
             return
         self._decision_seq += 1
@@ -630,7 +623,7 @@ class ZenohMedium:
             try:
                 self._decide(fr)
             except Exception as e:
-                self.faults.count(f"decide: {type(e).__name__}", f"frame of {fr.src}: {e}", e)
+                self.faults.count(f"decide: {type(e).__name__}", f"frame of {fr.env.src}: {e}", e)
         if q and not self._closed:
             self._decision_at = q[0][0]
             self._decision_timer = self.loop.call_at(self._decision_at, self._run_decisions)
@@ -641,25 +634,26 @@ class ZenohMedium:
         if self._closed or fr.cancelled:
             return
         now = self.clock.now()
+        e = fr.env
         f = fr.f
         others = self._air.overlapping(f) if self._collide and f is not None else None
-        if fr.dest == BROADCAST:
+        if e.dest == BROADCAST:
             self._hear_broadcast(
-                fr.src, fr.x, fr.y, fr.txp, fr.seq, fr.frame, now, f, others or None
+                e.src, e.x, e.y, e.tx_power, e.seq, e.frame, now, f, others or None
             )
             return
-        r = self.radios.get(fr.dest)
+        r = self.radios.get(e.dest)
         got = r is not None and self._hear_unicast(
-            fr.src, fr.x, fr.y, fr.txp, fr.seq, fr.attempt, fr.frame, r, now, f, others or None
+            e.src, e.x, e.y, e.tx_power, e.seq, e.attempt, e.frame, r, now, f, others or None
         )
         s = fr.sender
         if s is not None:  # a local sender: its outcome, as the virtual medium times it
             acked = (
                 got
                 and r is not None
-                and self._ack_heard(r.node_id, r.x, r.y, r.tx_power, s, fr.seq, fr.attempt)
+                and self._ack_heard(r.node_id, r.x, r.y, r.tx_power, s, e.seq, e.attempt)
             )
-            if s.alive and s.cur is not None and (s.cur_seq, s.cur_attempt) == (fr.seq, fr.attempt):
+            if s.alive and s.cur is not None and (s.cur_seq, s.cur_attempt) == (e.seq, e.attempt):
                 # The sender resumes when the virtual medium's sender would, unless
                 # the decision itself came later (the guard is longer than the ACK
                 # exchange): then now -- a radio does not act in the past.
@@ -667,7 +661,7 @@ class ZenohMedium:
                 s.handle = self.loop.call_at(self.clock.to_monotonic(t), self._uc_done, s, acked, t)
         elif got and r is not None:
             # The destination got it: its auto-ACK goes back to the sender's process.
-            self._publish(r, Kind.ACK, fr.seq, fr.attempt, now, fr.src, b"")
+            self._publish(r, Kind.ACK, e.seq, e.attempt, now, e.src, b"")
 
     def _malformed(self, key: str, reason: str) -> None:
         """Garbage on a radio key: counted per process and at the local motes that
@@ -902,8 +896,9 @@ class ZenohMedium:
         frame = r.air  # sealed when the medium is secured
         self._publish(r, Kind.FRAME, seq, attempt, start, tx.dest, frame)
         local_dest = tx.dest == BROADCAST or tx.dest in self.radios
-        fr = _OnAirFrame(r.node_id, r.x, r.y, r.tx_power, seq, attempt, tx.dest, frame, end,
-                         r.onair, r if local_dest and tx.dest != BROADCAST else None)  # fmt: skip
+        env = Envelope(Kind.FRAME, r.node_id, r.x, r.y, r.tx_power, seq, attempt, start, tx.dest,
+                       frame)  # fmt: skip
+        fr = _OnAirFrame(env, end, r.onair, r if local_dest and tx.dest != BROADCAST else None)
         r.on_air = fr
         r.handle = self.loop.call_at(self.clock.to_monotonic(end), self._tx_end, r, end)
         if local_dest:
