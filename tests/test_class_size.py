@@ -21,6 +21,7 @@ HOLD_DATA = {
     "protocol.groups._TypeState",
     "protocol.channels.ChannelStats",
     "protocol.collection.CollectionStats",
+    "protocol.collection.Neighbour",
     "protocol.groups.GroupStats",
     "protocol.frames.DataRecord",
     "radio.model.RadioPreset",

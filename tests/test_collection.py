@@ -359,3 +359,56 @@ def test_repair_after_30_percent_of_motes_die(seed: int) -> None:
     assert not late, f"motes not delivering within {REPAIR_BOUND_S} s of the kill: {late}"
     for i in connected:
         assert route_of(motes, i)[-1] == 0
+
+
+# --------------------------------------------------------------------------- cached parent choice
+
+
+def _fresh_choice(c: Collection) -> tuple[int | None, int]:
+    """The parent choice recomputed from scratch: every entry's link and path
+    cost from its fields, then the argmin of (path, node) over those that qualify."""
+    me = c.ctx.node_id
+    best: tuple[int, int] | None = None
+    for n in c.neighbours.values():
+        link = c.link_cost(n)
+        assert n.link == link  # the cached costs are current
+        path = NO_ROUTE if n.cost >= NO_ROUTE else min(n.cost + link, NO_ROUTE - 1)
+        assert n.path == path
+        if n.cost >= NO_ROUTE or n.parent == me or n.last_heard < c._fresh_since:
+            continue
+        if path < NO_ROUTE and (best is None or (path, n.node) < best):
+            best = (path, n.node)
+    return (None, NO_ROUTE) if best is None else (best[1], best[0])
+
+
+def test_cached_parent_choice_matches_a_full_scan() -> None:
+    """Random beacons (costs, parents, RSSI, some through us), data, our own
+    packets with acknowledged and failed unicasts (evictions, route losses,
+    hold-downs) and a full table: after every step the entry-by-entry cached
+    choice, when there is one, is the one a full scan makes."""
+    checked = 0
+    for seed in range(20):
+        rnd = random.Random(seed)
+        u = Unit(5, ctp_neighbours=6, ctp_evict_after_failures=2)
+        for i in range(300):
+            u.advance(u.now + rnd.uniform(0.0, 0.5))
+            u.sent()
+            src = rnd.randrange(1, 12)
+            r = rnd.random()
+            if src == 5:
+                u.c.submit(rec(i), u.now)
+            elif r < 0.7:
+                cost = rnd.choice([NO_ROUTE, *range(0, 80, 7)])
+                parent = rnd.choice([5, 0, 1, 2, BROADCAST])
+                u.beacon(src, cost, parent, rssi=rnd.uniform(-95.0, -60.0))
+            elif r < 0.8:
+                u.data(src, rnd.randrange(20, 30), rnd.randrange(100), 1, rnd.randrange(0, 90))
+            if len(u.ctx.pending) == 1 and rnd.random() < 0.7:
+                u.result(rnd.random() < 0.3)
+            cached = u.c._best_cache
+            if cached is not None:
+                node, path = cached
+                assert (None if node is None else node.node, path) == _fresh_choice(u.c)
+                checked += 1
+            u.events()
+    assert checked > 1000

@@ -91,6 +91,19 @@ async def test_demo_against_mosquitto_with_acl(
     assert not summary["errors"]
 
 
+def test_demo_runs_the_large_deployment(tmp_path: Path) -> None:
+    """``awaremw demo --deployment large``: 1,026 motes in real time over Zenoh, the
+    robot's group forms and its records reach the robot's client over MQTT."""
+    p = _cli(
+        "demo", "--deployment", "large", "--duration", "16", "--plain", "--insecure",
+        "--mqtt-port", "0", "--summary", str(tmp_path / "summary.txt"), timeout=150,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "demo large: 1026 motes" in p.stdout
+    assert "robot got data ch 1 group 1/" in p.stdout
+    assert "Traceback" not in p.stderr
+
+
 def test_realtime_experiment_cli(tmp_path: Path) -> None:
     """``awaremw experiment romeo4r`` in real time (fast) writes metrics and figures."""
     import json

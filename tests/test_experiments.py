@@ -242,3 +242,53 @@ def test_romeo4r_keeps_one_group_id_over_several_seeds(seed: int, tmp_path: Path
     assert isinstance(m["membership_f1"], float) and m["membership_f1"] >= 0.9
     assert isinstance(m["handovers"], int) and m["handovers"] >= 1  # the leader follows
     assert json.loads((tmp_path / "metrics.json").read_text())["seed"] == seed
+
+
+# ---------------------------------------------------------------- tracking at scale
+
+
+def test_experiment_large_virtual_writes_the_scale_metrics(tmp_path: Path) -> None:
+    """``awaremw experiment large --virtual``: 1,024 motes track the robot; the
+    metrics carry romeo4r's keys plus the run's cost (wall and CPU seconds)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run(
+        [sys.executable, "-m", "awaremw", "experiment", "large", "--virtual",
+         "--duration", "24", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["scenario"] == "large" and m["mode"] == "virtual"
+    assert m["duration_s"] == 24.0 and m["motes_scored"] == 1024
+    assert m["wall_s"] > 0 and m["cpu_s"] > 0
+    assert m["speedup"] == pytest.approx(24.0 / m["wall_s"], rel=0.01)
+    # The robot's group forms around it within seconds of the definitions and its
+    # records reach the gateway's mote, across the field's multihop tree.
+    assert m["distinct_data_group_ids"] >= 1 and m["distinct_group_ids"] >= 1
+    assert m["records_delivered"] >= 3
+    assert m["membership_f1"] >= 0.8
+    assert m["command"].startswith("awaremw experiment large --virtual")
+    for png in ("large_snapshots.png", "large_membership.png"):
+        data = (tmp_path / png).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+def test_truth_reach_shortcut_is_exact() -> None:
+    """GroundTruth skips motes beyond any possible hearing; the answer is the slow one."""
+    sc = load_scenario("large")
+    truth = sc.truth()
+    attr = attribute_id("rssi:2000")
+    far_none = 0
+    for t in (0.0, 41.0, 97.5):
+        for n in sc.sensors[::3]:
+            mean = truth.mean_rssi(2000, n, t)
+            slow = mean if mean >= CC2420.sensitivity_dbm else None
+            assert truth.value(n, attr, t) == slow
+            far_none += slow is None
+    assert far_none > 500  # most of the field cannot hear the robot
+    defn = sc.group_def()
+    for t in (0.0, 33.3, 60.0, 119.5):
+        brute = frozenset(n for n in sc.sensors if truth.satisfies(n, defn, t))
+        assert truth.members(defn, t, sc.sensors) == brute and 2 <= len(brute) <= 12

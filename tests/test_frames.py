@@ -261,3 +261,21 @@ def test_float64_on_the_wire_decodes_as_the_float32_it_will_be_re_sent_as() -> N
     )
     with pytest.raises(FrameError):
         decode(too_big)
+
+
+def test_decode_shared_shares_equal_bytes_and_never_keeps_failures() -> None:
+    """One transmission's receivers share the decoded frame; different bytes
+    decode afresh; malformed bytes raise every time, and do not evict."""
+    from awaremw.protocol.frames import CtpBeacon, FrameError, decode, decode_shared, encode
+
+    a = encode(CtpBeacon(3, BROADCAST, 20, 1))
+    b = encode(CtpBeacon(4, BROADCAST, 30, 1))
+    fa = decode_shared(a)
+    assert fa == decode(a)
+    assert decode_shared(bytes(bytearray(a))) is fa  # equal bytes, another object
+    for _ in range(2):
+        with pytest.raises(FrameError):
+            decode_shared(b"\xc1garbage")
+    assert decode_shared(a) is fa  # the failure did not replace the entry
+    fb = decode_shared(b)
+    assert fb == decode(b) and fb is not fa

@@ -118,7 +118,12 @@ def test_gateway_verb_refuses_bad_input() -> None:
 def test_bench_bridge_throughput_keys() -> None:
     p = argparse.ArgumentParser()
     bench_bridge.add_arguments(p)
-    out = bench_bridge.run(p.parse_args(["--no-fleet", "--records", "300"]))
+    out = bench_bridge.run(
+        p.parse_args(["--no-fleet", "--records", "300", "--samples", "120", "--rate", "60"])
+    )
     assert out["records_per_s"] > 0 and out["throughput_records"] == 300
     assert {"latency_p50_ms", "latency_p99_ms", "records_per_s"} <= set(out)
     assert out["latency_p50_ms"] is None  # no fleet: no end-to-end latency
+    # The paced run times every one of its records through the bridge.
+    assert out["bridge_samples"] == 120 and out["bridge_rate_per_s"] == 60
+    assert 0 < out["bridge_p50_ms"] <= out["bridge_p99_ms"] <= out["bridge_max_ms"]

@@ -75,6 +75,9 @@ class H:
     """One Groups component, its context and a hand-driven clock."""
 
     def __init__(self, nid: int = 10, temp: float | None = 80.0, **cfg: Any) -> None:
+        # The rules are tested with ids taken at once; the tentative period has
+        # its own tests (they pass tentative_periods).
+        cfg.setdefault("tentative_periods", 0.0)
         self.app = App(t=temp)
         self.ctx = MoteContext(nid, MiddlewareConfig(**cfg), random.Random(nid), self.app)
         self.coll = FakeCollection()
@@ -201,6 +204,147 @@ def test_qualifying_mote_alone_creates_a_group_after_backoff() -> None:
     h.advance(h.now + h.cfg.beacon_period * 3)
     seqs = [f.seq for f in h.sent() if isinstance(f, LeaderBeacon)]
     assert seqs == [2, 3, 4]
+
+
+# --------------------------------------------------------------------------- tentative ids
+
+
+def tentative(src: int, gid: int, gtype: int = 1) -> LeaderBeacon:
+    return LeaderBeacon(src, BROADCAST, gtype, gid, src, 0, 0, 0, True)
+
+
+def announce(h: H) -> LeaderBeacon:
+    """Define HOT; run to this mote's first frame, its tentative announcement."""
+    h.g.define(1, HOT, h.now)
+    while not h.ctx.outbox:
+        d = h.g.timers.next_deadline()
+        assert d is not None and d < h.now + h.cfg.create_backoff + 1.5
+        h.advance(d)
+    (a,) = h.sent()
+    assert isinstance(a, LeaderBeacon) and a.tentative
+    return a
+
+
+def test_a_new_id_is_announced_for_one_beacon_period_before_it_is_taken() -> None:
+    h = H(tentative_periods=1.0)
+    hold = h.cfg.beacon_period
+    a = announce(h)
+    assert h.now <= h.cfg.create_backoff / 2  # half the creation backoff
+    assert (a.leader, a.weight, a.seq, a.hops) == (10, 0, 0, 0)
+    t_announce = h.now + hold / 2  # the second announcement
+    # Not a group yet: no membership, no event, nothing reported.
+    assert h.g.role(1) is Role.WAITING and h.g.membership(1) is None
+    assert h.events() == [] and h.reports() == []
+    h.advance(t_announce - 0.001)
+    assert h.sent() == []
+    h.advance(t_announce + 0.001)  # half-way: announced once more
+    (a2,) = h.sent()
+    assert isinstance(a2, LeaderBeacon) and a2.tentative and a2.group_id == a.group_id
+    assert h.events() == []
+    h.advance(t_announce + hold / 2 + 0.001)  # the tentative period is over: taken
+    (b,) = h.sent()
+    assert isinstance(b, LeaderBeacon) and not b.tentative
+    assert (b.group_id, b.seq) == (a.group_id, 1)
+    (e,) = h.events(LeaderElected)
+    assert e.cause is ElectionCause.CREATED and e.group_id == a.group_id
+    assert [r.group_id for r in h.reports()] == [a.group_id]
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader and m.group_id == a.group_id
+
+
+@pytest.mark.parametrize("their_gid", [1, 0xFFFE])
+def test_a_would_be_group_that_hears_a_group_joins_it_and_its_id_never_appears(
+    their_gid: int,
+) -> None:
+    """A fringe mote ahead of the group (romeo4r seeds 5, 18): it announces an id,
+    a member of the group comes in range. Whatever the ids, the established group
+    wins and the would-be id is never held, reported or yielded."""
+    h = H(tentative_periods=1.0)
+    h.g.define(1, HOT, 0.0)
+    h.advance(h.cfg.create_backoff)  # past the creation backoff: it announced an id
+    assert h.g.role(1) is Role.WAITING and h.g.membership(1) is None
+    mine = [f for f in h.sent() if isinstance(f, LeaderBeacon) and f.leader == 10]
+    assert mine and {f.group_id for f in mine} != {their_gid}
+    h.hear(beacon(src=7, gid=their_gid, leader=2, weight=0, seq=4, hops=1))
+    h.advance(h.now + 3 * h.cfg.beacon_period)
+    m = h.g.membership(1)
+    assert m is not None and m.group_id == their_gid and not m.is_leader
+    evs = h.events()
+    assert [type(e) for e in evs] == [GroupJoined]
+    assert h.reports() == []  # the gateway never heard of the would-be id
+    assert all(not (isinstance(f, LeaderBeacon) and f.leader == 10) for f in h.sent())
+    assert h.g.stats.tentative_withdrawn == 1
+
+
+def test_an_established_group_answers_a_tentative_announcement() -> None:
+    h = H()
+    b = h.lead()
+    h.advance(h.now + 0.1)
+    h.hear(tentative(src=30, gid=0xFFFE))  # a higher id, but only a would-be group
+    h.advance(h.now + h.cfg.forward_jitter + 0.001)
+    (r,) = h.sent()
+    assert isinstance(r, LeaderBeacon) and not r.tentative
+    assert (r.group_id, r.leader, r.seq) == (b.group_id, 10, b.seq)
+    assert h.g.membership(1) is not None and h.events(LeaderYielded) == []
+
+
+def test_of_two_would_be_groups_the_higher_id_goes_on_and_the_other_joins_it() -> None:
+    h = H(tentative_periods=1.0)
+    a = announce(h)
+    assert a.group_id < 0xFFFE
+    h.hear(tentative(src=30, gid=0xFFFE))
+    assert h.g.role(1) is Role.WAITING
+    h.advance(h.now + h.cfg.beacon_period * 0.9)  # no own id taken meanwhile
+    assert h.sent() == [] and h.events() == []
+    h.hear(beacon(src=30, gid=0xFFFE, leader=30, seq=1))  # the winner took its id
+    m = h.g.membership(1)
+    assert m is not None and m.group_id == 0xFFFE
+    # The lower one, heard by the winner, is answered with the winner's announcement.
+    w = H(nid=30, tentative_periods=1.0)
+    wa = announce(w)
+    w.hear(tentative(src=10, gid=1 if wa.group_id > 1 else 2))
+    ((again),) = w.sent()
+    assert isinstance(again, LeaderBeacon) and again.tentative and again.group_id == wa.group_id
+
+
+def test_a_mote_between_two_would_be_groups_relays_the_higher_announcement_once() -> None:
+    """Fire seed 15: two motes of a leaderless part, two hops apart, announce at
+    once; the mote between them hears both."""
+    h = H(temp=20.0, tentative_periods=1.0)
+    h.g.define(1, HOT, 0.0)
+    h.advance(1.0)
+    h.hear(tentative(src=30, gid=900))
+    assert h.sent() == []  # one announcement: nothing to relay
+    h.hear(tentative(src=31, gid=400))
+    (r,) = h.sent()
+    assert isinstance(r, LeaderBeacon) and r.tentative
+    assert (r.src, r.group_id, r.leader, r.hops) == (10, 900, 30, 1)
+    h.hear(tentative(src=31, gid=400))  # repeated: relayed once only
+    h.hear(tentative(src=30, gid=900))
+    assert h.sent() == []
+    # The lower announcer withdraws on the relayed copy.
+    low = H(nid=31, tentative_periods=1.0)
+    a = announce(low)
+    relayed = LeaderBeacon(10, BROADCAST, 1, 0xFFFE, 30, 0, 0, 1, True)
+    assert a.group_id < 0xFFFE
+    low.hear(relayed)
+    assert low.g.stats.tentative_withdrawn == 1
+    low.advance(low.now + low.cfg.beacon_period)
+    assert low.events() == [] and low.g.membership(1) is None
+
+
+def test_a_waiting_mote_that_heard_an_announcement_does_not_announce_a_contender() -> None:
+    h = H(temp=20.0, tentative_periods=1.0)
+    h.g.define(1, HOT, 0.0)
+    h.advance(1.0)
+    h.hear(tentative(src=30, gid=700))
+    h.temp = 80.0
+    h.advance(1.0 + h.cfg.beacon_period - 0.01)  # it would have created by now
+    assert h.sent() == [] and h.g.role(1) is Role.WAITING
+    h.hear(beacon(src=30, gid=700, leader=30, seq=1))
+    m = h.g.membership(1)
+    assert m is not None and m.group_id == 700
+    assert [type(e) for e in h.events()] == [GroupJoined]
 
 
 def test_non_qualifying_mote_does_nothing() -> None:

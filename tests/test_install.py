@@ -76,3 +76,9 @@ def test_pip_install_runs_an_experiment_outside_the_checkout(tmp_path: Path) -> 
         "romeo4r_rssi.png",
         "romeo4r_snapshots.png",
     ]
+    # The Wireshark dissector is package data: installed, and where sniff says.
+    lua = _run([str(bindir / "awaremw"), "sniff", "--dissector"], cwd=work, timeout=60)
+    assert lua.returncode == 0, lua.stderr
+    path = Path(lua.stdout.strip())
+    assert env_dir.resolve() in path.resolve().parents
+    assert "register_heuristic" in path.read_text(encoding="utf-8")

@@ -428,3 +428,68 @@ async def test_subscriptions_are_per_column_not_per_mote(router: str) -> None:
         radio = f.medium.radios[99]
         await wait_for(lambda: radio.pub_cell is not None and radio.pub_cell[0] >= 5)
         assert f.medium.stats.subscriptions == len(f.medium.columns) >= 7
+
+
+# --------------------------------------------------------------------------- capture tap
+
+
+class TapLog:
+    """A RadioTap (awaremw.radio.capture) that keeps every call."""
+
+    def __init__(self) -> None:
+        self.air: list[tuple[int, int, int, int]] = []  # (src, dest, seq, attempt)
+        self.rx: list[tuple[int, int, float | None, str | None]] = []  # (src, dst, rssi, cause)
+
+    def on_air(self, t: float, src: int, dest: int, seq: int, attempt: int, frame: bytes) -> None:
+        self.air.append((src, dest, seq, attempt))
+
+    def reception(
+        self, t: float, src: int, dst: int, rssi: float | None, cause: str | None
+    ) -> None:
+        self.rx.append((src, dst, rssi, cause))
+
+
+async def test_tap_reports_every_attempt_and_reception_across_processes(router: str) -> None:
+    # 1 (process a) broadcasts and unicasts to 2 over a lossy link (retries,
+    # duplicates); 2 and 3 (process b) only listen. Each medium reports what it
+    # sends and decides; the counts equal the counters.
+    base = deployment([(1, 5.0, 5.0), (2, 6.0, 5.0)], radio="cc1000")
+    model = RadioModel(base.preset, base.seed)
+    d = _distance_for_prr(model, 1, 2, 8 * (7 + base.preset.phy_overhead_bytes), 0.6)
+    dep = deployment([(1, 5.0, 5.0), (2, 5.0 + d, 5.0), (3, 5.0, 5.0 + d / 2)], radio="cc1000")
+    a, b = two_fleets(dep, router, {1}, {1: 0.05}, speed=10.0)
+    ta, tb = TapLog(), TapLog()
+    try:
+        await a.__aenter__()
+        await b.__aenter__()
+        a.medium.tap, b.medium.tap = ta, tb  # before the start: nothing sent untapped
+        await routed(a.session, b)
+        await routed(b.session, a)
+        t0 = time.time()
+        a.start(t0)
+        b.start(t0)
+        s = core(a, 1)
+        for _ in range(30):
+            a.run_on(1, lambda c, now: c.send(2))  # type: ignore[attr-defined]
+        await wait_for(lambda: len(s.results) == 30, timeout=30)
+        await wait_for(lambda: sum(1 for x in tb.rx if x[1] == 3) >= 20, timeout=30)
+    finally:
+        await a.aclose()
+        await b.aclose()
+    # Counters and tap calls change together (same code path), so they agree
+    # whatever was still in flight when the fleets closed.
+    c1 = a.counters[1]
+    assert [x for x in ta.air if x[0] == 1] == ta.air and len(ta.air) == c1.frames_tx
+    assert any(att > 0 for *_, att in ta.air)  # retries are attempts on the air
+    assert set(tb.air) <= set(ta.air) and tb.air  # b saw 1's frames (as it heard them)
+    lost_total = 0
+    for mote in (2, 3):
+        c = b.counters[mote]
+        mine = [(rssi, cause) for src, dst, rssi, cause in tb.rx if dst == mote and src == 1]
+        got = [r for r, cause in mine if cause in (None, "duplicate")]
+        assert len(got) == c.frames_rx > 0 and all(r is not None for r in got)
+        assert sum(1 for _, cause in mine if cause == "duplicate") == c.duplicates
+        lost = sum(1 for _, cause in mine if cause in ("path_loss", "distance"))
+        assert lost <= c.dropped_loss + c.dropped_distance
+        lost_total += lost
+    assert lost_total > 0

@@ -18,9 +18,11 @@ against it) that arrived at the gateway mote.
 
 from __future__ import annotations
 
+import asyncio
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from awaremw.nodes import KindsFactory, kind_names
 from awaremw.protocol.attributes import TEMPERATURE
@@ -40,6 +42,9 @@ from awaremw.protocol.frames import (
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.deployment import Deployment, parse_deployment
 from awaremw.runtime.virtual import VirtualNetwork
+
+if TYPE_CHECKING:
+    from awaremw.runtime.fleet import Fleet
 
 SPACING_M = 12.0
 GATEWAY = 0
@@ -121,6 +126,29 @@ class RecordTally:
                 return
             self.delivered.add(_key(ev.payload))
 
+    def merge(self, others: Iterable[RecordTally]) -> RecordTally:
+        """Fold the tallies of other processes into this one (a record's
+        production time is the earliest any process saw); returns self."""
+        for o in others:
+            for k, t in o.produced.items():
+                old = self.produced.get(k)
+                if old is None:
+                    if len(self.produced) >= MAX_TRACKED:
+                        self.untracked += 1
+                        continue
+                    self.produced[k] = t
+                elif t < old:
+                    self.produced[k] = t
+            room = MAX_TRACKED - len(self.delivered)
+            new = o.delivered - self.delivered
+            if len(new) > room:
+                self.untracked += len(new) - room
+                new = set(sorted(new)[:room])
+            self.delivered |= new
+            self.leaders |= o.leaders
+            self.untracked += o.untracked
+        return self
+
     def results(self, end: float) -> dict[str, Any]:
         """``records_produced`` (up to ``end - GRACE_S``), ``records_delivered`` (of
         those), ``record_delivery`` (their ratio; 0.0 when none was produced),
@@ -148,6 +176,43 @@ def inject_definitions(root: MoteCore, now: float) -> None:
     chan = ChannelDef(TEMPERATURE, GROUP_TYPE, ANY_GROUP_ID, period_ms, AggId.AVG)
     root.inject(ItemKind.GROUP_TYPE, GROUP_TYPE, 1, hot, now)
     root.inject(ItemKind.CHANNEL, CHANNEL, 1, chan, now)
+
+
+class AwarePlugin:
+    """The aware load inside each worker process of a launcher
+    (:class:`~awaremw.runtime.fleet_settings.WorkerPlugin`): tallies the records of
+    the motes it runs and, in the worker running the gateway's mote, injects
+    the definitions at :data:`DEFINE_AT_S`, exactly as in one process."""
+
+    def __init__(self) -> None:
+        self.tally = RecordTally()
+        self._task: asyncio.Task[None] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"tally": self.tally}  # a running task never travels
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.tally = state["tally"]
+        self._task = None
+
+    def setup(self, fleet: Fleet) -> None:
+        fleet.on_event(self.tally.on_event)
+
+    def started(self, fleet: Fleet) -> None:
+        if GATEWAY in fleet.runners:
+            self._task = asyncio.get_running_loop().create_task(self._inject(fleet))
+
+    async def _inject(self, fleet: Fleet) -> None:
+        await fleet.wait_until(DEFINE_AT_S)
+        if fleet.alive(GATEWAY):
+            fleet.run_on(GATEWAY, inject_definitions)
+
+    def result(self) -> RecordTally:
+        if self._task is not None:
+            if self._task.done() and not self._task.cancelled():
+                self._task.result()  # an injection that raised fails the worker
+            self._task.cancel()
+        return self.tally
 
 
 @dataclass

@@ -15,6 +15,12 @@ Two measurements, one JSON object (``--json``):
   of the epoch (the leader finalises in its slot, up to one period after the
   sample), the collection tree and the bridge; the delivery time only the
   collection tree, gateway and broker.
+* **bridge latency**: ``--samples`` synthetic records (default 1,000) handed
+  to the gateway service at a steady ``--rate`` (records/s, default 100, a
+  tenth of the bridge's throughput on a quiet machine), each timed from the hand-over (the
+  gateway mote's ``Delivered`` event) to its arrival at the subscriber: the
+  bridge's own latency (gateway, broker, subscriber), with enough samples for
+  a p99;
 * **bridge throughput**: ``--records`` synthetic records handed to the
   gateway as fast as it takes them; sustained records/s until the subscriber
   has every one of them.
@@ -22,7 +28,9 @@ Two measurements, one JSON object (``--json``):
 Keys: ``latency_p50_ms``, ``latency_p99_ms`` (sample at the leader -> MQTT
 subscriber), ``delivery_p50_ms``, ``delivery_p99_ms`` (leader's record ->
 subscriber), ``latency_records`` (records measured end to end),
-``records_per_s`` (bridge throughput), ``throughput_records``,
+``bridge_p50_ms``, ``bridge_p99_ms``, ``bridge_max_ms`` (gateway hand-over ->
+subscriber, paced), ``bridge_samples`` (records timed, all of them arrived),
+``bridge_rate_per_s``, ``records_per_s`` (bridge throughput), ``throughput_records``,
 ``broker`` (``embedded`` or the URL without password), ``mqtt_protocol``,
 ``deployment``, ``period_s``, ``speed``. Latency keys are ``null`` with
 ``--no-fleet``.
@@ -42,7 +50,6 @@ from typing import Any
 
 import aiomqtt
 
-from awaremw.gateway.bridge import Inject
 from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings
@@ -59,6 +66,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     p.add_argument("--records", type=int, default=5000, help="records for the throughput run")
+    p.add_argument("--samples", type=int, default=1000, help="records timed by the paced run")
+    p.add_argument("--rate", type=float, default=100.0, help="records/s of the paced run")
     p.add_argument("--deployment", default="grid_small", help="fleet for the end-to-end run")
     p.add_argument("--duration", type=float, default=40.0, help="emulated seconds end to end")
     p.add_argument("--period", type=float, default=1.0, help="channel period, s")
@@ -117,17 +126,18 @@ async def _subscriber(url: str, topic: str, ready: asyncio.Event, out: _Arrivals
                 out.event.set()
 
 
-async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[float, str]:
+@contextlib.asynccontextmanager
+async def _gateway_and_subscriber(
+    url: str, sub_url: str, prefix: str, client_id: str
+) -> AsyncIterator[tuple[GatewayService, _Arrivals]]:
+    """A gateway service (no motes) connected to the broker at ``url``, and a
+    subscriber to its data topics recording arrival times, both ready."""
     svc = GatewayService(
         [0],
         settings=GatewaySettings(prefix=prefix),
-        mqtt=MqttSettings.from_url(url, client_id="awaremw-bench-gw", persistent_session=False),
+        mqtt=MqttSettings.from_url(url, client_id=client_id, persistent_session=False),
     )
-
-    def inject(node: int, inj: Inject) -> None:
-        pass
-
-    svc.bind(inject, lambda: 0.0)
+    svc.bind(lambda node, inj: None, lambda: 0.0)
     arrivals = _Arrivals({}, asyncio.Event())
     ready = asyncio.Event()
     sub = asyncio.create_task(_subscriber(sub_url, f"{prefix}/data/#", ready, arrivals))
@@ -136,21 +146,55 @@ async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[floa
         async with svc:
             assert svc.mqtt is not None
             await asyncio.wait_for(svc.mqtt.connected.wait(), 10)
-            t0 = time.monotonic()
-            for i in range(n):
-                rec = DataRecord(1, 1, 1 + i % 16, i, 0, float(i), 1, 1)
-                svc.on_event(0, _Delivered(rec, float(i)), float(i))
-                if i % 200 == 199:
-                    await asyncio.sleep(0)  # let the sender and subscriber run
-            while len(arrivals.times) < n:
-                arrivals.event.clear()
-                await asyncio.wait_for(arrivals.event.wait(), 30)
-            elapsed = time.monotonic() - t0
-            return n / elapsed, svc.mqtt.stats.protocol
+            yield svc, arrivals
     finally:
         sub.cancel()
         with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
             await sub
+
+
+async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[float, str]:
+    async with _gateway_and_subscriber(url, sub_url, prefix, "awaremw-bench-gw") as (svc, arr):
+        t0 = time.monotonic()
+        for i in range(n):
+            rec = DataRecord(1, 1, 1 + i % 16, i, 0, float(i), 1, 1)
+            svc.on_event(0, _Delivered(rec, float(i)), float(i))
+            if i % 200 == 199:
+                await asyncio.sleep(0)  # let the sender and subscriber run
+        while len(arr.times) < n:
+            arr.event.clear()
+            await asyncio.wait_for(arr.event.wait(), 30)
+        elapsed = time.monotonic() - t0
+        assert svc.mqtt is not None
+        return n / elapsed, svc.mqtt.stats.protocol
+
+
+async def _paced(
+    url: str, sub_url: str, prefix: str, n: int, rate: float
+) -> tuple[list[float], str]:
+    """Bridge latencies (s) of ``n`` records handed to the gateway ``rate`` per second."""
+    if n < 1 or not rate > 0:
+        raise ValueError("--samples must be >= 1 and --rate > 0")
+    sent: dict[str, float] = {}
+    async with _gateway_and_subscriber(url, sub_url, prefix, "awaremw-bench-paced") as (svc, arr):
+        t0 = time.monotonic()
+        for i in range(n):
+            # Group id 2 (the throughput run uses 1..16 on channel 1): channel 2 here.
+            rec = DataRecord(2, 1, 2, i, 0, float(i), 1, 1)
+            due = t0 + i / rate
+            if (wait := due - time.monotonic()) > 0:
+                await asyncio.sleep(wait)
+            sent[f"{prefix}/data/2/1/2/{i}"] = time.monotonic()
+            svc.on_event(0, _Delivered(rec, float(i)), float(i))
+        deadline = time.monotonic() + 30.0
+        while len(arr.times) < n and time.monotonic() < deadline:
+            arr.event.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(arr.event.wait(), 1.0)
+        if len(arr.times) < n:
+            raise RuntimeError(f"bench bridge: {len(arr.times)} of {n} paced records arrived")
+        assert svc.mqtt is not None
+        return [arr.times[k] - sent[k] for k in sent], svc.mqtt.stats.protocol
 
 
 @dataclass(frozen=True)
@@ -182,6 +226,12 @@ async def _main(args: argparse.Namespace) -> dict[str, Any]:
             out["latency_p99_ms"] = _ms(percentile(lat, 99))
             out["delivery_p50_ms"] = _ms(percentile(dlv, 50))
             out["delivery_p99_ms"] = _ms(percentile(dlv, 99))
+        paced, _ = await _paced(url, sub_url, args.prefix, args.samples, args.rate)
+        out["bridge_p50_ms"] = _ms(percentile(paced, 50))
+        out["bridge_p99_ms"] = _ms(percentile(paced, 99))
+        out["bridge_max_ms"] = _ms(max(paced))
+        out["bridge_samples"] = len(paced)
+        out["bridge_rate_per_s"] = args.rate
         rate, proto = await _throughput(url, sub_url, args.prefix, args.records)
         out["records_per_s"] = round(rate, 1)
         out["throughput_records"] = args.records

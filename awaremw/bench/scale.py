@@ -8,19 +8,25 @@ embedded router (``--processes N``). After ``--duration`` emulated seconds
 every radio is frozen, frames in flight land for ``--grace`` wall seconds, and
 the counters are gathered.
 
-``--workload aware`` (``--processes 1`` for now): the whole middleware
-instead of Hello beacons, cores from the fleet's core factory, a fire crossing
-the field tracked by a group, an AVG channel every 2 s, collection to the
-gateway's mote, Drip (see :mod:`awaremw.bench.aware_load`); the definitions
-are injected at the gateway's mote at 1 s; ``record_delivery`` (records that
+``--workload aware``: the whole middleware instead of Hello beacons, cores
+from the fleet's core factory, a fire crossing the field tracked by a group,
+an AVG channel every 2 s, collection to the gateway's mote, Drip (see
+:mod:`awaremw.bench.aware_load`); the definitions are injected at the
+gateway's mote at 1 s. With ``--processes N`` the AwareMotes are split over
+worker processes exactly as ``awaremw fleet --processes N`` runs them
+(``FleetLauncher``, x stripes, one embedded router); each worker tallies the
+records of its motes (:class:`~awaremw.bench.aware_load.AwarePlugin`) and the
+tallies are merged, so a record produced in one process and delivered at the
+gateway's mote in another counts; ``record_delivery`` (records that
 reached the gateway mote over records the leaders produced) replaces the
 radio's ``delivery_ratio`` in the target (``frames_expected`` and
 ``delivery_ratio`` are None: the loss recount knows only Hello frames).
 ``--profile FILE``: cProfile of the run (this process only).
 
 Target (``--search``): timer lag p99 below ``--max-p99-ms`` (50) and delivery
-above ``--min-delivery`` (0.99). ``--search`` doubles ``--motes`` while the
-target holds, then bisects between the last pass and the first failure.
+(``record_delivery`` with ``--workload aware``) at least ``--min-delivery``
+(0.99). ``--search`` doubles ``--motes`` while the target holds, then bisects
+between the last pass and the first failure.
 
 JSON keys (one object; with ``--search`` the best passing run's keys plus
 ``search`` = the list of trials):
@@ -176,8 +182,6 @@ async def run_once(
     if workload not in WORKLOADS:
         raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
     aware = workload == "aware"
-    if aware and processes > 1:
-        raise ValueError("--workload aware runs in one process for now (--processes 1)")
     if aware and radio != "cc2420":
         raise ValueError("--workload aware uses the cc2420 preset")
     dep = (
@@ -217,12 +221,13 @@ async def run_once(
     else:
         async with FleetLauncher(
             dep,
-            hello_core,
+            KindsFactory() if aware else hello_core,
             LauncherSettings(
                 processes=processes,
                 speed=speed,
                 handler=h,
                 layout="interleaved" if layout == "interleaved" else "stripes",
+                plugin=aware_load.AwarePlugin() if aware else None,
             ),
         ) as launcher:
             await launcher.run(warmup)
@@ -230,6 +235,11 @@ async def run_once(
             await launcher.run(duration)
             await launcher.freeze(grace)
         counters = launcher.counters()
+        if aware:
+            tallies = launcher.plugin_results()
+            if len(tallies) != processes:
+                raise RuntimeError(f"{processes - len(tallies)} worker(s) returned no tally")
+            tally.merge(tallies)
         for r in launcher.results:
             if r.error:
                 raise RuntimeError(f"worker {r.name}: {r.error}")
@@ -245,11 +255,11 @@ async def run_once(
     delivery: float | None = None
     if aware:
         records = tally.results(duration)
-        ok_delivery = records["record_delivery"] > min_delivery
+        ok_delivery = records["record_delivery"] >= min_delivery
     else:
         expected = expected_receptions(dep, {i: c.frames_tx for i, c in counters.items()})
         delivery = (tot.frames_rx + tot.collisions) / expected if expected else math.nan
-        ok_delivery = delivery > min_delivery
+        ok_delivery = delivery >= min_delivery
     p50, p99 = percentile(lag, 50), percentile(lag, 99)
     out: dict[str, Any] = {
         "motes": motes,
@@ -321,10 +331,15 @@ async def search(args: argparse.Namespace) -> dict[str, Any]:
             else:
                 hi = mid
         best = lo
-    summary = [
-        {k: t[k] for k in ("motes", "timer_lag_p99_ms", "delivery_ratio", "meets_target")}
-        for t in trials
-    ]
+    keys = (
+        "motes",
+        "timer_lag_p99_ms",
+        "delivery_ratio",
+        "records_produced",
+        "record_delivery",
+        "meets_target",
+    )
+    summary = [{k: t[k] for k in keys if k in t} for t in trials]
     out: dict[str, Any]
     if best is None:
         out = dict(trials[0]) if trials else {"motes": 0}
@@ -386,8 +401,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--workload",
         choices=WORKLOADS,
         default="hello",
-        help="hello: beacons only (the radio); aware: the whole middleware tracking a fire "
-        "(--processes 1)",
+        help="hello: beacons only (the radio); aware: the whole middleware tracking a fire",
     )
     parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
 

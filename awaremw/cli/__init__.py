@@ -26,6 +26,7 @@ VERB_MODULES: tuple[str, ...] = (
     "keys",
     "view",
     "broker",
+    "sniff",
 )
 
 

@@ -19,13 +19,13 @@ from typing import Any
 
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
 
-REALTIME = ("romeo4r", "fire")  # experiments that also run in real time over Zenoh
+REALTIME = ("romeo4r", "fire", "large")  # experiments that also run in real time over Zenoh
 
 
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "experiment",
-        help="reproduce the paper's experiments (romeo4r, fire) with figures and metrics",
+        help="run an experiment (romeo4r, fire, failover, large) with figures and metrics",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -59,10 +59,20 @@ def register(sub: Any) -> None:
         help="with --virtual: run every seed (A-B, or a comma list) and summarise (summary.json)",
     )
     p.add_argument("--jobs", type=int, default=1, help="parallel processes for --seeds")
+    p.add_argument(
+        "--pcap",
+        default=None,
+        metavar="FILE",
+        help="write the radio traffic to FILE (pcapng, IEEE 802.15.4; docs/capture.md)",
+    )
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
+    # wall_s and cpu_s count everything from here: loading the deployment,
+    # building the motes, the run, the analysis and the figures.
+    started = time.monotonic()
+    cpu0 = time.process_time()
     if getattr(args, "verbose", 0) < 2:
         # The embedded broker logs every refused protocol probe at WARNING.
         logging.getLogger("amqtt").setLevel(logging.ERROR)
@@ -80,6 +90,9 @@ def main(args: argparse.Namespace) -> int:
         print("awaremw experiment: --speed must be > 0", file=sys.stderr)
         return 2
     if args.seeds is not None:
+        if args.pcap is not None:
+            print("awaremw experiment: --pcap records one run, not --seeds", file=sys.stderr)
+            return 2
         return _main_seeds(args, name, out)
     if args.secrets is not None and not args.virtual:
         from awaremw.security.material import check_secrets
@@ -90,7 +103,6 @@ def main(args: argparse.Namespace) -> int:
         except SecretsError as e:
             print(f"awaremw experiment: {e}", file=sys.stderr)
             return 2
-    started = time.monotonic()
     if args.virtual:
         import importlib
 
@@ -100,7 +112,17 @@ def main(args: argparse.Namespace) -> int:
         prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
         if prepare is not None:
             prepare(run)
-        result = run.run(args.duration)
+        capture = None
+        if args.pcap is not None:
+            from awaremw.radio.capture import Capture
+
+            capture = run.net.tap = Capture.to_file(args.pcap)
+        try:
+            result = run.run(args.duration)
+        finally:
+            if capture is not None:
+                capture.close()
+                print(f"wrote {capture.packets} packets to {args.pcap}", file=sys.stderr)
     else:
         if name not in REALTIME:
             print(f"awaremw experiment: {name} runs only with --virtual", file=sys.stderr)
@@ -115,9 +137,13 @@ def main(args: argparse.Namespace) -> int:
             plain=args.plain,
             robot_mqtt=args.robot_mqtt,
             secrets=args.secrets,
+            pcap=args.pcap,
         )
     metrics = analysis(name)(result, out)
     metrics["wall_s"] = round(time.monotonic() - started, 2)
+    metrics["cpu_s"] = round(time.process_time() - cpu0, 2)
+    if metrics.get("duration_s"):
+        metrics["speedup"] = round(float(metrics["duration_s"]) / max(metrics["wall_s"], 1e-3), 2)
     metrics["command"] = (
         " ".join(["awaremw", "experiment", *sys.argv[2:]])
         if sys.argv[1:2] == ["experiment"]

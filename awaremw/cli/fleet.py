@@ -91,6 +91,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "or client (everything through the --connect router, e.g. across networks)",
     )
     p.add_argument(
+        "--pcap",
+        default=None,
+        metavar="FILE",
+        help="write the radio traffic to FILE (pcapng, IEEE 802.15.4; docs/capture.md)",
+    )
+    p.add_argument(
         "--links-json",
         default=None,
         metavar="PATH",
@@ -304,6 +310,13 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             raise _StartError(
                 f"cannot open the Zenoh session on {where}: {zenoh_message(e)}"
             ) from None
+        capture = None
+        if args.pcap is not None:
+            # The medium's own tap: every frame its motes send or hear, with receptions.
+            from awaremw.radio.capture import Capture
+
+            capture = Capture.to_file(args.pcap, epoch=fleet.clock.start_wall)
+            fleet.medium.tap = capture
         try:
             await wait_end(fleet)
             fleet.raise_errors()
@@ -314,6 +327,9 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
                     json.dump([[s, d, n] for (s, d), n in sorted(links.items())], f)
         finally:
             await fleet.aclose()
+            if capture is not None:
+                capture.close()
+                print(f"awaremw fleet: {capture.packets} packets to {args.pcap}", flush=True)
         return 0
 
     launcher = FleetLauncher(
@@ -344,6 +360,10 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         flush=True,
     )
     code = 0
+    sniff = None
+    if args.pcap is not None:
+        # Worker processes: a sniffer on the launcher's router (what goes through Zenoh).
+        sniff = await _launcher_sniffer(args, launcher.endpoint)
     try:
         run = asyncio.create_task(launcher.run(args.duration))
         stopper = asyncio.create_task(stop.wait())
@@ -356,6 +376,8 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             code = 1
     finally:
         await launcher.__aexit__(None, None, None)
+        if sniff is not None:
+            await _close_sniffer(sniff, args.pcap)
     tot = launcher.counters()
     tx = sum(c.frames_tx for c in tot.values())
     rx = sum(c.frames_rx for c in tot.values())
@@ -365,6 +387,28 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             print(f"awaremw fleet: worker {r.name}: {r.error}", file=sys.stderr)
             code = 1
     return code
+
+
+async def _launcher_sniffer(args: argparse.Namespace, endpoint: str) -> Any:
+    from awaremw.radio.capture import Capture
+    from awaremw.radio.sniffer import Sniffer
+    from awaremw.runtime.zenoh_session import SessionSettings, open_session
+
+    settings = SessionSettings("peer", (endpoint,))
+    if args.role_config is not None:
+        settings = SessionSettings("client", (endpoint,), config_file=args.role_config)
+    session = await asyncio.to_thread(open_session, settings)
+    sniffer = Sniffer(session, Capture.to_file(args.pcap, receptions=False), prefix=args.prefix)
+    sniffer.start()
+    return sniffer
+
+
+async def _close_sniffer(sniffer: Any, path: str) -> None:
+    from awaremw.runtime.zenoh_session import close_quietly
+
+    sniffer.close()
+    await asyncio.to_thread(close_quietly, sniffer.session)
+    print(f"awaremw fleet: {sniffer.capture.packets} packets to {path}", flush=True)
 
 
 def _secured(security: Any) -> str:

@@ -128,6 +128,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--no-hbn", action="store_true", help="no Zenoh HBN API")
     p.add_argument(
+        "--pcap",
+        default=None,
+        metavar="FILE",
+        help="write the radio traffic the gateway's motes send and hear to FILE (pcapng)",
+    )
+    p.add_argument(
         "--define-initial",
         action="store_true",
         help="apply the deployment's [[groups]] and [[channels]] at start",
@@ -262,6 +268,12 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         if start_wall is None and (args.connect or args.session_settings is not None):
             start_wall = await _fleet_start_wall(fleet, radio_prefix, args.speed)
         fleet.start(start_wall)
+        if args.pcap is not None:
+            from awaremw.radio.capture import Capture
+
+            capture = Capture.to_file(args.pcap, epoch=fleet.clock.start_wall)
+            stack.callback(capture.close)  # closed before the fleet: later taps are ignored
+            fleet.medium.tap = capture
         settings = GatewaySettings(
             prefix=args.prefix,
             state_dir=None if args.state_dir is None else Path(args.state_dir),

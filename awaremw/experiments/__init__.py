@@ -21,6 +21,7 @@ EXPERIMENTS: dict[str, tuple[str, str]] = {
     "romeo4r": ("romeo4r", "awaremw.experiments.romeo4r"),
     "fire": ("fire", "awaremw.experiments.fire"),
     "failover": ("failover", "awaremw.experiments.failover"),
+    "large": ("large", "awaremw.experiments.large"),
 }
 
 

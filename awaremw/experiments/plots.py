@@ -58,7 +58,7 @@ FS_TITLE = 11
 def _save(fig: Figure, path: Path, dpi: int = DPI) -> Path:
     FigureCanvasAgg(fig)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    fig.savefig(path, dpi=dpi)
     return path
 
 
@@ -83,19 +83,32 @@ def _draw_motes(
 
     assert isinstance(ax, Axes)
     members = rec.members_at(gtype, t)
+    # One scatter per look (not per mote): 1,024 motes draw in a blink. Markers
+    # shrink with the mote count so that a large field stays legible.
+    k = min(1.0, LABELLED_MOTES / max(1, len(ids)))
+    looks: dict[tuple[str, bool], tuple[list[float], list[float], list[str]]] = {}
     for n in ids:
         x, y = truth.position(n, t)
-        s = members.get(n)
-        ring = "black" if n in true_members else "none"
-        if s is None or s.gid is None:
-            ax.scatter([x], [y], s=70, c="#dddddd", edgecolors=ring, linewidths=1.6, zorder=2)
-        else:
-            ax.scatter(
-                [x], [y], s=240 if s.leader else 90, c=colours(s.gid),
-                marker="*" if s.leader else "o", edgecolors=ring, linewidths=1.6, zorder=3,
-            )  # fmt: skip
-        if labels:
-            ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=FS_TICK)
+        st = members.get(n)
+        look = ("#dddddd", False) if st is None or st.gid is None else (colours(st.gid), st.leader)
+        xs, ys, rings = looks.setdefault(look, ([], [], []))
+        xs.append(x)
+        ys.append(y)
+        rings.append("black" if n in true_members else "none")
+        if labels and len(ids) <= LABELLED_MOTES:
+            label = ax.annotate(str(n), (x, y), xytext=(4, 4), textcoords="offset points",
+                                fontsize=FS_TICK, annotation_clip=True)  # fmt: skip
+            label.set_in_layout(False)  # the axes fit the motes; labels need no layout pass
+    for (colour, leader), (xs, ys, rings) in looks.items():
+        plain = colour == "#dddddd"
+        size = 70 if plain else 240 if leader else 90
+        ax.scatter(
+            xs, ys, s=size * k, c=colour, marker="*" if leader else "o", edgecolors=rings,
+            linewidths=1.6 * k**0.5, zorder=2 if plain else 3,
+        )  # fmt: skip
+
+
+LABELLED_MOTES = 100  # above this many motes, no id labels and smaller markers
 
 
 def _legend(
@@ -138,21 +151,27 @@ def tracking_snapshots(
     area: Area,
     settle: float = 0.0,
     title: str = "Group tracking the robot",
+    window_m: float | None = None,
 ) -> Path:
     """Panels at ``times``: motes coloured by group id, leaders as stars, true
-    members (noise-free RSSI over the threshold) ringed, the robot and its trail."""
+    members (noise-free RSSI over the threshold) ringed, the robot and its trail.
+    ``window_m``: each panel shows only the square of that half-side around the
+    robot (within ``area``), for fields too large to see a group in."""
     rows, cols = _grid(len(times))
     fig = Figure(figsize=(4.6 * cols, 4.2 * rows), layout="constrained")
     colours = GroupColours()
     for k, t in enumerate(times):
         ax = fig.add_subplot(rows, cols, k + 1)
-        _draw_motes(ax, rec, truth, gtype, t + settle, ids, colours, truth.members(defn, t, ids))
+        rx, ry = truth.position(robot, t)
+        view = area if window_m is None else _window(area, rx, ry, window_m)
+        shown = ids if window_m is None else [n for n in ids if _inside(view, truth.position(n, t))]
+        _draw_motes(ax, rec, truth, gtype, t + settle, shown, colours,
+                    truth.members(defn, t, ids))  # fmt: skip
         trail = [truth.position(robot, t * i / 40) for i in range(41)]
         ax.plot([p[0] for p in trail], [p[1] for p in trail], "--", color="#cc0000", lw=0.8)
-        rx, ry = truth.position(robot, t)
         ax.scatter([rx], [ry], marker="^", s=120, c="#cc0000", zorder=4)
-        ax.set_xlim(area[0] - 1.5, area[1] + 1.5)
-        ax.set_ylim(area[2] - 1.5, area[3] + 1.5)
+        ax.set_xlim(view[0] - 1.5, view[1] + 1.5)
+        ax.set_ylim(view[2] - 1.5, view[3] + 1.5)
         ax.set_aspect("equal")
         ax.set_title(f"t = {t:.0f} s", fontsize=FS_TITLE)
         _axes_in_metres(ax)
@@ -161,6 +180,24 @@ def tracking_snapshots(
             _legend(ax, rec, gtype, t + settle, colours, extra=[robot_h])
     fig.suptitle(title, fontsize=FS_TITLE + 1)
     return _save(fig, path)
+
+
+def _window(area: Area, x: float, y: float, half: float) -> Area:
+    """The square of half-side ``half`` around (x, y), moved to lie within ``area``."""
+
+    def span(lo: float, hi: float, c: float) -> tuple[float, float]:
+        if hi - lo <= 2 * half:
+            return lo, hi
+        a = min(max(c - half, lo), hi - 2 * half)
+        return a, a + 2 * half
+
+    x0, x1 = span(area[0], area[1], x)
+    y0, y1 = span(area[2], area[3], y)
+    return (x0, x1, y0, y1)
+
+
+def _inside(a: Area, p: tuple[float, float]) -> bool:
+    return a[0] - 2.0 <= p[0] <= a[1] + 2.0 and a[2] - 2.0 <= p[1] <= a[3] + 2.0
 
 
 def rssi_traces(

@@ -68,6 +68,8 @@ class RealtimeSettings:
     # rules; the motes and the gateway connect to it with their roles; the radio is
     # authenticated with its network key and the gateway's motes sign their items.
     secrets: str | None = None
+    # A capture of the radio (awaremw.radio.capture): every fleet's medium taps it.
+    pcap: str | None = None
 
     def __post_init__(self) -> None:
         if not self.speed > 0:
@@ -246,9 +248,19 @@ class RealtimeRun:
                     app = app_of(r.core)
                     if app is not None:
                         app.energy = _energy_probe(f, d, n)
+            capture = None
+            if self.settings.pcap is not None:
+                from awaremw.radio.capture import Capture
+
+                capture = Capture.to_file(self.settings.pcap)
+                stack.callback(capture.close)
+                for f in fleets:
+                    f.medium.tap = capture
             # Let the Zenoh peers find each other before time 0.
             await asyncio.sleep(0.3)
             start_wall = time.time() + 0.1
+            if capture is not None:
+                capture.epoch = start_wall
             for f in fleets:
                 f.start(start_wall)
             client_settings = (
@@ -331,6 +343,7 @@ def run_realtime(
     plain: bool = True,
     robot_mqtt: str | None = None,
     secrets: str | None = None,
+    pcap: str | None = None,
 ) -> RunResult:
     """Blocking helper for the CLI: one real-time run, shown live on a terminal
     (``plain`` False and stdout a TTY) or as status log lines."""
@@ -351,7 +364,7 @@ def run_realtime(
 
     rt = RealtimeRun(
         sc,
-        RealtimeSettings(speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, secrets=secrets),
+        RealtimeSettings(speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, secrets=secrets, pcap=pcap),
         hooks=RunHooks(on_tick=tick, on_event=event),
     )
     view.start()

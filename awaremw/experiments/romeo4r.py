@@ -45,6 +45,15 @@ def threshold_of(sc: Scenario) -> tuple[float, float]:
 
 def analyse(result: RunResult, out: Path) -> dict[str, Any]:
     """Metrics and figures of a finished run; writes them into ``out``."""
+    return analyse_tracking(result, out, "romeo4r", "Group tracking Romeo 4R")
+
+
+def analyse_tracking(
+    result: RunResult, out: Path, prefix: str, title: str, window_m: float | None = None
+) -> dict[str, Any]:
+    """The robot-tracking metrics of any scenario with a robot and an
+    ``rssi:<robot> >`` group; figures named ``<prefix>_*.png``; ``window_m``: the
+    snapshot panels show the square of that half-side around the robot."""
     sc = result.scenario
     rec = result.recorder
     truth = sc.truth()
@@ -68,7 +77,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
     metrics = M.run_metrics(result, s, gtype, t0, t1, settle)
     metrics["pass_s"] = [t0, t1]
     metrics["robot_entry_s"] = t0
-    _figures(sc, rec, truth, series, out, settle)
+    _figures(sc, rec, truth, series, out, settle, prefix, title, result.duration, window_m)
     return M.rounded(metrics)
 
 
@@ -79,27 +88,35 @@ def _figures(
     series: list[M.Instant],
     out: Path,
     settle: float,
+    prefix: str,
+    title: str,
+    duration: float,
+    window_m: float | None,
 ) -> None:
     gtype = sc.tracking_group
     defn = sc.group_def()
     robot = sc.robot
     assert robot is not None
-    snaps = [float(t) for t in sc.get("snapshots_s", [])] or [
-        t0 for t0 in M.instants(series[0].t, series[-1].t, (series[-1].t - series[0].t) / 5)
-    ]
+    # The scenario's instants that the run reached; else four over the pass.
+    snaps = [float(t) for t in sc.get("snapshots_s", []) if float(t) <= duration]
+    if not snaps:
+        a = series[0].t if series else 0.0
+        b = series[-1].t if series else duration
+        snaps = [a + (b - a) * i / 3 for i in range(4)] if b > a else [b]
     plots.tracking_snapshots(
-        out / "romeo4r_snapshots.png", rec, truth, gtype, defn, snaps, sc.sensors, robot,
+        out / f"{prefix}_snapshots.png", rec, truth, gtype, defn, snaps, sc.sensors, robot,
         sc.field, settle=0.0,
-        title="Group tracking Romeo 4R (colour: group id; star: leader; ring: true member)",
+        title=f"{title} (colour: group id; star: leader; ring: true member)",
+        window_m=window_m,
     )  # fmt: skip
     thr, hyst = threshold_of(sc)
     motes = [int(m) for m in sc.get("rssi_motes", [])]
     if motes:
         plots.rssi_traces(
-            out / "romeo4r_rssi.png", rec, truth, robot, motes, thr, hyst, gtype,
+            out / f"{prefix}_rssi.png", rec, truth, robot, motes, thr, hyst, gtype,
             max(0.0, series[0].t - 10), min(series[-1].t + 15, sc.duration),
         )  # fmt: skip
     plots.membership_sizes(
-        out / "romeo4r_membership.png", series,
+        out / f"{prefix}_membership.png", series,
         title=f"Tracking group size vs truth (members compared {settle:g} s later)",
     )  # fmt: skip

@@ -30,7 +30,7 @@ from awaremw.protocol import attributes as A
 from awaremw.protocol.attributes import Application
 from awaremw.protocol.frames import MAX_NODE_ID, GroupTypeDef
 from awaremw.protocol.groups import condition_holds
-from awaremw.radio.model import RadioModel
+from awaremw.radio.model import Z_MAX, RadioModel
 from awaremw.world.fields import World
 from awaremw.world.mobility import Mobility
 
@@ -40,6 +40,9 @@ _FIELD_OF = {
     A.LIGHT: "light",
     A.GAS: "gas",
 }
+
+
+MEMBERS_CACHE_MAX = 4096  # members() answers kept (instants x definitions x populations)
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,6 +63,10 @@ class GroundTruth:
         self.nodes: dict[int, TruthNode] = {n.node: n for n in nodes}
         self.world = world
         self.link_prr = link_prr
+        # members() answers, by (definition, t, population): the scoring asks the
+        # same instants several times (the pass, the series, the figures).
+        self._reaches: dict[tuple[int, float], float] = {}
+        self._members: dict[tuple[GroupTypeDef, float, frozenset[int] | None], frozenset[int]] = {}
 
     # ------------------------------------------------------------------ geometry and radio
 
@@ -85,6 +92,19 @@ class GroundTruth:
             and ra.prr(self.mean_rssi(b, a, t), frame_len) >= self.link_prr
         )
 
+    def _reach(self, radio: RadioModel, tx_power: float) -> float:
+        """Distance beyond which the mean RSSI is below sensitivity for every link
+        (the most favourable static shadowing, ``Z_MAX`` sigmas): a shortcut that
+        leaves :meth:`value` exact."""
+        key = (id(radio), tx_power)
+        r = self._reaches.get(key)
+        if r is None:
+            p = radio.preset
+            budget = tx_power + p.shadowing_sigma_db * Z_MAX - p.sensitivity_dbm - p.pl_d0_db
+            r = p.d0_m * 10.0 ** (budget / (10.0 * p.path_loss_exponent)) * (1.0 + 1e-9)
+            self._reaches[key] = r  # a few radios x tx powers per deployment
+        return r
+
     # ------------------------------------------------------------------ attribute values
 
     def value(self, node: int, attr: int, t: float) -> float | None:
@@ -94,7 +114,11 @@ class GroundTruth:
             src = attr & MAX_NODE_ID
             if src == node or src not in self.nodes:
                 return None
-            r = self.mean_rssi(src, node, t)
+            d = self.distance(src, node, t)
+            s = self.nodes[src]
+            if d > self._reach(n.radio, s.tx_power):
+                return None  # below sensitivity whatever the link's shadowing
+            r = n.radio.mean_rssi(src, node, d, s.tx_power)
             return r if r >= n.radio.preset.sensitivity_dbm else None
         if attr in (A.X, A.Y):
             return self.position(node, t)[0 if attr == A.X else 1]
@@ -114,8 +138,36 @@ class GroundTruth:
         self, defn: GroupTypeDef, t: float, among: Iterable[int] | None = None
     ) -> frozenset[int]:
         """The motes (of ``among``, default all) whose true values meet ``defn``."""
-        ids = self.nodes if among is None else among
-        return frozenset(n for n in ids if self.satisfies(n, defn, t))
+        pool = None if among is None else frozenset(among)
+        key = (defn, t, pool)
+        got = self._members.get(key)
+        if got is None:
+            ids = self._in_reach(defn, t, self.nodes if pool is None else pool)
+            got = frozenset(n for n in ids if self.satisfies(n, defn, t))
+            if len(self._members) >= MEMBERS_CACHE_MAX:
+                self._members.clear()  # pure function of the key: recomputable
+            self._members[key] = got
+        return got
+
+    def _in_reach(self, defn: GroupTypeDef, t: float, ids: Iterable[int]) -> Iterable[int]:
+        """``ids`` without the motes that cannot hear the source of an ``rssi:<src>``
+        condition of ``defn`` (their value is None: the condition, and so the
+        definition, fails there); all of ``ids`` without such a condition."""
+        for c in defn.conditions:
+            if not A.is_rssi(c.attr):
+                continue
+            s = self.nodes.get(c.attr & MAX_NODE_ID)
+            if s is None:
+                return ()
+            sx, sy = s.mobility.position(t)
+            out = []
+            for n in ids:
+                node = self.nodes[n]
+                x, y = node.mobility.position(t)
+                if math.hypot(x - sx, y - sy) <= self._reach(node.radio, s.tx_power):
+                    out.append(n)
+            return out
+        return ids
 
     def regions(
         self, defn: GroupTypeDef, t: float, among: Iterable[int] | None = None

@@ -100,7 +100,14 @@ class DataDropped:
 
 @dataclass(slots=True)
 class Neighbour:
-    """What a mote knows about one neighbour (mutable routing-table entry)."""
+    """What a mote knows about one neighbour (mutable routing-table entry).
+
+    ``link`` and ``path`` cache :meth:`Collection.link_cost` and the path cost
+    through it (NO_ROUTE, or ``cost + link`` saturated at MAX_COST): the
+    collection recomputes them whenever it changes ``cost``, ``rssi`` or
+    ``ack_etx``, so the parent choice reads them instead of recomputing every
+    neighbour's link cost on every beacon. Only the collection mutates entries.
+    """
 
     node: int
     cost: int = NO_ROUTE  # its advertised path cost
@@ -109,6 +116,8 @@ class Neighbour:
     ack_etx: float = float(ETX_ONE)  # EWMA of unicast outcomes, x10
     failures: int = 0  # consecutive failed unicasts to it
     last_heard: float = 0.0
+    link: int = 0  # cached link cost (set by the collection)
+    path: int = NO_ROUTE  # cached path cost through it (set by the collection)
 
 
 @dataclass(slots=True)
@@ -158,6 +167,9 @@ class Collection(Component):
         # Neighbours must have been heard since our last route loss to be chosen:
         # older entries may be dead motes (a dead mote never says so).
         self._fresh_since = float("-inf")
+        # The answer of _best() with its defaults and fresh_since=_fresh_since,
+        # kept current entry by entry (_changed); None: recompute on next use.
+        self._best_cache: tuple[Neighbour | None, int] | None = None
         self._holddown_until = float("-inf")
         self.stats = CollectionStats()
 
@@ -207,6 +219,12 @@ class Collection(Component):
         """ETX x 10 of the link to ``n``: max of the RSSI mapping and the ACK EWMA."""
         return max(self._rssi_cost(n.rssi), round(n.ack_etx))
 
+    def _recost(self, n: Neighbour) -> None:
+        """Refresh ``n``'s cached link and path costs (after any change of
+        its cost, RSSI or ACK estimate)."""
+        n.link = link = max(self._rssi_cost(n.rssi), round(n.ack_etx))
+        n.path = NO_ROUTE if n.cost >= NO_ROUTE else min(n.cost + link, MAX_COST)
+
     # ------------------------------------------------------------------ Component hooks
 
     def start(self, now: float) -> None:
@@ -244,11 +262,15 @@ class Collection(Component):
             if n is not None:
                 n.failures = 0
                 n.ack_etx = (1 - a) * n.ack_etx + a * ETX_ONE
+                self._recost(n)
+                self._changed(n)
         else:
             pkt.attempts += 1
             if n is not None:
                 n.failures += 1
                 n.ack_etx = (1 - a) * n.ack_etx + a * cfg.ctp_fail_etx
+                self._recost(n)
+                self._changed(n)
                 if n.failures >= cfg.ctp_evict_after_failures:
                     self._evict(n.node, now)
             if pkt.attempts >= cfg.ctp_max_retries:
@@ -275,6 +297,7 @@ class Collection(Component):
         n = self._neighbours.get(node)
         if n is None:
             n = Neighbour(node, cost, parent, rssi, last_heard=now)
+            self._recost(n)
             if len(self._neighbours) >= self.ctx.config.ctp_neighbours:
                 # Full table: replace the worst entry (never the parent) if worse.
                 others = [x for x in self._neighbours.values() if x.node != self._parent]
@@ -284,11 +307,15 @@ class Collection(Component):
                 if self._path_via(n) >= self._path_via(worst):
                     return
                 del self._neighbours[worst.node]
+                self._best_cache = None
             self._neighbours[node] = n
+            self._changed(n)
             return
         n.cost, n.parent, n.last_heard = cost, parent, now
         a = self.ctx.config.ctp_rssi_alpha
         n.rssi = rssi if n.rssi is None else a * rssi + (1 - a) * n.rssi
+        self._recost(n)
+        self._changed(n)
 
     def _rssi_cost(self, rssi: float | None) -> int:
         cfg = self.ctx.config
@@ -300,9 +327,7 @@ class Collection(Component):
         return ETX_ONE + round((cfg.ctp_rssi_max_etx - ETX_ONE) * x**3)
 
     def _path_via(self, n: Neighbour) -> int:
-        if n.cost >= NO_ROUTE:
-            return NO_ROUTE
-        return min(n.cost + self.link_cost(n), MAX_COST)
+        return n.path  # kept current by _recost
 
     def _best(
         self,
@@ -317,26 +342,44 @@ class Collection(Component):
         best: Neighbour | None = None
         best_path = NO_ROUTE
         limit = NO_ROUTE if below is None else below
-        # No link costs less than this (see _rssi_cost; link_cost is at least it),
-        # so a neighbour whose cost plus it already exceeds the best path so far
-        # cannot win nor tie: skip its link cost (same choice, fewer calls).
-        floor = min(ETX_ONE, self.ctx.config.ctp_rssi_max_etx)
         for n in self._neighbours.values():
             if n.cost >= limit or n.parent == me or n.node == exclude:
                 continue
             if n.last_heard < fresh_since:
                 continue
-            if best is not None and min(n.cost + floor, MAX_COST) > best_path:
-                continue
-            p = self._path_via(n)
+            p = n.path  # cached (see _recost)
             if p < best_path or (p == best_path and best is not None and n.node < best.node):
                 best, best_path = n, p
         return best, best_path
 
+    def _changed(self, n: Neighbour) -> None:
+        """Entry ``n`` (in the table) changed: keep the cached best choice.
+
+        The choice is the entry with the smallest ``(path, node)`` among those
+        that qualify, whatever the order of the table. If ``n`` was the choice,
+        it may have got worse: recompute on next use. Otherwise only ``n``
+        can have become the choice: compare it with the cached one.
+        """
+        c = self._best_cache
+        if c is None:
+            return
+        best, best_path = c
+        if best is n:
+            self._best_cache = None
+            return
+        if n.cost >= NO_ROUTE or n.parent == self.ctx.node_id or n.last_heard < self._fresh_since:
+            return
+        p = n.path
+        if p < best_path or (p == best_path and best is not None and n.node < best.node):
+            self._best_cache = (n, p)
+
     def _update_route(self, now: float) -> None:
         if self.is_root:
             return
-        best, best_path = self._best(fresh_since=self._fresh_since)
+        cached = self._best_cache
+        if cached is None:
+            cached = self._best_cache = self._best(fresh_since=self._fresh_since)
+        best, best_path = cached
         if self._parent is not None:
             cur = self._path_via(self._neighbours[self._parent])
             threshold = self.ctx.config.ctp_parent_switch_threshold
@@ -377,6 +420,7 @@ class Collection(Component):
         self._lost_cost = self._cost
         self._lost_parent = old
         self._fresh_since = now
+        self._best_cache = None
         self._parent = None
         self._cost = NO_ROUTE
         self._holddown_until = now + self.ctx.config.ctp_holddown
@@ -388,6 +432,7 @@ class Collection(Component):
     def _evict(self, node: int, now: float) -> None:
         self.stats.evictions += 1
         del self._neighbours[node]
+        self._best_cache = None
         if node == self._parent:
             self._lose_parent(now)
 

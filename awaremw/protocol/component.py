@@ -9,7 +9,7 @@ import it without importing each other in a circle.
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from awaremw.protocol.attributes import RSSI_BASE, Application
 from awaremw.protocol.config import MiddlewareConfig
@@ -18,8 +18,10 @@ from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode
 from awaremw.protocol.timers import TimerSet
 
 
-@dataclass(frozen=True, slots=True)
-class RssiSample:
+class RssiSample(NamedTuple):
+    """RSSI EWMA of one neighbour's frames (a tuple: one is made per frame heard,
+    and a tuple is built several times faster than a frozen dataclass)."""
+
     dbm: float  # EWMA of recent frames
     last_heard: float
 

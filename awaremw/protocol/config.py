@@ -56,6 +56,7 @@ class MiddlewareConfig:
     beacon_period: float = 2.0  # leader beacon
     leader_timeout_periods: float = 3.5  # no beacon for this many periods: leader lost
     create_backoff: float = 2.0  # max random wait for a nearby group before creating one
+    tentative_periods: float = 1.0  # a new group's id is announced this long before it is taken
     unmerge_window_periods: float = 15.0  # a part losing a merged group this soon takes its id back
     forward_jitter: float = 0.05  # max random delay before re-broadcasting a leader beacon
     report_every_beacons: int = 5  # leader's GroupReport to the gateway, in beacon periods

@@ -612,6 +612,9 @@ class LeaderBeacon(Frame):
     weight: int = 0
     seq: int = 0
     hops: int = 0
+    # A would-be group's announcement (docs/protocol-groups.md, "Tentative ids"):
+    # nobody joins it or forwards it; an established group answers it.
+    tentative: bool = False
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
@@ -621,13 +624,16 @@ class LeaderBeacon(Frame):
         _u32("weight", self.weight)
         _u16("seq", self.seq)
         _u8("hops", self.hops)
+        if not isinstance(self.tentative, bool):
+            raise ValueError("tentative must be a bool")
 
     def body(self) -> list[Any]:
-        return [self.group_type, self.group_id, self.leader, self.weight, self.seq, self.hops]
+        return [self.group_type, self.group_id, self.leader, self.weight, self.seq, self.hops,
+                self.tentative]  # fmt: skip
 
     @classmethod
     def from_body(cls, src: int, dst: int, body: list[Any]) -> LeaderBeacon:
-        return cls(src, dst, *_arity(body, 6, "leader beacon"))
+        return cls(src, dst, *_arity(body, 7, "leader beacon"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -779,3 +785,26 @@ def decode(data: bytes) -> Frame:
         raise
     except (ValueError, TypeError, KeyError, IndexError, OverflowError) as e:
         raise BadField(f"{cls.__name__}: {e}") from None
+
+
+# The frame a transmission carries is decoded once for all its receivers: a
+# medium hands the same bytes to every receiver of a broadcast (and to every
+# mote overhearing a unicast) one after another, and frames are immutable
+# (frozen dataclasses whose fields are ints, floats, bytes, tuples and frozen
+# records), so the receivers can share the decoded object. One entry, replaced
+# atomically (a tuple), compared by value: no unbounded cache, no stale hit.
+_last: tuple[bytes, Frame] | None = None
+
+
+def decode_shared(data: bytes) -> Frame:
+    """:func:`decode`, sharing the result with the previous call on equal bytes.
+
+    Malformed input raises :class:`FrameError` every time (failures are not kept).
+    """
+    global _last
+    last = _last
+    if last is not None and last[0] == data:
+        return last[1]
+    f = decode(data)
+    _last = (bytes(data), f)
+    return f

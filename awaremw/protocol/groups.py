@@ -18,8 +18,12 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
   thresholds relaxed by the definition's hysteresis, a non-member needs the
   strict conditions;
 * a qualifying mote joins the heaviest group of its type heard within the
-  leader timeout, else waits ``U(0, create_backoff)`` and creates one (leader,
-  weight 0, random 16-bit id avoiding ids heard nearby);
+  leader timeout, else waits ``U(0, create_backoff / 2)`` and creates one (leader,
+  weight 0, random 16-bit id avoiding ids heard nearby) -- after announcing the
+  id for ``tentative_periods`` beacon periods (tentative beacons, never joined
+  nor forwarded): an established group in range answers and is joined, the
+  higher of two would-be ids goes on, so contention at a group's birth ends
+  before any mote holds the losing id;
 * members forward only the heaviest group they know: a member hearing a heavier
   group of its type (``(weight, group id)`` compared) switches to it, a leader
   hearing one yields (reports GONE with the survivor's id) and joins it;
@@ -63,6 +67,8 @@ MAX_GROUP_ID = 0xFFFE
 MAX_WEIGHT = 0xFFFFFFFF
 MAX_HOPS = 0xFF
 ELECTION_BACKOFF_FACTOR = 3.0  # creation backoff after a lost leader, x create_backoff
+TENTATIVE_CREATE_SPREAD = 0.5  # spontaneous creation backoff with tentative ids, x create_backoff
+TENTATIVE_BEACONS = 2  # a would-be group announces its id this many times, evenly spread
 
 
 # --------------------------------------------------------------------------- public values
@@ -172,6 +178,8 @@ class GroupStats:
     beacons_forwarded: int = 0
     beacons_rebutted: int = 0  # current beacon re-sent to a lighter contending group
     failovers: int = 0  # leader claims after the leader was lost (same id)
+    tentative_sent: int = 0  # would-be groups announced (tentative beacons)
+    tentative_withdrawn: int = 0  # ... given up for another group before being taken
     beacons_unknown_type: int = 0
     handovers_sent: int = 0
     handovers_failed: int = 0  # link failures and refusals
@@ -240,6 +248,11 @@ class _TypeState:
     patience: bool = False  # the split route's extra beacon period was granted for this seq
     former: int = 0  # an established group (weight > 0) we left by a merge ...
     former_until: float = -math.inf  # ... and until when a split may take its id back
+    tent_gid: int = 0  # WAITING: the id this mote announced tentatively (0: none)
+    tent_sent: int = 0  # tentative beacons sent for tent_gid
+    tent_heard: dict[int, float] = field(default_factory=dict)  # tentative id -> heard at
+    tent_leader: dict[int, int] = field(default_factory=dict)  # tentative id -> announcer
+    tent_relayed: int = 0  # the would-be id whose announcement we relayed last
 
 
 def seq_newer(a: int, b: int) -> bool:
@@ -500,6 +513,17 @@ class Groups(Component):
                 self._join(st, best[0], best[1], now)
             else:
                 self._create(st, now)
+        elif kind == "confirm" and st.role is Role.WAITING and st.tent_gid:
+            if st.tent_sent < TENTATIVE_BEACONS:
+                # Once more half-way: one lost frame (ours, or the answer) on a
+                # marginal link must not let a contender take its id.
+                self._send_tentative(st)
+                self.timers.set(name, now + self._tentative_hold() / TENTATIVE_BEACONS)
+                return
+            # The would-be group heard no established group and no heavier
+            # would-be group for a tentative period: its id is taken now.
+            gid, st.tent_gid = st.tent_gid, 0
+            self._become_leader(st, gid, 0, 0, now, st.cause)
         elif kind == "handover" and st.role is Role.HANDING_OVER:
             # Acknowledged and not refused within the grace time: done.
             assert st.handover_to is not None
@@ -532,9 +556,8 @@ class Groups(Component):
 
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
-        return all(
-            condition_holds(c, self.ctx.read(c.attr, now), relax) for c in st.defn.conditions
-        )
+        read = self.ctx.read
+        return all(condition_holds(c, read(c.attr, now), relax) for c in st.defn.conditions)
 
     def _check(self, st: _TypeState, now: float) -> None:
         role = st.role
@@ -545,6 +568,8 @@ class Groups(Component):
             self._join_or_wait(st, now, ElectionCause.CREATED)
         elif role is Role.WAITING and not q:
             self.timers.cancel(("create", st.gtype))
+            if st.tent_gid:
+                self._withdraw(st)
             st.role = Role.IDLE
         elif role is Role.MEMBER and not q:
             self._leave(st, now, LeaveReason.CONDITION)
@@ -553,14 +578,23 @@ class Groups(Component):
 
     def _purge(self, st: _TypeState, now: float) -> None:
         ttl = self._timeout()
-        for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
-            del st.nearby[gid]
-        for n in [n for n, u in st.upstream.items() if now - u.t > ttl]:
-            del st.upstream[n]
-        for n in [n for n, t in st.failed.items() if now - t > ttl]:
-            del st.failed[n]
-        for n in [n for n, c in st.children.items() if now - c[0] > ttl]:
-            del st.children[n]
+        # Most motes hear no group most of the time: skip the empty tables.
+        if st.nearby:
+            for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
+                del st.nearby[gid]
+        if st.upstream:
+            for n in [n for n, u in st.upstream.items() if now - u.t > ttl]:
+                del st.upstream[n]
+        if st.failed:
+            for n in [n for n, t in st.failed.items() if now - t > ttl]:
+                del st.failed[n]
+        if st.children:
+            for n in [n for n, c in st.children.items() if now - c[0] > ttl]:
+                del st.children[n]
+        if st.tent_heard:
+            for g in [g for g, t in st.tent_heard.items() if now - t > ttl]:
+                del st.tent_heard[g]
+                st.tent_leader.pop(g, None)
 
     def _best_nearby(self, st: _TypeState, now: float) -> tuple[int, _Heard] | None:
         ttl = self._timeout()
@@ -581,6 +615,10 @@ class Groups(Component):
         # last beacon: a wider backoff spreads their claims so that the first new
         # group's flood reaches the others before they create contenders.
         spread = ELECTION_BACKOFF_FACTOR if cause is ElectionCause.ELECTION else 1.0
+        if cause is ElectionCause.CREATED and self._tentative_hold() > 0:
+            # The tentative period resolves contention now: half the backoff
+            # gives back part of the time it costs before the first record.
+            spread = TENTATIVE_CREATE_SPREAD
         backoff = self.ctx.rng.uniform(0, spread * self.ctx.config.create_backoff)
         self.timers.set(("create", st.gtype), now + backoff)
 
@@ -600,6 +638,8 @@ class Groups(Component):
         now: float,
     ) -> None:
         self.timers.cancel(("create", st.gtype))
+        if st.tent_gid:
+            self._withdraw(st)
         st.role = Role.MEMBER
         st.gid, st.leader, st.weight, st.seq = gid, leader, weight, seq
         st.hops = min(hops + 1, MAX_HOPS)
@@ -645,16 +685,78 @@ class Groups(Component):
             # merge did not hold, the part goes on under its own former id.
             self._become_leader(st, st.former, 0, 0, now, st.cause)
             return
+        hold = self._tentative_hold()
+        heard = [t for t in st.tent_heard.values() if now - t <= hold]
+        if heard:
+            # A neighbour announced a would-be group: wait for it to be taken
+            # (its first beacon reaches us) rather than announce a contender.
+            backoff = self.ctx.rng.uniform(0, self.ctx.config.create_backoff)
+            self.timers.set(("create", st.gtype), max(heard) + hold + backoff)
+            return
+        taken |= set(st.tent_heard)
         gid = self.ctx.rng.randint(1, MAX_GROUP_ID)
         while gid in taken:
             gid = self.ctx.rng.randint(1, MAX_GROUP_ID)
-        self._become_leader(st, gid, 0, 0, now, st.cause)
+        if hold <= 0:
+            self._become_leader(st, gid, 0, 0, now, st.cause)
+            return
+        # Tentative ids: announce the id and take it one tentative period later
+        # unless an established group answers or a heavier would-be group is heard.
+        st.tent_gid, st.tent_sent = gid, 0
+        self._send_tentative(st)
+        self.timers.set(("confirm", st.gtype), now + hold / TENTATIVE_BEACONS)
+
+    def _tentative_hold(self) -> float:
+        c = self.ctx.config
+        return c.tentative_periods * c.beacon_period
+
+    def _send_tentative(self, st: _TypeState) -> None:
+        me = self.ctx.node_id
+        self.send(LeaderBeacon(me, BROADCAST, st.gtype, st.tent_gid, me, 0, 0, 0, True))
+        st.tent_sent += 1
+        self.stats.tentative_sent += 1
+
+    def _withdraw(self, st: _TypeState) -> None:
+        """Give up our would-be group (nobody joined it, nothing was reported)."""
+        st.tent_gid = 0
+        self.timers.cancel(("confirm", st.gtype))
+        self.stats.tentative_withdrawn += 1
+
+    def _on_tentative(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
+        """A would-be group's announcement: never joined, never forwarded."""
+        hold = self._tentative_hold()
+        rivals = [g for g, t in st.tent_heard.items() if now - t <= hold and g != f.group_id]
+        st.tent_heard[f.group_id] = now
+        st.tent_leader[f.group_id] = f.leader
+        role = st.role
+        if role in (Role.IDLE, Role.WAITING) and not st.tent_gid and rivals:
+            # Two would-be groups around us, maybe out of each other's range:
+            # relay the higher one's announcement once, the lower one withdraws.
+            top = max([*rivals, f.group_id])
+            if top != st.tent_relayed:
+                st.tent_relayed = top
+                me, who = self.ctx.node_id, st.tent_leader.get(top, 0)
+                self.send(LeaderBeacon(me, BROADCAST, st.gtype, top, who, 0, 0, 1, True))
+        if role in (Role.MEMBER, Role.LEADER):
+            # An established group is in range: answer with our beacon, the
+            # would-be group joins us instead of taking its id.
+            self._rebut(st, now)
+        elif role is Role.WAITING and st.tent_gid:
+            if (f.group_id, f.leader) > (st.tent_gid, self.ctx.node_id):
+                # The paper's order among weight-0 groups: the higher id goes on;
+                # we wait for its first beacon (or announce again later).
+                self._withdraw(st)
+                backoff = self.ctx.rng.uniform(0, self.ctx.config.create_backoff)
+                self.timers.set(("create", st.gtype), now + self._tentative_hold() + backoff)
+            elif st.tent_sent <= TENTATIVE_BEACONS:
+                self._send_tentative(st)  # it may not have heard ours: once more
 
     def _become_leader(
         self, st: _TypeState, gid: int, weight: int, seq: int, now: float, cause: ElectionCause
     ) -> None:
-        for kind in ("create", "lost", "fwd", "handover", "claim"):
+        for kind in ("create", "confirm", "lost", "fwd", "handover", "claim"):
             self.timers.cancel((kind, st.gtype))
+        st.tent_gid = 0
         # A member taking over knows its member neighbours already (those it heard
         # forward the beacons): handover candidates before any partial arrives.
         known = {
@@ -681,7 +783,7 @@ class Groups(Component):
             # Merged into a heavier group: if the merge does not hold (the part
             # loses the merged group's leader soon), the part takes this id back.
             st.former, st.former_until = gid, now + self._unmerge_window()
-        for kind in ("create", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
+        for kind in ("create", "confirm", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
             self.timers.cancel((kind, st.gtype))
         st.role = Role.IDLE
         st.suspect_at = None
@@ -700,7 +802,7 @@ class Groups(Component):
             self._report(st, now, GroupStatus.GONE)
         if st.role in (Role.MEMBER, Role.LEADER, Role.HANDING_OVER):
             self._leave(st, now, LeaveReason.DELETED)
-        for kind in ("create", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
+        for kind in ("create", "confirm", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
             self.timers.cancel((kind, group_type))
         if not self._types:
             self.timers.cancel("check")
@@ -790,6 +892,9 @@ class Groups(Component):
                 old = st.children.get(f.src)
                 count = 0 if old is None else old[1]
                 st.children[f.src] = (now, count, self._link_rssi(f.src, rssi))
+            return
+        if f.tentative:
+            self._on_tentative(st, f, now)
             return
         self._note_nearby(st, f, rssi, now)
         role = st.role

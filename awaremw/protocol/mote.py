@@ -43,10 +43,12 @@ from awaremw.protocol.frames import (
     ItemKind,
     LeaderBeacon,
     Partial,
-    decode,
+    decode_shared,
 )
 from awaremw.protocol.groups import Groups
 from awaremw.protocol.timers import TimerWatch
+
+_INF = float("inf")
 
 __all__ = ["AwareMote", "Component", "MoteContext", "RssiSample"]  # the contract is re-exported
 
@@ -90,10 +92,15 @@ class AwareMote:
             Handover.TYPE: self.groups,
             Partial.TYPE: self.channels,
         }
+        self._timed = tuple((c, c.timers) for c in self._components)  # set once per component
         self._timer_watch = TimerWatch()
         for c in self._components:
             c.timers.watch(self._timer_watch)
         self._next_deadline: float | None = None  # valid while not _timer_watch.changed
+        # Read on every frame heard (the config is frozen, the table never replaced).
+        self._rssi = self.ctx.rssi
+        self._rssi_alpha = self.config.rssi_alpha
+        self._rssi_ttl = self.config.rssi_ttl
         self.started = False
 
     # ----------------------------------------------------------------- MoteCore
@@ -105,7 +112,7 @@ class AwareMote:
 
     def receive(self, frame: bytes, rssi_dbm: float, now: float) -> None:
         try:
-            f = decode(frame)
+            f = decode_shared(frame)
         except FrameError as e:
             self.ctx.emit(MalformedFrame(str(e), len(frame)))
             return
@@ -115,18 +122,26 @@ class AwareMote:
         self._by_type[f.TYPE].on_frame(f, rssi_dbm, now)
 
     def handle_timer(self, now: float) -> None:
-        for c in self._components:
-            for name in c.timers.due(now):
+        for c, t in self._timed:
+            if t.soonest > now:  # a lower bound of its earliest deadline: none due
+                continue
+            for name in t.due(now):
                 c.on_timer(name, now)
 
     def next_deadline(self) -> float | None:
         w = self._timer_watch
         if w.changed:
             w.changed = False
-            self._next_deadline = min(
-                (d for c in self._components if (d := c.timers.next_deadline()) is not None),
-                default=None,
-            )
+            best = _INF
+            for _c, t in self._timed:
+                if t.stale:
+                    t.next_deadline()  # refreshes soonest
+                if t.soonest < best:
+                    best = t.soonest  # exact: not stale
+            if best == _INF and any(len(c.timers) for c in self._components):
+                self._next_deadline = best  # a timer at infinity is still a timer
+            else:
+                self._next_deadline = None if best == _INF else best
         return self._next_deadline
 
     def drain(self) -> list[Transmission]:
@@ -162,12 +177,13 @@ class AwareMote:
     # ----------------------------------------------------------------- internals
 
     def _note_rssi(self, src: int, rssi_dbm: float, now: float) -> None:
-        old = self.ctx.rssi.get(src)
-        a = self.config.rssi_alpha
-        if old is None or now - old.last_heard > self.config.rssi_ttl:
-            self.ctx.rssi[src] = RssiSample(rssi_dbm, now)
+        table = self._rssi
+        old = table.get(src)
+        if old is None or now - old.last_heard > self._rssi_ttl:
+            table[src] = RssiSample(rssi_dbm, now)
         else:
-            self.ctx.rssi[src] = RssiSample(a * rssi_dbm + (1 - a) * old.dbm, now)
+            a = self._rssi_alpha
+            table[src] = RssiSample(a * rssi_dbm + (1 - a) * old.dbm, now)
 
     def _on_item(self, kind: ItemKind, item_id: int, item: ItemBody | None, now: float) -> None:
         handler: Callable[[int, ItemBody | None, float], None] = {

@@ -3,16 +3,19 @@
 Components ask for timers (``set``), the mote asks the set for its earliest
 deadline, and ``due(now)`` pops the names whose time has come, in time order.
 
-The earliest deadline is cached (kept exact by ``set`` when it can be, else
-recomputed on the next ask), so ``next_deadline`` and a ``due`` with nothing
-due cost O(1): the mote asks both far more often than timers change. A
+The earliest deadline is cached (``soonest``: kept exact by ``set`` when it
+can be, else a lower bound recomputed on the next ask), so ``next_deadline``
+and a ``due`` with nothing due cost O(1): the mote asks both far more often than timers change. A
 :class:`TimerWatch` shared by the sets of one mote is marked on every change,
 so the mote can cache its own earliest deadline too.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Hashable
+
+_INF = math.inf
 
 
 class TimerWatch:
@@ -25,12 +28,18 @@ class TimerWatch:
 
 
 class TimerSet:
-    __slots__ = ("_deadlines", "_min", "_stale", "_watch")
+    """Named deadlines. ``soonest`` is a lower bound of the earliest deadline
+    (``inf`` when there is none), exact unless ``stale`` (a change moved the
+    earliest one later; :meth:`next_deadline` refreshes it); a caller may skip
+    the set when ``soonest > now`` (nothing is due) without a call. Both are
+    read-only outside this class."""
+
+    __slots__ = ("_deadlines", "_watch", "soonest", "stale")
 
     def __init__(self) -> None:
         self._deadlines: dict[Hashable, float] = {}
-        self._min: float | None = None  # the earliest deadline, when not _stale
-        self._stale = False
+        self.soonest = _INF  # lower bound of the earliest deadline; exact unless stale
+        self.stale = False
         self._watch = TimerWatch()
 
     def watch(self, w: TimerWatch) -> None:
@@ -43,21 +52,19 @@ class TimerSet:
         d = self._deadlines
         old = d.get(name)
         d[name] = when
-        if self._stale:
-            return
-        m = self._min
-        if m is None or when <= m:
-            self._min = when
+        m = self.soonest
+        if when <= m:
+            self.soonest = when  # a lower bound still; exact if it was
         elif old is not None and old <= m:
-            self._stale = True  # the earliest timer moved later
+            self.stale = True  # the earliest timer moved later
 
     def cancel(self, name: Hashable) -> None:
         old = self._deadlines.pop(name, None)
         if old is None:
             return
         self._watch.changed = True
-        if not self._stale and self._min is not None and old <= self._min:
-            self._stale = True
+        if old <= self.soonest:
+            self.stale = True
 
     def get(self, name: Hashable) -> float | None:
         return self._deadlines.get(name)
@@ -65,24 +72,31 @@ class TimerSet:
     def __contains__(self, name: Hashable) -> bool:
         return name in self._deadlines
 
+    def __len__(self) -> int:
+        return len(self._deadlines)
+
     def next_deadline(self) -> float | None:
-        if self._stale:
-            self._min = min(self._deadlines.values(), default=None)
-            self._stale = False
-        return self._min
+        if self.stale:
+            self.soonest = min(self._deadlines.values(), default=_INF)
+            self.stale = False
+        return self.soonest if self._deadlines else None
 
     def due(self, now: float) -> list[Hashable]:
         """Remove and return the names due at ``now``, earliest first (equal
         deadlines in the order they were first set)."""
-        m = self.next_deadline()
-        if m is None or m > now:
+        if self.soonest > now:  # a lower bound: nothing is due
             return []
+        if self.stale:
+            self.soonest = min(self._deadlines.values(), default=_INF)
+            self.stale = False
+            if self.soonest > now:
+                return []
         d = self._deadlines
         names = [n for n, t in d.items() if t <= now]
         if len(names) > 1:
             names.sort(key=d.__getitem__)
         for n in names:
             del d[n]
-        self._stale = True
+        self.stale = True
         self._watch.changed = True
         return names

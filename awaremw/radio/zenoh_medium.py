@@ -77,6 +77,7 @@ import zenoh
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
+from awaremw.radio.capture import RadioTap, lost, refused
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import (
     Envelope,
@@ -336,6 +337,8 @@ class ZenohMedium:
         # experiments (who heard whom); None = not tracked (the default). Bound:
         # senders (< 32768 ids) x local motes; only tests turn it on.
         self.links: dict[tuple[int, int], int] | None = None
+        # A capture (awaremw.radio.capture): frames on the air here, local receptions.
+        self.tap: RadioTap | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -569,6 +572,8 @@ class ZenohMedium:
             self.rejected.count("early", f"frame of {env.src} starts at {start:.3f}, now {now:.3f}")
             return
         end = linklayer.airtime_end(self.preset, start, len(env.frame))
+        if self.tap is not None:  # stamped at its end, as a local frame is
+            self.tap.on_air(end, env.src, env.dest, env.seq, env.attempt, env.frame)
         f = None
         if self._track:
             f = self._air_add(env.src, env.x, env.y, env.tx_power, start, end, env.seq, env.attempt)
@@ -702,6 +707,7 @@ class ZenohMedium:
         air = self._air
         c = nb.sender(src, sx, sy, txp)
         links = self.links
+        tap = self.tap
         heard = False
         if c.near or c.far_loss or c.far_dist:
             heard = True
@@ -713,15 +719,21 @@ class ZenohMedium:
                 ok, rssi = decide(lh, mean, bits, key)
                 if not ok:
                     rc.dropped_loss += 1
+                    if tap is not None:
+                        tap.reception(now, src, r.node_id, rssi, "path_loss")
                     continue
                 if others is not None and not air.survives(f, rssi, r.node_id, r.x, r.y, others):  # type: ignore[arg-type]
                     rc.collisions += 1
+                    if tap is not None:
+                        tap.reception(now, src, r.node_id, rssi, "collision")
                     continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 if links is not None:
                     _tally(links, src, r.node_id)
                 data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+                if tap is not None:
+                    tap.reception(now, src, r.node_id, rssi, refused(data, op))
                 if data is not None:
                     r.sink.radio_receive(data, rssi, now)
                 if r.battery is not None:
@@ -738,13 +750,20 @@ class ZenohMedium:
                     continue
                 heard = True
                 d = math.hypot(r.x - sx, r.y - sy)
+                c0 = r.counters.collisions
                 got = hear(m, r.counters, src, r.node_id, d, txp, rng, n, bits, key,
                            self._survivor(f, others, r))  # fmt: skip
+                if tap is not None and got is None:
+                    tap.reception(
+                        now, src, r.node_id, None, lost(d > rng, r.counters.collisions > c0)
+                    )
                 if got is None:
                     continue
                 if links is not None:
                     _tally(links, src, r.node_id)
                 data = frame if op is None else g.accept(r.node_id, r.counters, src, op)  # type: ignore[union-attr]
+                if tap is not None:
+                    tap.reception(now, src, r.node_id, got, refused(data, op))
                 if data is not None:
                     r.sink.radio_receive(data, got, now)
                 self._check_battery(r, now)
@@ -780,8 +799,14 @@ class ZenohMedium:
         bits = 8 * (n + self._overhead)
         key = packet_key(seq, attempt)
         survive = self._survivor(f, others, r)
+        c0 = rc.collisions
         rssi = hear(m, rc, src, r.node_id, d, txp, m.max_range_m(txp), n, bits, key, survive)
+        tap = self.tap
         if rssi is None:
+            if tap is not None:
+                tap.reception(
+                    now, src, r.node_id, None, lost(d > m.max_range_m(txp), rc.collisions > c0)
+                )
             return False
         if self.links is not None:
             _tally(self.links, src, r.node_id)
@@ -791,10 +816,16 @@ class ZenohMedium:
             # Bad MIC: dropped before the duplicate filter (it cannot poison it);
             # the hardware ACK goes out all the same (802.15.4 ACKs are not secured).
             g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+            if tap is not None:
+                tap.reception(now, src, r.node_id, rssi, "mic")
         elif linklayer.accept_unicast(r, src, seq):
             data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
+            if tap is not None:
+                tap.reception(now, src, r.node_id, rssi, refused(data, op))
             if data is not None:
                 r.sink.radio_receive(data, rssi, now)
+        elif tap is not None:
+            tap.reception(now, src, r.node_id, rssi, "duplicate")
         if not linklayer.send_ack(r):  # switched off by whoever handled the frame
             return False
         self._check_battery(r, now)
@@ -917,6 +948,8 @@ class ZenohMedium:
         c = r.counters
         c.frames_tx += 1
         c.bytes_tx += len(r.air)
+        if self.tap is not None:
+            self.tap.on_air(end, r.node_id, tx.dest, r.cur_seq, r.cur_attempt, r.air)
         if tx.dest == BROADCAST:
             r.busy = False
             r.cur = None

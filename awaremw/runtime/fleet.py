@@ -56,7 +56,7 @@ from awaremw.runtime.fleet_motes import (
     NodeFilter,
     hello_core,
 )
-from awaremw.runtime.fleet_settings import FleetSettings, LauncherSettings
+from awaremw.runtime.fleet_settings import FleetSettings, LauncherSettings, WorkerPlugin
 from awaremw.runtime.fleet_stats import FleetSnapshot, FleetStats, merge_snapshots
 from awaremw.runtime.partition import (
     IdModulo,
@@ -100,6 +100,7 @@ __all__ = [
     "NodeFilter",
     "WorkerFilter",
     "WorkerParams",
+    "WorkerPlugin",
     "WorkerResult",
     "XStripe",
     "hello_core",
@@ -369,6 +370,8 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
     progress: asyncio.Task[None] | None = None
     try:
         await fleet.setup()
+        if p.plugin is not None:
+            p.plugin.setup(fleet)
         conn.send(("ready", len(fleet.runners)))
         while True:
             kind, arg = await inbox.get()
@@ -378,6 +381,8 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
                     cpu0, wall0 = time.process_time(), time.perf_counter()
                     if fleet.lag is not None:
                         fleet.lag.clear()
+                    if p.plugin is not None:
+                        p.plugin.started(fleet)
                     if p.progress_s:
                         progress = asyncio.create_task(_report(fleet, conn, p.progress_s))
                 case "lagreset":
@@ -401,6 +406,12 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
         extra: dict[str, Any] = {}
         if medium is not None and medium.links is not None:
             extra["links"] = [(a, b, n) for (a, b), n in sorted(medium.links.items())]
+        if p.plugin is not None:
+            try:
+                extra["plugin"] = p.plugin.result()
+            except Exception as e:
+                log.exception("worker %s: plugin result failed", p.name)
+                error = error or f"plugin result: {type(e).__name__}: {e}"
         result = WorkerResult(
             name=p.name,
             motes=len(fleet.runners),
@@ -436,7 +447,9 @@ class FleetLauncher:
     ``settings.listen`` (default: a free loopback port), available as
     :attr:`endpoint` for gateways and ``awaremw fleet-ctl``.
     ``on_progress`` gets the merged snapshot of all workers every
-    ``settings.progress_s``.
+    ``settings.progress_s``. ``settings.plugin`` (a :class:`WorkerPlugin`,
+    picklable) runs in every worker beside its fleet; each worker's
+    ``plugin.result()`` is in :meth:`plugin_results` after the launcher exited.
     """
 
     def __init__(
@@ -505,6 +518,7 @@ class FleetLauncher:
                     stripe=stripe,
                     exclude_kinds=s.exclude_kinds,
                     progress_s=s.progress_s,
+                    plugin=s.plugin,
                 )
             )
         loop = asyncio.get_running_loop()
@@ -588,6 +602,11 @@ class FleetLauncher:
             for a, b, n in r.extra.get("links", ()):
                 out[(a, b)] = out.get((a, b), 0) + n
         return out
+
+    def plugin_results(self) -> list[Any]:
+        """Each worker's ``plugin.result()``, in worker order (after the launcher
+        exited; a worker that returned none is left out)."""
+        return [r.extra["plugin"] for r in self.results if "plugin" in r.extra]
 
     def counters(self) -> dict[int, MoteCounters]:
         """Per-mote counters merged from every worker (after the launcher exited)."""

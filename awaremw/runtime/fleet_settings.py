@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 from awaremw.radio.security import RadioSecurity
 from awaremw.radio.zenoh_medium import DEFAULT_HANDLER, DEFAULT_PREFIX, Handler
@@ -18,6 +19,26 @@ def _endpoints(v: Iterable[str]) -> tuple[str, ...]:
     if isinstance(v, str):
         raise TypeError(f"endpoints must be a sequence of strings, not the string {v!r}")
     return tuple(v)
+
+
+class WorkerPlugin(Protocol):
+    """Code a launcher runs inside every worker beside its fleet (picklable: each
+    worker gets its own copy), e.g. a benchmark's event tally.
+
+    ``fleet`` is the worker's :class:`~awaremw.runtime.fleet.Fleet` (typed
+    ``Any`` here: this module is below ``fleet``). ``setup(fleet)`` once the
+    fleet is set up (motes built, before the start): register event hooks
+    here. ``started(fleet)`` right after the shared start
+    (schedule work on the loop here). ``result()`` when the worker stops: a
+    picklable summary, returned in ``WorkerResult.extra["plugin"]``. An
+    exception in any of them fails the worker (it is our bug, or the plugin's).
+    """
+
+    def setup(self, fleet: Any) -> None: ...
+
+    def started(self, fleet: Any) -> None: ...
+
+    def result(self) -> Any: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,7 +92,9 @@ class LauncherSettings:
     (``awaremw keys init``'s router.json5: authentication, access control);
     ``worker_config_file``: a role's client config; the workers then join the
     router in client mode with it. ``security``: every worker's radio is
-    secured with it (as :attr:`FleetSettings.security`).
+    secured with it (as :attr:`FleetSettings.security`). ``plugin``: a
+    :class:`WorkerPlugin` each worker runs a copy of
+    (pickled to it) beside its fleet (benchmarks: tallies, injections).
     """
 
     processes: int = 1
@@ -90,6 +113,7 @@ class LauncherSettings:
     router_config_file: str | None = None
     worker_config_file: str | None = None
     security: RadioSecurity | None = None
+    plugin: WorkerPlugin | None = None
 
     def __post_init__(self) -> None:
         if self.processes < 1:

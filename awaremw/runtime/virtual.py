@@ -38,6 +38,7 @@ from typing import TypeVar
 from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
+from awaremw.radio.capture import RadioTap, lost, refused
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
@@ -123,6 +124,7 @@ class VirtualNetwork:
         self.cell_size = model.cell_size_m
         self.on_event: EventHook | None = None
         self.on_transmit: TransmitHook | None = None
+        self.tap: RadioTap | None = None  # a capture (awaremw.radio.capture)
         # Last guard around every core call: an exception out of a core is our
         # bug; it is counted here (and logged, rate-limited) instead of stopping
         # the whole run. ``strict`` re-raises it (tests that hunt bugs).
@@ -437,6 +439,8 @@ class VirtualNetwork:
         c.bytes_tx += n
         if self.on_transmit is not None:
             self.on_transmit(s.node_id, tx, self._now)
+        if self.tap is not None:
+            self.tap.on_air(self._now, s.node_id, tx.dest, seq, s.cur_attempt, frame)
         if tx.dest == BROADCAST:
             s.busy = False
             s.cur = None
@@ -468,6 +472,7 @@ class VirtualNetwork:
         kg = (key * _GOLDEN) & _M64
         now = self._now
         nb = self._nb
+        tap = self.tap
         if s.static:
             c = nb.sender(s.node_id, s.x, s.y, s.tx_power)
             c.pending += 1  # one more broadcast for the far_* receivers (counted in bulk)
@@ -490,22 +495,30 @@ class VirtualNetwork:
                 if rssi < sens:
                     if r.alive:
                         rc.dropped_loss += 1
+                        if tap is not None:
+                            tap.reception(now, sid, r.node_id, rssi, "path_loss")
                     continue
                 if rssi - noise < one:
                     z ^= z >> 31
                     if (z & 0xFFFFFFFF) * _U32 >= prr_bits(rssi, bits):
                         if r.alive:
                             rc.dropped_loss += 1
+                            if tap is not None:
+                                tap.reception(now, sid, r.node_id, rssi, "path_loss")
                         continue
                 if not r.alive:
                     continue
                 if others is not None and not air.survives(f, rssi, r.node_id, r.x, r.y, others):  # type: ignore[arg-type]
                     rc.collisions += 1
+                    if tap is not None:
+                        tap.reception(now, sid, r.node_id, rssi, "collision")
                     continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 core = r.core
                 data = frame if g is None else g.accept(r.node_id, rc, sid, op)  # type: ignore[arg-type]
+                if tap is not None:
+                    tap.reception(now, sid, r.node_id, rssi, refused(data, op))
                 if data is not None:
                     try:
                         core.receive(data, rssi, now)
@@ -549,6 +562,7 @@ class VirtualNetwork:
         if not adjacent(r.cell, s.cell):
             return  # not subscribed to the sender's cell: hears nothing, counts nothing
         d = math.hypot(r.x - s.x, r.y - s.y)
+        c0 = r.counters.collisions
         rssi = hear(
             self.model,
             r.counters,
@@ -562,10 +576,16 @@ class VirtualNetwork:
             key,
             self._survivor(f, others, r),
         )
+        tap = self.tap
         if rssi is None:
+            if tap is not None:
+                cause = lost(d > s.range_m, r.counters.collisions > c0)
+                tap.reception(now, s.node_id, r.node_id, None, cause)
             return
         g = self.guard
         data = frame if g is None or op is None else g.accept(r.node_id, r.counters, s.node_id, op)
+        if tap is not None:
+            tap.reception(now, s.node_id, r.node_id, rssi, refused(data, op))
         if data is not None:
             try:
                 r.core.receive(data, rssi, now)
@@ -595,26 +615,35 @@ class VirtualNetwork:
             if link is not None:
                 bits = 8 * (n + self._overhead)
                 survive = self._survivor(f, others, r)
+                c0 = r.counters.collisions
                 rssi = hear_link(m, link, s.range_m, n, bits, packet_key(seq, a), survive)
+                if rssi is None and self.tap is not None:
+                    why = lost(link[1] > s.range_m, r.counters.collisions > c0)
+                    self.tap.reception(now, s.node_id, r.node_id, None, why)
                 if rssi is not None:
+                    cause: str | None = "duplicate"  # for a tap
                     g = self.guard
                     op = None if g is None else g.open(s.node_id, tx.dest, seq, frame)
                     if op is not None and op.payload is None:
                         # Bad MIC: dropped before the duplicate filter (it cannot
                         # poison it); the hardware ACK goes out all the same.
                         g.accept(r.node_id, r.counters, s.node_id, op)  # type: ignore[union-attr]
+                        cause = "mic"
                     elif linklayer.accept_unicast(r, s.node_id, seq):
                         data = (
                             frame
                             if g is None or op is None
                             else g.accept(r.node_id, r.counters, s.node_id, op)
                         )
+                        cause = None if data is not None else "replay"
                         if data is not None:
                             try:
                                 r.core.receive(data, rssi, now)
                             except Exception as e:
                                 self._contain(r, "receive", e)
                             self._after(r)
+                    if self.tap is not None:
+                        self.tap.reception(now, s.node_id, r.node_id, rssi, cause)
                     if linklayer.send_ack(r):
                         # The hardware ACK, on the reverse link at the receiver's power.
                         d = link[1]

@@ -18,7 +18,7 @@ from typing import Any
 
 from awaremw.protocol.core import MoteCore
 from awaremw.runtime.deployment import Deployment, NodeSpec
-from awaremw.runtime.fleet_settings import FleetSettings
+from awaremw.runtime.fleet_settings import FleetSettings, WorkerPlugin
 from awaremw.runtime.partition import IdModulo, XStripe
 
 log = logging.getLogger(__name__)
@@ -42,6 +42,7 @@ class WorkerParams:
     stripe: XStripe | IdModulo
     exclude_kinds: frozenset[str] = frozenset()
     progress_s: float | None = None
+    plugin: WorkerPlugin | None = None
 
     @property
     def name(self) -> str:

@@ -29,7 +29,7 @@ import math
 import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 FIELDS = ("temperature", "humidity", "light", "gas")
 
@@ -65,13 +65,19 @@ def hash_u64(*parts: int | float | str) -> int:
     """
     h = 0x243F6A8885A308D3
     for p in parts:
-        if isinstance(p, str):
+        if type(p) is int:  # the common case first (same value as the else branch)
+            v = p & _M64
+        elif isinstance(p, str):
             v = _str_u64(p)
         elif isinstance(p, float):
             v = struct.unpack("<Q", struct.pack("<d", p))[0] ^ 0x5851F42D4C957F2D
         else:
             v = p & _M64
-        h = _mix(h ^ v)
+        # _mix(h ^ v), inlined (hot: every sensor read hashes its noise)
+        x = ((h ^ v) + 0x9E3779B97F4A7C15) & _M64
+        x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+        x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _M64
+        h = x ^ (x >> 31)
     return h
 
 
@@ -102,8 +108,9 @@ class Keyframe:
     peak: float  # value at the core (deg C above ambient, ppm, lx)
 
 
-@dataclass(frozen=True, slots=True)
-class SourceState:
+class SourceState(NamedTuple):
+    """A source at one instant (a tuple: one is built per sensor read)."""
+
     x: float
     y: float
     radius: float
@@ -226,8 +233,14 @@ class World:
 
     def temperature(self, x: float, y: float, t: float) -> float:
         """Air temperature (deg C) at (x, y) at time t, without sensor noise."""
-        base = self.ambient_temperature + self._texture(x, y)
-        hottest = max((f.value(x, y, t) for f in self.fires), default=0.0)
+        base = self.ambient_temperature + (self._texture(x, y) if self.variation else 0.0)
+        fires = self.fires
+        if not fires:
+            hottest = 0.0
+        elif len(fires) == 1:
+            hottest = fires[0].value(x, y, t)
+        else:
+            hottest = max(f.value(x, y, t) for f in fires)
         return base + max(0.0, hottest)
 
     def humidity(self, x: float, y: float, t: float) -> float:
