@@ -329,6 +329,9 @@ async def test_a_late_envelope_is_counted_and_decided_at_once_an_early_one_refus
         assert medium.stats.late == 1 and medium.stats.early == 1
         assert medium.rejected.get("early") == 1
         assert len(medium._air.frames) <= 1  # the early frame was never put on the air
+        with pytest.raises(ValueError, match="guard_s"):  # a remote ACK must beat the wait
+            ZenohMedium(s1, medium.model, clock, prefix="t3b", ack_wait_floor_s=0.01,
+                        access=MacSettings(guard_s=0.02))  # fmt: skip
     finally:
         medium.close()
         close_quietly(s2)
