@@ -167,7 +167,7 @@ class MediumStats:
 class _OnAirFrame:
     """A frame (its envelope) whose local receptions are decided at ``end`` + guard."""
 
-    __slots__ = ("cancelled", "end", "env", "f", "sender")
+    __slots__ = ("cancelled", "end", "env", "f", "remote", "sender")
 
     def __init__(self, env: Envelope, end: float, f: OnAir | None, sender: Radio | None) -> None:
         self.env = env
@@ -175,6 +175,7 @@ class _OnAirFrame:
         self.f = f  # on the Air (None: carrier sense and collisions off)
         self.sender = sender  # the local sender of a unicast to a local mote, else None
         self.cancelled = False  # its local sender was switched off before its end
+        self.remote = False  # from an envelope (another process's sender)
 
 
 @dataclass(frozen=True, slots=True)
@@ -572,8 +573,6 @@ class ZenohMedium:
             self.rejected.count("early", f"frame of {env.src} starts at {start:.3f}, now {now:.3f}")
             return
         end = linklayer.airtime_end(self.preset, start, len(env.frame))
-        if self.tap is not None:  # stamped at its end, as a local frame is
-            self.tap.on_air(end, env.src, env.dest, env.seq, env.attempt, env.frame)
         f = None
         if self._track:
             f = self._air_add(env.src, env.x, env.y, env.tx_power, start, end, env.seq, env.attempt)
@@ -581,8 +580,11 @@ class ZenohMedium:
                 return
         if env.dest != BROADCAST and env.dest not in self.radios:
             self.stats.ignored += 1  # a unicast to a mote elsewhere: only its airtime counts
+            if self.tap is not None:
+                self.tap.on_air(end, env.src, env.dest, env.seq, env.attempt, env.frame)
             return
         fr = _OnAirFrame(env, end, f, None)
+        fr.remote = True  # captured (tap) when decided, as a local frame is at its end
         self._schedule_decision(fr)
 
     def _air_add(
@@ -641,6 +643,8 @@ class ZenohMedium:
         now = self.clock.now()
         e = fr.env
         f = fr.f
+        if fr.remote and self.tap is not None:
+            self.tap.on_air(fr.end, e.src, e.dest, e.seq, e.attempt, e.frame)
         others = self._air.overlapping(f) if self._collide and f is not None else None
         if e.dest == BROADCAST:
             self._hear_broadcast(
