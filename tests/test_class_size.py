@@ -28,6 +28,7 @@ HOLD_DATA = {
     "radio.counters.MoteCounters",
     "radio.mac.MacParams",
     "radio.envelope.Envelope",
+    "radio.zenoh_medium.MediumStats",
     "runtime.deployment.NodeSpec",
     "runtime.deployment.Deployment",
     "runtime.fleet_settings.FleetSettings",

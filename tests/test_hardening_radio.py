@@ -384,9 +384,11 @@ async def test_drip_item_at_max_version_heard_by_the_gateway_cannot_lock_a_defin
         client = open_session(SessionSettings("client", (ep,)))
         try:
             for seq in range(3):
+                # One after another (10 ms apart), as one radio would send them: frames
+                # on the air at once collide (docs/radio.md, "Medium access and collisions").
                 env = encode_envelope(
-                    Kind.FRAME, 900, gx + 0.5, gy, 0.0, seq, 0, sensors.now(), BROADCAST,
-                    encode(forged),
+                    Kind.FRAME, 900, gx + 0.5, gy, 0.0, seq, 0, sensors.now() + 0.01 * seq,
+                    BROADCAST, encode(forged),
                 )  # fmt: skip
                 client.put(radio_key(sensors.medium.model, gx + 0.5, gy, 900), env)
         finally:

@@ -229,8 +229,10 @@ async def test_rssi_follows_the_model_and_the_formula(router: str) -> None:
     sd = math.sqrt(sum((g - mean) ** 2 for g in got) / (n - 1))
     assert abs(mean - mean_formula) < 4 * p.fading_sigma_db / math.sqrt(n)
     assert 0.6 * p.fading_sigma_db < sd < 1.4 * p.fading_sigma_db
-    # The sender's own counters: every beacon went on the air once.
-    assert a.counters[1].frames_tx >= n
+    # The sender's own counters: every beacon went on the air once. A frame is
+    # published when it starts and counted by its sender when it ends: the one on
+    # the air when fleet a closed may have been heard by b and never counted by a.
+    assert a.counters[1].frames_tx >= n - 1
 
 
 # --------------------------------------------------------------------------- loss
@@ -481,7 +483,9 @@ async def test_tap_reports_every_attempt_and_reception_across_processes(router: 
     c1 = a.counters[1]
     assert [x for x in ta.air if x[0] == 1] == ta.air and len(ta.air) == c1.frames_tx
     assert any(att > 0 for *_, att in ta.air)  # retries are attempts on the air
-    assert set(tb.air) <= set(ta.air) and tb.air  # b saw 1's frames (as it heard them)
+    # b saw 1's frames (as it decided them); a frame is published at its start and
+    # tapped by its sender at its end: the one on the air when a closed may be b's only.
+    assert len(set(tb.air) - set(ta.air)) <= 1 and tb.air
     lost_total = 0
     for mote in (2, 3):
         c = b.counters[mote]

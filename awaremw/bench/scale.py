@@ -38,9 +38,13 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   emulated seconds;
 * ``frames_tx``, ``frames_rx``; ``frames_expected``: receptions the loss model
   keeps among in-range receivers for the frames actually sent (recomputed
-  from the seeded model, packet by packet); ``delivery_ratio`` =
-  ``frames_rx / frames_expected`` (below 1: frames lost by the emulation
-  itself -- late subscriptions, dropped Zenoh samples);
+  from the seeded model, packet by packet); ``collisions`` (receptions the
+  loss model kept that overlapping frames destroyed: the deployment's
+  ``collisions = "sinr"``, docs/radio.md); ``delivery_ratio`` =
+  ``(frames_rx + collisions) / frames_expected`` (below 1: frames lost by
+  the emulation itself -- late subscriptions, dropped Zenoh samples);
+  ``late`` (frames whose envelope came after their end + the guard, all
+  processes: decided without waiting, maybe without an interferer);
   ``rx_per_tx`` (mean receivers per beacon);
 * ``envelopes_rx`` (frames that crossed processes through Zenoh),
   ``malformed``; ``cpu_s`` (all processes), ``cpu_per_process``,
@@ -190,6 +194,7 @@ async def run_once(
     cpu: list[float] = []
     lag: list[float] = []
     envelopes = 0
+    late = 0
     t0 = time.perf_counter()
     if processes <= 1:
         settings = FleetSettings(speed=speed, handler=h, control=False, freeze_gc=True)
@@ -210,6 +215,7 @@ async def run_once(
                 counters = dict(fleet.counters)
                 lag = list(fleet.lag.samples)
                 envelopes = fleet.medium.stats.envelopes_rx
+                late = fleet.medium.stats.late
             cpu.append(time.process_time() - cpu0)
         gc.unfreeze()
     else:
@@ -240,6 +246,7 @@ async def run_once(
             cpu.append(r.cpu_s)
             lag.extend(r.lag_ms)
             envelopes += r.stats.get("envelopes_rx", 0)
+            late += r.stats.get("late", 0)
     wall = time.perf_counter() - t0
     tot = MoteCounters()
     for c in counters.values():
@@ -251,7 +258,7 @@ async def run_once(
         ok_delivery = records["record_delivery"] >= min_delivery
     else:
         expected = expected_receptions(dep, {i: c.frames_tx for i, c in counters.items()})
-        delivery = tot.frames_rx / expected if expected else math.nan
+        delivery = (tot.frames_rx + tot.collisions) / expected if expected else math.nan
         ok_delivery = delivery >= min_delivery
     p50, p99 = percentile(lag, 50), percentile(lag, 99)
     out: dict[str, Any] = {
@@ -273,6 +280,8 @@ async def run_once(
         "frames_tx": tot.frames_tx,
         "frames_rx": tot.frames_rx,
         "frames_expected": expected,
+        "collisions": tot.collisions,
+        "late": late,
         "delivery_ratio": None if delivery is None else round(delivery, 5),
         "rx_per_tx": round(tot.frames_rx / tot.frames_tx, 2) if tot.frames_tx else 0.0,
         "envelopes_rx": envelopes,

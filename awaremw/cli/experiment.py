@@ -49,8 +49,8 @@ def register(sub: Any) -> None:
         "--secrets",
         default=None,
         metavar="DIR",
-        help="real time: Zenoh with authentication and access control by role, authenticated "
-        "radio frames, signed items (DIR from `awaremw keys init`)",
+        help="authenticated radio frames and signed items (DIR from `awaremw keys init`); in "
+        "real time also Zenoh with authentication and access control by role",
     )
     p.add_argument("--plain", action="store_true", help="log lines instead of a live view")
     p.add_argument(
@@ -108,16 +108,25 @@ def main(args: argparse.Namespace) -> int:
         print("awaremw experiment: --speed must be > 0", file=sys.stderr)
         return 2
     if args.seeds is not None:
-        if args.pcap is not None:
-            print("awaremw experiment: --pcap records one run, not --seeds", file=sys.stderr)
+        if args.pcap is not None or args.secrets is not None:
+            flag = "--pcap" if args.pcap is not None else "--secrets"
+            print(f"awaremw experiment: {flag} applies to one run, not --seeds", file=sys.stderr)
             return 2
         return _main_seeds(args, name, out)
-    if args.secrets is not None and not args.virtual:
-        from awaremw.security.material import check_secrets
+    if args.secrets is not None:
+        from awaremw.security.material import (
+            check_secrets,
+            load_radio_security,
+            load_signing_key,
+        )
         from awaremw.security.zenoh_acl import SecretsError
 
         try:
-            check_secrets(args.secrets)
+            if args.virtual:  # the radio key and the signing pair; no Zenoh configs
+                key = load_radio_security(args.secrets).gateway_public_key
+                load_signing_key(args.secrets, key)
+            else:
+                check_secrets(args.secrets)
         except SecretsError as e:
             print(f"awaremw experiment: {e}", file=sys.stderr)
             return 2
@@ -126,7 +135,7 @@ def main(args: argparse.Namespace) -> int:
 
         from awaremw.experiments.virtual import VirtualRun
 
-        run = VirtualRun(sc)
+        run = VirtualRun(sc, secrets=args.secrets)
         prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
         if prepare is not None:
             prepare(run)

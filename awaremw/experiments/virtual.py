@@ -12,14 +12,16 @@ plotted motes believe the robot's RSSI is.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 from awaremw.experiments.metrics import Recorder, RunResult
 from awaremw.experiments.scenario import Scenario
-from awaremw.nodes import app_of, build_core
+from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.attributes import rssi_attribute
 from awaremw.protocol.core import MoteCore, Transmission
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.security.material import load_radio_security, load_signing_key
 
 
 class ScriptedCore:
@@ -74,16 +76,26 @@ class VirtualRun:
         recorder: Recorder | None = None,
         sample_dt: float = 0.5,
         rssi_motes: list[int] | None = None,
+        secrets: str | Path | None = None,
     ) -> None:
         self.scenario = scenario
         self.recorder = recorder or Recorder()
         d = scenario.deployment
-        self.net = VirtualNetwork(d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions)
+        # With secrets (`awaremw keys init`): frames authenticated with the network
+        # key, definitions signed with the gateway's key, as in a secured fleet.
+        security, key = None, None
+        if secrets is not None:
+            security = load_radio_security(secrets)
+            key = load_signing_key(secrets, security.gateway_public_key)
+        factory = KindsFactory(scenario.world, security=security, signing_key=key)
+        self.net = VirtualNetwork(
+            d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions, security=security
+        )
         self.net.on_event = self.recorder.on_event
         self.cores: dict[int, MoteCore] = {}
         gw_id = scenario.gateway
         for spec in d.nodes:
-            core = build_core(spec, d, scenario.world)
+            core = factory(spec, d)
             self.cores[spec.id] = core
             if spec.id == gw_id:
                 wrapped = ScriptedCore(core)

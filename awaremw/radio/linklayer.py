@@ -4,8 +4,13 @@ The Zenoh medium (:mod:`awaremw.radio.zenoh_medium`) and the virtual-clock
 driver (:mod:`awaremw.runtime.virtual`) schedule differently (asyncio timers
 vs. an event heap) but keep the same per-mote state, :class:`LinkStation`,
 and change it through these functions only: taking the next frame and its
-link sequence number, the receiver's duplicate filter and ACK decision, the
-sender's retry-or-settle decision after an attempt, and switching off.
+link sequence number, the attempt's channel access (:func:`attempt`,
+:func:`assess`, :func:`put_on_air`, :func:`give_up`: the
+:class:`~awaremw.radio.mac.MacSender` and :class:`~awaremw.radio.mac.Air` of
+:mod:`awaremw.radio.mac`), the receiver's duplicate filter and ACK decision,
+when a unicast attempt's outcome is known (:func:`outcome_time`), the
+sender's retry-or-settle decision after an attempt, and switching off. A
+medium only turns the times these return into its own timers.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from collections import deque
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
 from awaremw.radio.counters import Battery, MoteCounters
+from awaremw.radio.mac import Air, MacParams, MacSender, OnAir
 from awaremw.radio.model import RadioModel, RadioPreset, packet_key
 from awaremw.radio.neighbourhood import Station
 from awaremw.radio.security import FrameGuard
@@ -25,7 +31,8 @@ class LinkStation(Station):
     """A mote's radio: where it is (:class:`Station`) and its link-layer state."""
 
     __slots__ = (
-        "air", "battery", "busy", "cur", "cur_attempt", "cur_seq", "last_useq", "queue", "seq",
+        "air", "battery", "busy", "cur", "cur_attempt", "cur_seq", "last_useq", "mac", "onair",
+        "queue", "seq",
     )  # fmt: skip
 
     def __init__(
@@ -51,6 +58,8 @@ class LinkStation(Station):
         self.air = b""
         self.seq = 0  # 16-bit link sequence number of the next frame
         self.last_useq: dict[int, int] = {}  # src -> seq of the last unicast delivered
+        self.mac: MacSender | None = None  # channel access (set by the medium on attach/add)
+        self.onair: OnAir | None = None  # the attempt on the Air now (None: none, or untracked)
 
 
 def check_node_id(nid: object) -> int:
@@ -90,6 +99,53 @@ def begin_next(st: LinkStation, guard: FrameGuard | None = None) -> Transmission
     st.cur_attempt = 0
     st.air = tx.frame if guard is None else guard.seal(st.node_id, tx.dest, seq, tx.frame)
     return tx
+
+
+def attempt(st: LinkStation, now: float) -> float:
+    """The current attempt ``(cur_seq, cur_attempt)`` is ready at ``now``: when its
+    first clear channel assessment ends (CSMA) or when it goes on the air (ALOHA)."""
+    mac = st.mac
+    if mac is None:
+        raise RuntimeError(f"node {st.node_id}: no MacSender (the medium did not set one)")
+    return mac.begin(st.cur_seq, st.cur_attempt, now)
+
+
+def assess(st: LinkStation, air: Air, p: MacParams, now: float) -> tuple[int, float]:
+    """The clear channel assessment of ``st`` ending at ``now`` (``st`` located):
+    busy if the frames ``air`` knows of reach ``st`` over ``[now - cca_s, now]``
+    (``cca_busy += 1``). Returns :meth:`MacSender.cca`'s ``(action, t)``:
+    ``TRANSMIT`` (call :func:`put_on_air` with ``t``), ``SENSE`` (assess again,
+    ending at ``t``) or ``GIVE_UP`` (call :func:`give_up`)."""
+    busy = air.busy(st.node_id, st.x, st.y, now - p.cca_s, now, p.cca_threshold_dbm,
+                    p.carrier_sense)  # fmt: skip
+    if busy:
+        st.counters.cca_busy += 1
+    return st.mac.cca(busy, now)  # type: ignore[union-attr]
+
+
+def airtime_end(preset: RadioPreset, start: float, n: int) -> float:
+    """When an attempt of ``n`` bytes started at ``start`` leaves the air (both
+    media use this one expression, so that they compute the same float)."""
+    return start + (n + preset.phy_overhead_bytes) * (8.0 / preset.bitrate_bps)
+
+
+def put_on_air(st: LinkStation, air: Air | None, preset: RadioPreset, start: float) -> float:
+    """The current attempt goes on the air at ``start`` (``st`` located): with an
+    ``air`` (carrier sense or collisions on) it is added to it as ``st.onair``.
+    Returns its end."""
+    end = airtime_end(preset, start, len(st.air))
+    if air is not None:
+        key = packet_key(st.cur_seq, st.cur_attempt)
+        st.onair = air.add(st.node_id, st.x, st.y, st.tx_power, start, end, key)
+    return end
+
+
+def outcome_time(preset: RadioPreset, end: float, acked: bool) -> float:
+    """Rule 7: when the sender of a unicast attempt that ended at ``end`` knows its
+    outcome (the ACK heard, or the ACK wait expired)."""
+    if acked:
+        return end + preset.ack_turnaround_s + preset.ack_airtime_s
+    return end + preset.ack_timeout_s
 
 
 def accept_unicast(st: LinkStation, src: int, seq: int) -> bool:
@@ -152,6 +208,7 @@ def give_up(st: LinkStation) -> Transmission | None:
     st.busy = False
     st.cur = None
     st.air = b""
+    st.onair = None
     return tx
 
 
@@ -169,3 +226,4 @@ def silence(st: LinkStation) -> None:
     st.busy = False
     st.cur = None
     st.air = b""
+    st.onair = None

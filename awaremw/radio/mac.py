@@ -231,6 +231,8 @@ def _mw(dbm: float) -> float:
 # Bound of Air's list: one frame per sender on the air plus those kept for late
 # decisions; a medium with more concurrent frames than this has a bug.
 MAX_ON_AIR: Final = 1 << 16
+# Bound of Air's cache of mean powers per (sender, receiver) pair; cleared when full.
+MAX_PAIRS: Final = 1 << 18
 
 
 class Air:
@@ -242,7 +244,9 @@ class Air:
     (at least the longest airtime plus, for the Zenoh medium, the guard).
     """
 
-    __slots__ = ("_noise_mw", "_sens", "capture_mw", "cell_size", "frames", "horizon_s", "model")
+    __slots__ = (
+        "_noise_mw", "_pairs", "_sens", "capture_mw", "cell_size", "frames", "horizon_s", "model",
+    )  # fmt: skip
 
     def __init__(self, model: RadioModel, capture_db: float | None, horizon_s: float) -> None:
         self.model = model
@@ -252,6 +256,9 @@ class Air:
         self._noise_mw = _mw(model.preset.noise_floor_dbm)
         self._sens = model.preset.sensitivity_dbm
         self.frames: list[OnAir] = []
+        # (src << 16 | receiver) -> (sender x, y, power, receiver x, y, mean mW): the
+        # same pair at the same places costs one lookup (static motes: every frame).
+        self._pairs: dict[int, tuple[float, float, float, float, float, float]] = {}
 
     def add(
         self, src: int, x: float, y: float, tx_power: float, start: float, end: float, key: int = 0
@@ -303,12 +310,27 @@ class Air:
         0 if ``rid`` does not listen to ``o``'s cell."""
         v = o.mw_cache.get(rid)
         if v is None:
-            c = cell_of(rx, ry, self.cell_size)
-            if abs(c[0] - o.cell[0]) > 1 or abs(c[1] - o.cell[1]) > 1:
-                v = 0.0
+            k = o.src << 16 | rid
+            hit = self._pairs.get(k)
+            if (
+                hit is not None
+                and hit[0] == o.x
+                and hit[1] == o.y
+                and hit[2] == o.tx_power
+                and hit[3] == rx
+                and hit[4] == ry
+            ):
+                v = hit[5]
             else:
-                d = math.hypot(rx - o.x, ry - o.y)
-                v = _mw(self.model.mean_rssi(o.src, rid, d, o.tx_power))
+                c = cell_of(rx, ry, self.cell_size)
+                if abs(c[0] - o.cell[0]) > 1 or abs(c[1] - o.cell[1]) > 1:
+                    v = 0.0
+                else:
+                    d = math.hypot(rx - o.x, ry - o.y)
+                    v = _mw(self.model.mean_rssi(o.src, rid, d, o.tx_power))
+                if len(self._pairs) >= MAX_PAIRS:
+                    self._pairs.clear()
+                self._pairs[k] = (o.x, o.y, o.tx_power, rx, ry, v)
             o.mw_cache[rid] = v
         return v
 

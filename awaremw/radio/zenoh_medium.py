@@ -45,12 +45,26 @@ reception on the reverse link. The sender waits ``preset.ack_timeout_s``
 (emulated) but never less than ``ack_wait_floor_s`` of wall time for remote
 destinations (Zenoh and the loops need that long to answer), then retries up
 to ``preset.max_retries`` times and reports the outcome to the core.
+
+Channel access and collisions (``mac``, ``collisions``; ``docs/radio.md``,
+"Across processes and hosts") are :mod:`awaremw.radio.mac`'s, driven through
+:mod:`awaremw.radio.linklayer` as the virtual medium drives them; this module
+only turns their answers into timers and envelopes. An attempt's envelope is
+published as soon as its start is decided, carrying that start time; every
+process puts the frame on its :class:`~awaremw.radio.mac.Air` (carrier sense
+and interference) and decides its own motes' receptions ``guard_s`` of wall
+time after the frame's end, when every overlapping frame's envelope has
+arrived -- so every process decides from the same frames. Timers carry the
+emulated time they stand for and the MAC runs on it, so loop lag does not
+move backoffs or starts. An envelope that comes after its end + guard is
+decided at once and counted (``MediumStats.late``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import heapq
 import logging
 import math
 from collections import deque
@@ -66,6 +80,7 @@ from awaremw.radio import linklayer
 from awaremw.radio.capture import RadioTap, lost, refused
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import (
+    Envelope,
     EnvelopeLimits,
     Kind,
     MalformedEnvelope,
@@ -74,8 +89,20 @@ from awaremw.radio.envelope import (
 )
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
+from awaremw.radio.mac import (
+    COLLISION_MODES,
+    GIVE_UP,
+    MAC_KINDS,
+    MAX_ON_AIR,
+    SENSE,
+    TRANSMIT,
+    Air,
+    MacSender,
+    OnAir,
+    mac_params,
+)
 from awaremw.radio.model import RadioModel, cell_of, packet_key
-from awaremw.radio.neighbourhood import Cell, Neighbourhood, adjacent, hear
+from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear
 from awaremw.radio.security import FrameGuard, RadioSecurity
 from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
@@ -90,6 +117,17 @@ DEFAULT_HANDLER: Handler = "channel"
 
 DEFAULT_PREFIX = "aware"
 DEFAULT_ACK_WAIT_FLOOR_S = 0.05  # wall seconds; see the module docstring
+# Wall seconds after a frame's end before its receptions are decided, so that the
+# envelopes of every frame that overlapped it have arrived (Zenoh latency, the
+# channel poll, loop lag): docs/radio.md, "Medium access and collisions".
+DEFAULT_GUARD_S = 0.01
+# Frames stay in the Air this long (wall) beyond the longest airtime plus the
+# guard: a decision that runs late by less than this still sees every interferer.
+AIR_SLACK_S = 0.02
+# An envelope whose frame starts more than this (wall) ahead of our clock is refused
+# (``early``): nothing legitimate starts that far ahead (ALOHA's backoff, turnaround
+# and clock skew are milliseconds), and it would pin the Air.
+EARLY_LIMIT_S = 1.0
 CHANNEL_POLL_MIN_S = 0.001  # wall seconds between polls in "channel" mode: after traffic,
 CHANNEL_POLL_MAX_S = 0.004  # backing off to this while nothing arrives
 CHANNEL_CAPACITY = 1 << 16
@@ -119,15 +157,53 @@ class MediumStats:
     acks_published: int = 0
     ignored: int = 0  # valid envelopes no local mote could hear (other cells / dest)
     subscriptions: int = 0
+    late: int = 0  # frames whose envelope came after end + guard: decided at once
+    early: int = 0  # envelopes refused: the frame starts too far ahead (EARLY_LIMIT_S)
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
 
 
+class _OnAirFrame:
+    """A frame (its envelope) whose local receptions are decided at ``end`` + guard."""
+
+    __slots__ = ("cancelled", "end", "env", "f", "remote", "sender")
+
+    def __init__(self, env: Envelope, end: float, f: OnAir | None, sender: Radio | None) -> None:
+        self.env = env
+        self.end = end
+        self.f = f  # on the Air (None: carrier sense and collisions off)
+        self.sender = sender  # the local sender of a unicast to a local mote, else None
+        self.cancelled = False  # its local sender was switched off before its end
+        self.remote = False  # from an envelope (another process's sender)
+
+
+@dataclass(frozen=True, slots=True)
+class MacSettings:
+    """Channel access and collisions of a Zenoh medium (``docs/radio.md``, "Medium
+    access and collisions"): ``mac`` ("csma" or "aloha"), ``collisions`` ("sinr"
+    or "none"), and ``guard_s``, the wall seconds after a frame's end before its
+    receptions are decided."""
+
+    mac: str = "csma"
+    collisions: str = "sinr"
+    guard_s: float = DEFAULT_GUARD_S
+
+    def __post_init__(self) -> None:
+        if self.mac not in MAC_KINDS:
+            raise ValueError(f"unknown mac {self.mac!r}; known: {', '.join(MAC_KINDS)}")
+        if self.collisions not in COLLISION_MODES:
+            raise ValueError(
+                f"unknown collisions {self.collisions!r}; known: {', '.join(COLLISION_MODES)}"
+            )
+        if not 0.0 <= self.guard_s < 1.0:
+            raise ValueError(f"guard_s {self.guard_s} outside [0, 1) s")
+
+
 class Radio(LinkStation):
     """The link layer of one local mote. Created by :meth:`ZenohMedium.attach`."""
 
-    __slots__ = ("handle", "medium", "pub", "pub_cell", "sink")
+    __slots__ = ("handle", "medium", "on_air", "pub", "pub_cell", "sink")
 
     def __init__(
         self,
@@ -143,12 +219,15 @@ class Radio(LinkStation):
         self.medium = medium
         self.sink = sink
         self.alive = True
-        self.handle: asyncio.TimerHandle | None = None  # tx end or ACK wait
+        self.handle: asyncio.TimerHandle | None = None  # CCA, tx end or ACK wait
+        self.on_air: _OnAirFrame | None = None  # the attempt on the air, until its end
         self.pub: zenoh.Publisher | None = None
         self.pub_cell: Cell | None = None
 
-    def send(self, txs: Iterable[Transmission]) -> None:
-        """Queue frames the core drained; they go on the air one after another."""
+    def send(self, txs: Iterable[Transmission], now: float | None = None) -> None:
+        """Queue frames the core drained; they go on the air one after another.
+        ``now``: the emulated time they were handed over (default the clock's now;
+        scripted tests pass exact times so that the MAC's times are exact too)."""
         if not self.alive:
             return
         m = self.medium
@@ -157,7 +236,7 @@ class Radio(LinkStation):
             linklayer.check_transmission(self, tx, mtu)
             self.queue.append(tx)
         if not self.busy and self.queue:
-            m._start_next(self)
+            m._start_next(self, m.clock.now() if now is None else now)
 
     def position(self) -> tuple[float, float]:
         """Where the mote is now (refreshes a moving mote's cell)."""
@@ -185,9 +264,17 @@ class ZenohMedium:
         handler: Handler = DEFAULT_HANDLER,
         ack_wait_floor_s: float = DEFAULT_ACK_WAIT_FLOOR_S,
         security: RadioSecurity | None = None,
+        access: MacSettings | None = None,
     ) -> None:
         if "*" in prefix or prefix.endswith("/") or not prefix:
             raise ValueError(f"bad key prefix {prefix!r}")
+        access = access or MacSettings()
+        mac, collisions, guard_s = access.mac, access.collisions, access.guard_s
+        if not guard_s < ack_wait_floor_s:
+            raise ValueError(
+                f"need guard_s ({guard_s}) < ack_wait_floor_s ({ack_wait_floor_s}): "
+                "a remote ACK comes after the guard"
+            )
         self.session = session
         self.model = model
         self.preset = model.preset
@@ -195,7 +282,28 @@ class ZenohMedium:
         self.prefix = prefix
         self.handler: Handler = handler
         self.ack_wait_floor_s = ack_wait_floor_s
+        self.guard_s = guard_s
         self.cell_size = model.cell_size_m
+        # Medium access and collisions (radio/mac.py, driven through
+        # radio/linklayer.py as the virtual medium drives them): each radio's
+        # MacSender, and the frames on the air -- local ones and those of the
+        # envelopes heard -- for carrier sense and the SINR decision, taken
+        # ``guard_s`` (wall) after each frame's end.
+        self.mac_params = mac_params(model.preset, mac)
+        self.collisions = collisions
+        self._sense = self.mac_params.kind == "csma"
+        self._collide = collisions == "sinr"
+        self._track = self._sense or self._collide
+        self._decide_after = guard_s if self._collide else 0.0  # wall
+        horizon = model.preset.airtime_s(model.preset.mtu) + clock.emulated_seconds(
+            guard_s + AIR_SLACK_S
+        )
+        self._air = Air(model, model.preset.capture_threshold_db, horizon)
+        # Frames awaiting their decision: (loop time due, order, frame); bound MAX_ON_AIR.
+        self._decisions: list[tuple[float, int, _OnAirFrame]] = []
+        self._decision_seq = 0
+        self._decision_timer: asyncio.TimerHandle | None = None
+        self._decision_at = 0.0
         self.stats = MediumStats()
         self.radios: dict[int, Radio] = {}
         self._counters: dict[int, MoteCounters] = {}
@@ -261,6 +369,10 @@ class ZenohMedium:
             self._poll.cancel()
         if self._mobility_handle is not None:
             self._mobility_handle.cancel()
+        if self._decision_timer is not None:
+            self._decision_timer.cancel()
+            self._decision_timer = None
+        self._decisions.clear()
         self._inbox.clear()
 
     def freeze(self) -> None:
@@ -285,6 +397,7 @@ class ZenohMedium:
         counters = self._counters.setdefault(nid, MoteCounters())
         battery = None if battery_mj is None else Battery(battery_mj)
         r = Radio(self, sink, mobility, txp, self.model.max_range_m(txp), battery, counters)
+        r.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self.radios[nid] = r
         self._nb.add(r, self.clock.now())
         if not r.static:
@@ -448,22 +561,116 @@ class ZenohMedium:
             self._malformed(key, str(e))
             return
         now = self.clock.now()
-        if self.tap is not None and env.kind is Kind.FRAME:
-            self.tap.on_air(now, env.src, env.dest, env.seq, env.attempt, env.frame)
         if env.kind is Kind.ACK:
             self._ack_in(env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.dest, now)
-        elif env.dest == BROADCAST:
-            self._hear_broadcast(env.src, env.x, env.y, env.tx_power, env.seq, env.frame, now)
-        else:
-            r = self.radios.get(env.dest)
-            if r is None:
-                self.stats.ignored += 1
+            return
+        # A frame, published when it went on the air: it occupies the air of every
+        # process that hears its cell (carrier sense, interference), and is decided
+        # by the local motes it concerns at its end + the guard.
+        start = env.t
+        if start > now + self.clock.emulated_seconds(EARLY_LIMIT_S):
+            self.stats.early += 1
+            self.rejected.count("early", f"frame of {env.src} starts at {start:.3f}, now {now:.3f}")
+            return
+        end = linklayer.airtime_end(self.preset, start, len(env.frame))
+        f = None
+        if self._track:
+            f = self._air_add(env.src, env.x, env.y, env.tx_power, start, end, env.seq, env.attempt)
+            if f is None:
                 return
-            if self._hear_unicast(
-                env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.frame, r, now
-            ):
-                # The destination got it: its auto-ACK goes back to the sender's process.
-                self._publish(r, Kind.ACK, env.seq, env.attempt, now, env.src, b"")
+        if env.dest != BROADCAST and env.dest not in self.radios:
+            self.stats.ignored += 1  # a unicast to a mote elsewhere: only its airtime counts
+            if self.tap is not None:
+                self.tap.on_air(end, env.src, env.dest, env.seq, env.attempt, env.frame)
+            return
+        fr = _OnAirFrame(env, end, f, None)
+        fr.remote = True  # captured (tap) when decided, as a local frame is at its end
+        self._schedule_decision(fr)
+
+    def _air_add(
+        self, src: int, x: float, y: float, txp: float, start: float, end: float, seq: int,
+        attempt: int,
+    ) -> OnAir | None:  # fmt: skip
+        """A remote frame on the Air; None (``rejected["air full"]``) if the Air is full."""
+        air = self._air
+        air.prune(self.clock.now())
+        if len(air.frames) >= MAX_ON_AIR:
+            self.rejected.count("air full", f"{MAX_ON_AIR} frames on the air")
+            return None
+        return air.add(src, x, y, txp, start, end, packet_key(seq, attempt))
+
+    def _schedule_decision(self, fr: _OnAirFrame) -> None:
+        """Decide ``fr``'s local receptions at its end + the guard (at once if that is
+        past). One heap of pending decisions and one loop timer for its head: far
+        cheaper than a loop timer per frame (asyncio compares its handles in Python)."""
+        due = self.clock.to_monotonic(fr.end) + self._decide_after
+        loop = self.loop
+        if due < loop.time() and self._collide:
+            self.stats.late += 1
+        q = self._decisions
+        if len(q) >= MAX_ON_AIR:  # bound: a frame per envelope accepted
+            self.rejected.count("decisions full", f"{MAX_ON_AIR} frames awaiting a decision")
+            return
+        self._decision_seq += 1
+        heapq.heappush(q, (due, self._decision_seq, fr))
+        h = self._decision_timer
+        if h is None or due < self._decision_at:
+            if h is not None:
+                h.cancel()
+            self._decision_at = due
+            self._decision_timer = loop.call_at(due, self._run_decisions)
+
+    def _run_decisions(self) -> None:
+        """Decide every frame whose time has come, in order; re-arm for the next."""
+        self._decision_timer = None
+        q = self._decisions
+        now = self.loop.time()
+        while q and q[0][0] <= now:
+            fr = heapq.heappop(q)[2]
+            try:
+                self._decide(fr)
+            except Exception as e:
+                self.faults.count(f"decide: {type(e).__name__}", f"frame of {fr.env.src}: {e}", e)
+        if q and not self._closed:
+            self._decision_at = q[0][0]
+            self._decision_timer = self.loop.call_at(self._decision_at, self._run_decisions)
+
+    def _decide(self, fr: _OnAirFrame) -> None:
+        """Rules 3 to 7 for the local motes ``fr`` concerns, now that every frame
+        that overlapped it is known (collisions: :meth:`Air.survives`)."""
+        if self._closed or fr.cancelled:
+            return
+        now = self.clock.now()
+        e = fr.env
+        f = fr.f
+        if fr.remote and self.tap is not None:
+            self.tap.on_air(fr.end, e.src, e.dest, e.seq, e.attempt, e.frame)
+        others = self._air.overlapping(f) if self._collide and f is not None else None
+        if e.dest == BROADCAST:
+            self._hear_broadcast(
+                e.src, e.x, e.y, e.tx_power, e.seq, e.frame, now, f, others or None
+            )
+            return
+        r = self.radios.get(e.dest)
+        got = r is not None and self._hear_unicast(
+            e.src, e.x, e.y, e.tx_power, e.seq, e.attempt, e.frame, r, now, f, others or None
+        )
+        s = fr.sender
+        if s is not None:  # a local sender: its outcome, as the virtual medium times it
+            acked = (
+                got
+                and r is not None
+                and self._ack_heard(r.node_id, r.x, r.y, r.tx_power, s, e.seq, e.attempt)
+            )
+            if s.alive and s.cur is not None and (s.cur_seq, s.cur_attempt) == (e.seq, e.attempt):
+                # The sender resumes when the virtual medium's sender would, unless
+                # the decision itself came later (the guard is longer than the ACK
+                # exchange): then now -- a radio does not act in the past.
+                t = max(linklayer.outcome_time(self.preset, fr.end, acked), now)
+                s.handle = self.loop.call_at(self.clock.to_monotonic(t), self._uc_done, s, acked, t)
+        elif got and r is not None:
+            # The destination got it: its auto-ACK goes back to the sender's process.
+            self._publish(r, Kind.ACK, e.seq, e.attempt, now, e.src, b"")
 
     def _malformed(self, key: str, reason: str) -> None:
         """Garbage on a radio key: counted per process and at the local motes that
@@ -484,7 +691,16 @@ class ZenohMedium:
             r.counters.malformed += 1
 
     def _hear_broadcast(
-        self, src: int, sx: float, sy: float, txp: float, seq: int, frame: bytes, now: float
+        self,
+        src: int,
+        sx: float,
+        sy: float,
+        txp: float,
+        seq: int,
+        frame: bytes,
+        now: float,
+        f: OnAir | None = None,
+        others: list[OnAir] | None = None,
     ) -> None:
         n = len(frame)
         bits = 8 * (n + self._overhead)
@@ -492,6 +708,7 @@ class ZenohMedium:
         g = self.guard
         op = None if g is None else g.open(src, BROADCAST, seq, frame)  # once per frame
         nb = self._nb
+        air = self._air
         c = nb.sender(src, sx, sy, txp)
         links = self.links
         tap = self.tap
@@ -508,6 +725,11 @@ class ZenohMedium:
                     rc.dropped_loss += 1
                     if tap is not None:
                         tap.reception(now, src, r.node_id, rssi, "path_loss")
+                    continue
+                if others is not None and not air.survives(f, rssi, r.node_id, r.x, r.y, others):  # type: ignore[arg-type]
+                    rc.collisions += 1
+                    if tap is not None:
+                        tap.reception(now, src, r.node_id, rssi, "collision")
                     continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
@@ -532,9 +754,13 @@ class ZenohMedium:
                     continue
                 heard = True
                 d = math.hypot(r.x - sx, r.y - sy)
-                got = hear(m, r.counters, src, r.node_id, d, txp, rng, n, bits, key)
+                c0 = r.counters.collisions
+                got = hear(m, r.counters, src, r.node_id, d, txp, rng, n, bits, key,
+                           self._survivor(f, others, r))  # fmt: skip
                 if tap is not None and got is None:
-                    tap.reception(now, src, r.node_id, None, lost(d > rng))
+                    tap.reception(
+                        now, src, r.node_id, None, lost(d > rng, r.counters.collisions > c0)
+                    )
                 if got is None:
                     continue
                 if links is not None:
@@ -559,6 +785,8 @@ class ZenohMedium:
         frame: bytes,
         r: Radio,
         now: float,
+        f: OnAir | None = None,
+        others: list[OnAir] | None = None,
     ) -> bool:
         """The destination ``r`` hears (or not) one attempt. Returns whether it
         got the frame (and so sent its auto-ACK)."""
@@ -574,11 +802,15 @@ class ZenohMedium:
         d = math.hypot(r.x - sx, r.y - sy)
         bits = 8 * (n + self._overhead)
         key = packet_key(seq, attempt)
-        rssi = hear(m, rc, src, r.node_id, d, txp, m.max_range_m(txp), n, bits, key)
+        survive = self._survivor(f, others, r)
+        c0 = rc.collisions
+        rssi = hear(m, rc, src, r.node_id, d, txp, m.max_range_m(txp), n, bits, key, survive)
         tap = self.tap
         if rssi is None:
             if tap is not None:
-                tap.reception(now, src, r.node_id, None, lost(d > m.max_range_m(txp)))
+                tap.reception(
+                    now, src, r.node_id, None, lost(d > m.max_range_m(txp), rc.collisions > c0)
+                )
             return False
         if self.links is not None:
             _tally(self.links, src, r.node_id)
@@ -603,6 +835,13 @@ class ZenohMedium:
         self._check_battery(r, now)
         return True
 
+    def _survivor(self, f: OnAir | None, others: list[OnAir] | None, r: Radio) -> Survive | None:
+        """The collision check of frame ``f`` at receiver ``r`` (None: nothing overlapped)."""
+        if f is None or not others:
+            return None
+        air = self._air
+        return lambda rssi: air.survives(f, rssi, r.node_id, r.x, r.y, others)
+
     def _ack_in(
         self,
         acker: int,
@@ -626,7 +865,7 @@ class ZenohMedium:
             if s.handle is not None:
                 s.handle.cancel()
                 s.handle = None
-            self._uc_done(s, True)
+            self._uc_done(s, True, now)
 
     def _ack_heard(
         self, acker: int, ax: float, ay: float, atxp: float, s: Radio, seq: int, attempt: int
@@ -636,79 +875,117 @@ class ZenohMedium:
 
     # ------------------------------------------------------------------ send side
 
-    def _start_next(self, r: Radio) -> None:
+    # Every timer of a radio carries the emulated time it stands for, and the MAC
+    # runs on that time, not on the (later) instant the loop runs it: so the MAC's
+    # times are a function of the seed and of when the frames were handed over,
+    # as in the virtual medium.
+
+    def _start_next(self, r: Radio, now: float) -> None:
         if not r.queue or self._frozen or self._closed:
             return
         linklayer.begin_next(r, self.guard)
-        self._schedule_attempt(r, len(r.air), r.cur_seq, 0)
+        self._schedule_attempt(r, now)
 
-    def _schedule_attempt(self, r: Radio, n: int, seq: int, attempt: int) -> None:
-        backoff = self.model.backoff_s(r.node_id, seq, attempt)
-        when = self.clock.to_monotonic(self.clock.now() + backoff + self.preset.airtime_s(n))
-        r.handle = self.loop.call_at(when, self._tx_end, r)
+    def _schedule_attempt(self, r: Radio, now: float) -> None:
+        """The MAC (radio/mac.py via linklayer.attempt) takes the attempt."""
+        t = linklayer.attempt(r, now)
+        if self._sense:
+            r.handle = self.loop.call_at(self.clock.to_monotonic(t), self._cca, r, t)
+        else:
+            self._go(r, t)
 
-    def _tx_end(self, r: Radio) -> None:
+    def _cca(self, r: Radio, t: float) -> None:
+        """The clear channel assessment of ``r`` ending at ``t``, against the frames
+        this process knows on the air: transmit, back off or give up."""
+        r.handle = None
+        if r.cur is None or not r.alive or self._closed:
+            return
+        self._nb.locate(r, t)
+        action, t2 = linklayer.assess(r, self._air, self.mac_params, t)
+        if action == TRANSMIT:
+            self._go(r, t2)
+        elif action == SENSE:
+            r.handle = self.loop.call_at(self.clock.to_monotonic(t2), self._cca, r, t2)
+        else:
+            assert action == GIVE_UP
+            tx = linklayer.give_up(r)
+            if tx is not None and tx.dest != BROADCAST:
+                r.sink.radio_link_result(tx, False, t)
+            if r.alive and not r.busy:
+                self._start_next(r, t)
+
+    def _go(self, r: Radio, start: float) -> None:
+        """The attempt goes on the air at ``start``: on the local Air, published
+        (with its start time) to the other processes, its end timed, and its local
+        receptions decided at the end + the guard."""
+        tx = r.cur
+        if tx is None or self._closed:
+            return
+        self._nb.locate(r, start)
+        air = None
+        if self._track:
+            air = self._air
+            air.prune(self.clock.now())
+        end = linklayer.put_on_air(r, air, self.preset, start)
+        seq, attempt = r.cur_seq, r.cur_attempt
+        frame = r.air  # sealed when the medium is secured
+        self._publish(r, Kind.FRAME, seq, attempt, start, tx.dest, frame)
+        local_dest = tx.dest == BROADCAST or tx.dest in self.radios
+        env = Envelope(Kind.FRAME, r.node_id, r.x, r.y, r.tx_power, seq, attempt, start, tx.dest,
+                       frame)  # fmt: skip
+        fr = _OnAirFrame(env, end, r.onair, r if local_dest and tx.dest != BROADCAST else None)
+        r.on_air = fr
+        r.handle = self.loop.call_at(self.clock.to_monotonic(end), self._tx_end, r, end)
+        if local_dest:
+            self._schedule_decision(fr)
+
+    def _tx_end(self, r: Radio, end: float) -> None:
+        """The attempt left the air at ``end``: counted; a broadcast frees the radio,
+        a unicast waits for its outcome (the local decision, or an ACK envelope)."""
         r.handle = None
         tx = r.cur
+        fr = r.on_air
+        r.on_air = None
+        r.onair = None
         if not r.alive or tx is None or self._closed:
             return
-        seq = r.cur_seq
-        attempt = r.cur_attempt
-        frame = r.air  # sealed when the medium is secured
-        n = len(frame)
         c = r.counters
         c.frames_tx += 1
-        c.bytes_tx += n
-        now = self.clock.now()
-        self._nb.locate(r, now)
+        c.bytes_tx += len(r.air)
         if self.tap is not None:
-            self.tap.on_air(now, r.node_id, tx.dest, seq, attempt, frame)
+            self.tap.on_air(end, r.node_id, tx.dest, r.cur_seq, r.cur_attempt, r.air)
         if tx.dest == BROADCAST:
-            self._publish(r, Kind.FRAME, seq, 0, now, BROADCAST, frame)
             r.busy = False
             r.cur = None
-            self._hear_broadcast(r.node_id, r.x, r.y, r.tx_power, seq, frame, now)
-            if self._check_battery(r, now) and r.alive and not r.busy:
-                self._start_next(r)
+            if self._check_battery(r, end) and r.alive and not r.busy:
+                self._start_next(r, end)
             return
-        # Unicast: a local destination is decided here and now; a remote one
-        # answers with an ACK envelope (or not) before the wait expires.
-        dest = self.radios.get(tx.dest)
+        if not self._check_battery(r, end):
+            return
+        if fr is not None and fr.sender is r:
+            return  # a local destination: the decision at end + guard gives the outcome
         p = self.preset
-        if dest is not None:
-            got = self._hear_unicast(
-                r.node_id, r.x, r.y, r.tx_power, seq, attempt, frame, dest, now
-            )
-            acked = got and self._ack_heard(
-                dest.node_id, dest.x, dest.y, dest.tx_power, r, seq, attempt
-            )
-            if not self._check_battery(r, now):
-                return
-            wait = p.ack_turnaround_s + p.ack_airtime_s if acked else p.ack_timeout_s
-            r.handle = self.loop.call_at(
-                self.clock.to_monotonic(now + wait), self._uc_done, r, acked
-            )
-            return
-        self._publish(r, Kind.FRAME, seq, attempt, now, tx.dest, frame)
-        if not self._check_battery(r, now):
-            return
         wall = max(self.clock.wall_seconds(p.ack_timeout_s), self.ack_wait_floor_s)
-        r.handle = self.loop.call_later(wall, self._uc_done, r, False)
+        t = self.clock.emulated_seconds(wall) + end
+        r.handle = self.loop.call_at(
+            self.clock.to_monotonic(end) + wall, self._uc_done, r, False, t
+        )
 
-    def _uc_done(self, r: Radio, acked: bool) -> None:
+    def _uc_done(self, r: Radio, acked: bool, now: float) -> None:
+        """The outcome of a unicast attempt, known at emulated ``now`` (the time
+        the timer stands for: the sender resumes from it)."""
         r.handle = None
         tx = r.cur
         if not r.alive or tx is None or self._closed:
             return
         if linklayer.settle(r, acked, 0 if self._frozen else self.preset.max_retries):
-            self._schedule_attempt(r, len(r.air), r.cur_seq, r.cur_attempt)
+            self._schedule_attempt(r, now)
             return
-        now = self.clock.now()
         r.sink.radio_link_result(tx, acked, now)
         if acked and not self._check_battery(r, now):
             return
         if r.alive and not r.busy:
-            self._start_next(r)
+            self._start_next(r, now)
 
     def _publish(
         self, r: Radio, kind: Kind, seq: int, attempt: int, now: float, dest: int, frame: bytes
@@ -751,6 +1028,14 @@ class ZenohMedium:
         return r.alive
 
     def _silence(self, r: Radio) -> None:
+        fr = r.on_air
+        if fr is not None:
+            # Switched off mid-frame: as in the virtual medium, nobody here receives
+            # it (other processes, told nothing, decide the whole frame).
+            fr.cancelled = True
+            r.on_air = None
+        if self._track:
+            self._air.cut(r.node_id, self.clock.now())
         linklayer.silence(r)
         if r.handle is not None:
             r.handle.cancel()

@@ -44,7 +44,7 @@ import zenoh
 from awaremw.protocol.core import MoteCore
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import RadioModel
-from awaremw.radio.zenoh_medium import ZenohMedium
+from awaremw.radio.zenoh_medium import MacSettings, ZenohMedium
 from awaremw.runtime.deployment import Deployment
 from awaremw.runtime.driver import EventHook, LagStats
 from awaremw.runtime.fleet_control import MAX_CONTROL_BYTES, ControlService
@@ -242,6 +242,7 @@ class Fleet:
             prefix=s.prefix,
             handler=s.handler,
             security=s.security,
+            access=MacSettings(self.deployment.mac, self.deployment.collisions),
         )
         self._medium = medium
         medium.open()

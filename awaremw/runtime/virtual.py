@@ -18,9 +18,10 @@ heap and the per-packet loop over a static sender's receivers (the hot path:
 which is what makes 1,000 motes run at least 10x faster than real time.
 Moving motes are evaluated afresh at every frame.
 
-Channel access and collisions are :mod:`awaremw.radio.mac`'s (the core the
-Zenoh medium is to share): each mote's :class:`~awaremw.radio.mac.MacSender`
-says when to assess the channel and when its attempt goes on the air; the
+Channel access and collisions are :mod:`awaremw.radio.mac`'s, driven through
+:mod:`awaremw.radio.linklayer` as the Zenoh medium drives them: each mote's
+:class:`~awaremw.radio.mac.MacSender` says when to assess the channel and
+when its attempt goes on the air; the
 network's :class:`~awaremw.radio.mac.Air` holds the frames on the air, answers
 the assessments, and at each frame's end says which receptions survived
 (``VirtualNetwork(..., mac="csma"|"aloha", collisions="sinr"|"none")``).
@@ -79,9 +80,7 @@ _MAX_FIRINGS_AT_ONE_TIME = 100_000
 class _Node(LinkStation):
     """Driver-side state of one mote incarnation: its radio, core and timer."""
 
-    __slots__ = (
-        "armed", "core", "fire_count", "fire_t", "mac", "onair", "started", "timer_gen",
-    )  # fmt: skip
+    __slots__ = ("armed", "core", "fire_count", "fire_t", "started", "timer_gen")
 
     def __init__(
         self,
@@ -95,8 +94,6 @@ class _Node(LinkStation):
         super().__init__(core.node_id, mobility, tx_power, range_m, counters, battery)
         self.core = core
         self.started = False
-        self.mac: MacSender | None = None  # set by VirtualNetwork.add
-        self.onair: OnAir | None = None  # the frame this mote has on the air (Air)
         self.timer_gen = 0
         self.armed: float | None = None
         self.fire_t = -1.0
@@ -146,7 +143,6 @@ class VirtualNetwork:
         self._one_snr = model._one_snr_db
         self._sigma_f = p.fading_sigma_db
         self._overhead = p.phy_overhead_bytes
-        self._byte_s = 8.0 / p.bitrate_bps
         # Medium access and collisions (radio/mac.py): the MAC of every mote, and
         # the frames on the air when anything needs them (carrier sense, SINR).
         self.mac_params = mac_params(p, mac)
@@ -375,23 +371,23 @@ class VirtualNetwork:
         self._schedule_attempt(node, len(node.air), node.cur_seq, 0)
 
     def _schedule_attempt(self, node: _Node, n: int, seq: int, attempt: int) -> None:
-        """The MAC (radio/mac.py) takes the attempt: first assessment, or ALOHA's start."""
-        t = node.mac.begin(seq, attempt, self._now)  # type: ignore[union-attr]
+        """The MAC (radio/mac.py via linklayer.attempt) takes the attempt: its first
+        assessment, or ALOHA's start."""
+        t = linklayer.attempt(node, self._now)
         if self._sense:
             self._push(t, _CCA, node, None)
         else:
-            self._go(node, t, n)
+            self._go(node, t)
 
-    def _go(self, node: _Node, start: float, n: int) -> None:
+    def _go(self, node: _Node, start: float) -> None:
         """The attempt goes on the air at ``start`` (known to the Air from now on)."""
-        end = start + (n + self._overhead) * self._byte_s
+        air = None
         if self._track:
             air = self._air
             air.prune(self._now)
             if not node.static:
                 self._nb.locate(node, self._now)
-            key = packet_key(node.cur_seq, node.cur_attempt)
-            node.onair = air.add(node.node_id, node.x, node.y, node.tx_power, start, end, key)
+        end = linklayer.put_on_air(node, air, self.preset, start)
         self._seq += 1
         heapq.heappush(self._heap, (end, self._seq, _TX_END, node, None))
 
@@ -402,15 +398,9 @@ class VirtualNetwork:
         now = self._now
         if not node.static:
             self._nb.locate(node, now)
-        p = self.mac_params
-        busy = self._air.busy(
-            node.node_id, node.x, node.y, now - p.cca_s, now, p.cca_threshold_dbm, p.carrier_sense
-        )
-        if busy:
-            node.counters.cca_busy += 1
-        action, t = node.mac.cca(busy, now)  # type: ignore[union-attr]
+        action, t = linklayer.assess(node, self._air, self.mac_params, now)
         if action == TRANSMIT:
-            self._go(node, t, len(node.air))
+            self._go(node, t)
         elif action == SENSE:
             self._push(t, _CCA, node, None)
         else:
@@ -659,10 +649,7 @@ class VirtualNetwork:
                         d = link[1]
                         acked = linklayer.ack_heard(m, r.node_id, r.tx_power, s.node_id, d, seq, a)
                         self._check_battery(r)
-        if acked:
-            self._push(now + p.ack_turnaround_s + p.ack_airtime_s, _UC_DONE, s, True)
-        else:
-            self._push(now + p.ack_timeout_s, _UC_DONE, s, False)
+        self._push(linklayer.outcome_time(p, now, acked), _UC_DONE, s, acked)
 
     def _uc_done(self, s: _Node, acked: bool) -> None:
         tx = s.cur
