@@ -34,7 +34,7 @@ import math
 from collections.abc import Callable
 from typing import TypeVar
 
-from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
+from awaremw.protocol.core import IdleCheck, MalformedFrame, MoteCore, Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
 from awaremw.radio.capture import RadioTap, lost, refused
@@ -61,7 +61,7 @@ from awaremw.radio.model import (
     RadioModel,
     packet_key,
 )
-from awaremw.radio.neighbourhood import Neighbourhood, Survive, adjacent, hear, hear_link
+from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear, hear_link
 from awaremw.radio.security import FrameGuard, Opened, RadioSecurity
 from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
 from awaremw.world.mobility import Mobility, Static
@@ -76,11 +76,17 @@ _TIMER, _TX_END, _UC_DONE, _START, _CALL, _CCA = range(6)
 _MAX_FIRINGS_AT_ONE_TIME = 100_000
 
 
+def _reaching(others: list[OnAir], cell: Cell) -> list[OnAir]:
+    """The frames of ``others`` sent from ``cell`` or the 8 cells around it."""
+    cx, cy = cell
+    return [o for o in others if -1 <= o.cell[0] - cx <= 1 and -1 <= o.cell[1] - cy <= 1]
+
+
 class _Node(LinkStation):
     """Driver-side state of one mote incarnation: its radio, core and timer."""
 
     __slots__ = (
-        "armed", "core", "fire_count", "fire_t", "mac", "onair", "started", "timer_gen",
+        "armed", "core", "fire_count", "fire_t", "idle", "mac", "onair", "started", "timer_gen",
     )  # fmt: skip
 
     def __init__(
@@ -94,6 +100,9 @@ class _Node(LinkStation):
     ) -> None:
         super().__init__(core.node_id, mobility, tx_power, range_m, counters, battery)
         self.core = core
+        # The core's IdleCheck (protocol/core.py), if it has one: after a reception
+        # that changed nothing, drain/events/next_deadline are not called.
+        self.idle: Callable[[], bool] | None = core.idle if isinstance(core, IdleCheck) else None
         self.started = False
         self.mac: MacSender | None = None  # set by VirtualNetwork.add
         self.onair: OnAir | None = None  # the frame this mote has on the air (Air)
@@ -320,6 +329,13 @@ class VirtualNetwork:
         core = node.core
         self._handle(node, core.drain(), core.events(), core.next_deadline())
 
+    def _after_rx(self, node: _Node) -> None:
+        """:meth:`_after` following a reception (the timer is armed at the core's
+        last deadline, so an idle core has nothing to collect)."""
+        idle = node.idle
+        if idle is None or not idle():
+            self._after(node)
+
     def _handle(
         self, node: _Node, txs: list[Transmission], evs: list[object], dl: float | None
     ) -> None:
@@ -495,6 +511,7 @@ class VirtualNetwork:
             mask = _M64
             mul = _MUL
             shift = _SHIFT
+            rel_by_cell: dict[Cell, list[OnAir]] = {}
             for r, rc, mean, lh in c.near:
                 # Inlined RadioModel.decide(lh, mean, bits, key), the hot path.
                 # packet_hash is z ^ (z >> 31): its top 12 bits (the normal
@@ -518,11 +535,19 @@ class VirtualNetwork:
                         continue
                 if not r.alive:
                     continue
-                if others is not None and not air.survives(f, rssi, r.node_id, r.x, r.y, others):  # type: ignore[arg-type]
-                    rc.collisions += 1
-                    if tap is not None:
-                        tap.reception(now, sid, r.node_id, rssi, "collision")
-                    continue
+                if others is not None:
+                    # Only the overlapping frames sent from r's cell or the 8 around
+                    # reach r (Air.power_mw is 0 for the others, and r's own frame
+                    # is in its cell): an empty list means the frame survived.
+                    rel = rel_by_cell.get(r.cell)
+                    if rel is None:
+                        rel = _reaching(others, r.cell)
+                        rel_by_cell[r.cell] = rel
+                    if rel and not air.survives(f, rssi, r.node_id, r.x, r.y, rel):  # type: ignore[arg-type]
+                        rc.collisions += 1
+                        if tap is not None:
+                            tap.reception(now, sid, r.node_id, rssi, "collision")
+                        continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 core = r.core
@@ -534,12 +559,14 @@ class VirtualNetwork:
                         core.receive(data, rssi, now)
                     except Exception as e:
                         self._contain(r, "receive", e)
-                # Inlined _after(r): usually nothing to send, no event, same deadline.
-                txs = core.drain()
-                evs = core.events()
-                dl = core.next_deadline()
-                if txs or evs or dl != r.armed:
-                    self._handle(r, txs, evs, dl)
+                # Inlined _after_rx(r): usually nothing to send, no event, same deadline.
+                idle = r.idle
+                if idle is None or not idle():
+                    txs = core.drain()
+                    evs = core.events()
+                    dl = core.next_deadline()
+                    if txs or evs or dl != r.armed:
+                        self._handle(r, txs, evs, dl)
                 if r.battery is not None:
                     self._check_battery(r)
             if nb.moving:
@@ -601,7 +628,7 @@ class VirtualNetwork:
                 r.core.receive(data, rssi, now)
             except Exception as e:
                 self._contain(r, "receive", e)
-        self._after(r)
+        self._after_rx(r)
         self._check_battery(r)
 
     def _unicast(
@@ -651,7 +678,7 @@ class VirtualNetwork:
                                 r.core.receive(data, rssi, now)
                             except Exception as e:
                                 self._contain(r, "receive", e)
-                            self._after(r)
+                            self._after_rx(r)
                     if self.tap is not None:
                         self.tap.reception(now, s.node_id, r.node_id, rssi, cause)
                     if linklayer.send_ack(r):
