@@ -318,12 +318,16 @@ class RadioModel:
 
     __slots__ = (
         "_bn_over_r",
+        "_d0",
+        "_d_min",
         "_fading_link",
         "_max_fade",
         "_one_snr_db",
+        "_pl_d0",
         "_prr_cache",
         "_range_cache",
         "_shadow",
+        "_ten_n",
         "preset",
         "seed",
         "symmetric",
@@ -341,6 +345,11 @@ class RadioModel:
         self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
         self._prr_cache: dict[int, float] = {}
         self._max_fade = preset.fading_sigma_db * Z_MAX
+        # path_loss_db's constants (mean_rssi inlines it).
+        self._d0 = preset.d0_m
+        self._d_min = preset.d0_m * 0.1
+        self._pl_d0 = preset.pl_d0_db
+        self._ten_n = 10.0 * preset.path_loss_exponent
         self._one_snr_db = self._snr_db_for_prr_one()
 
     # ---------------------------------------------------------------- geometry
@@ -353,7 +362,10 @@ class RadioModel:
 
     def static_shadow_db(self, src: int, dst: int) -> float:
         """The per-link, time-invariant shadowing loss (dB), cached."""
-        a, b = (min(src, dst), max(src, dst)) if self.symmetric else (src, dst)
+        if src > dst and self.symmetric:
+            a, b = dst, src
+        else:
+            a, b = src, dst
         k = (a << 16) | b
         v = self._shadow.get(k)
         if v is None:
@@ -377,7 +389,10 @@ class RadioModel:
 
     def mean_rssi(self, src: int, dst: int, distance: float, tx_power: float) -> float:
         """Noise-free ground truth: P_tx - PL(d) - static shadow (no per-packet part)."""
-        return tx_power - self.path_loss_db(distance) - self.static_shadow_db(src, dst)
+        # path_loss_db inlined (the same operations in the same order: same bits).
+        d = distance if distance > self._d_min else self._d_min
+        pl = self._pl_d0 + self._ten_n * math.log10(d / self._d0)
+        return tx_power - pl - self.static_shadow_db(src, dst)
 
     def rssi(self, src: int, dst: int, distance: float, tx_power: float, packet_key: int) -> float:
         """RSSI of one packet: mean RSSI minus the packet's fading draw."""
