@@ -423,6 +423,11 @@ class RadioModel:
         """Side of the key-expression grid: the max range at the chip's max power."""
         return self.max_range_m(self.preset.max_tx_power_dbm)
 
+    @property
+    def max_fade_db(self) -> float:
+        """The largest per-packet fading gain any draw gives (sigma times the table's max |z|)."""
+        return self._max_fade
+
     def never_delivers(self, mean_rssi_dbm: float) -> bool:
         """True if no fading draw can lift this link's mean RSSI to sensitivity."""
         return mean_rssi_dbm + self._max_fade < self.preset.sensitivity_dbm
@@ -468,6 +473,14 @@ class RadioModel:
             v = (1.0 - self._ber(round(snr_db * 1000.0) / 1000.0)) ** bits
             self._prr_cache[k] = v
         return v
+
+    @property
+    def prr_memo(self) -> dict[int, float]:
+        """:meth:`prr_bits`'s cache, read only, for a caller's inlined lookup: the PRR
+        at ``snr_db = rssi - noise floor`` (below the PRR-one SNR) of ``bits`` bits
+        is ``memo[(round(snr_db * 1000.0) << 16) | bits]`` when present (else call
+        :meth:`prr_bits`). The same dict for the model's life (cleared when full)."""
+        return self._prr_cache
 
     def prr(self, rssi_dbm: float, frame_len: int) -> float:
         """PRR of a frame of ``frame_len`` bytes (ours; PHY overhead is added)."""

@@ -507,6 +507,7 @@ class VirtualNetwork:
             one = self._one_snr
             sf = self._sigma_f
             prr_bits = self.model.prr_bits
+            memo = self.model.prr_memo
             normal = _NORMAL
             mask = _M64
             mul = _MUL
@@ -525,9 +526,14 @@ class VirtualNetwork:
                         if tap is not None:
                             tap.reception(now, sid, r.node_id, rssi, "path_loss")
                     continue
-                if rssi - noise < one:
+                snr = rssi - noise
+                if snr < one:
                     z ^= z >> 31
-                    if (z & 0xFFFFFFFF) * _U32 >= prr_bits(rssi, bits):
+                    # prr_bits(rssi, bits), its cache looked up inline first.
+                    pv = memo.get((round(snr * 1000.0) << 16) | bits)
+                    if pv is None:
+                        pv = prr_bits(rssi, bits)
+                    if (z & 0xFFFFFFFF) * _U32 >= pv:
                         if r.alive:
                             rc.dropped_loss += 1
                             if tap is not None:
