@@ -326,6 +326,7 @@ class RadioModel:
         "_pl_d0",
         "_prr_cache",
         "_range_cache",
+        "_seed_mix",
         "_shadow",
         "_ten_n",
         "preset",
@@ -345,6 +346,7 @@ class RadioModel:
         self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
         self._prr_cache: dict[int, float] = {}
         self._max_fade = preset.fading_sigma_db * Z_MAX
+        self._seed_mix = splitmix64(seed & _M64)  # link_hash's first round
         # path_loss_db's constants (mean_rssi inlines it).
         self._d0 = preset.d0_m
         self._d_min = preset.d0_m * 0.1
@@ -370,7 +372,11 @@ class RadioModel:
         v = self._shadow.get(k)
         if v is None:
             sigma = self.preset.shadowing_sigma_db
-            v = sigma * _NORMAL[link_hash(self.seed, DOMAIN_SHADOW, a, b) >> _SHIFT]
+            # link_hash(self.seed, DOMAIN_SHADOW, a, b), the seed's round done once.
+            h = splitmix64(
+                self._seed_mix ^ ((DOMAIN_SHADOW << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
+            )
+            v = sigma * _NORMAL[h >> _SHIFT]
             if len(self._shadow) >= _LINK_CACHE_MAX:
                 self._shadow.clear()  # keyed by remote sender ids: bounded, recomputable
             self._shadow[k] = v
@@ -381,7 +387,10 @@ class RadioModel:
         k = (src << 16) | dst
         h = self._fading_link.get(k)
         if h is None:
-            h = link_hash(self.seed, DOMAIN_FADING, src, dst)
+            # link_hash(self.seed, DOMAIN_FADING, src, dst), the seed's round done once.
+            h = splitmix64(
+                self._seed_mix ^ ((DOMAIN_FADING << 40) | ((src & 0xFFFF) << 16) | (dst & 0xFFFF))
+            )
             if len(self._fading_link) >= _LINK_CACHE_MAX:
                 self._fading_link.clear()  # keyed by remote sender ids: bounded, recomputable
             self._fading_link[k] = h
