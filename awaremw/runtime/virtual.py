@@ -82,6 +82,19 @@ def _reaching(others: list[OnAir], cell: Cell) -> list[OnAir]:
     return [o for o in others if -1 <= o.cell[0] - cx <= 1 and -1 <= o.cell[1] - cy <= 1]
 
 
+def _any_reaching(frames: list[OnAir], node: LinkStation, t0: float, t1: float) -> bool:
+    """True if a frame of another mote is on the air during ``(t0, t1)`` from
+    ``node``'s cell or the 8 around it (the only frames Air.busy gives power to)."""
+    nid = node.node_id
+    cx, cy = node.cell
+    for o in frames:
+        if o.start < t1 and o.end > t0 and o.src != nid:
+            c = o.cell
+            if -1 <= c[0] - cx <= 1 and -1 <= c[1] - cy <= 1:
+                return True
+    return False
+
+
 class _Node(LinkStation):
     """Driver-side state of one mote incarnation: its radio, core and timer."""
 
@@ -297,10 +310,10 @@ class VirtualNetwork:
         while heap and heap[0][0] <= t:
             when, _, kind, node, data = pop(heap)
             self._now = when
-            if kind == _TX_END:
-                self._tx_end(node)  # type: ignore[arg-type]
-            elif kind == _TIMER:
+            if kind == _TIMER:  # the most frequent first
                 self._timer(node, data)  # type: ignore[arg-type]
+            elif kind == _TX_END:
+                self._tx_end(node)  # type: ignore[arg-type]
             elif kind == _UC_DONE:
                 self._uc_done(node, data)  # type: ignore[arg-type]
             elif kind == _CCA:
@@ -406,7 +419,7 @@ class VirtualNetwork:
             air.prune(self._now)
             if not node.static:
                 self._nb.locate(node, self._now)
-            key = packet_key(node.cur_seq, node.cur_attempt)
+            key = (node.cur_seq << 8) | (node.cur_attempt << 1)  # packet_key (checked attempt)
             node.onair = air.add(node.node_id, node.x, node.y, node.tx_power, start, end, key)
         self._seq += 1
         heapq.heappush(self._heap, (end, self._seq, _TX_END, node, None))
@@ -419,9 +432,14 @@ class VirtualNetwork:
         if not node.static:
             self._nb.locate(node, now)
         p = self.mac_params
-        busy = self._air.busy(
-            node.node_id, node.x, node.y, now - p.cca_s, now, p.cca_threshold_dbm, p.carrier_sense
-        )
+        air = self._air
+        t0 = now - p.cca_s
+        if node.static and not _any_reaching(air.frames, node, t0, now):
+            busy = False  # no frame of another mote near enough during the assessment
+        else:
+            busy = air.busy(
+                node.node_id, node.x, node.y, t0, now, p.cca_threshold_dbm, p.carrier_sense
+            )
         if busy:
             node.counters.cca_busy += 1
         action, t = node.mac.cca(busy, now)  # type: ignore[union-attr]
