@@ -391,11 +391,25 @@ class VirtualNetwork:
         else:
             node.fire_t, node.fire_count = now, 0
         node.armed = None
+        core = node.core
         try:
-            node.core.handle_timer(now)
+            core.handle_timer(now)
         except Exception as e:
             self._contain(node, "handle_timer", e)
-        self._after(node)
+        # Inlined _after(node): with nothing sent and no event, only re-arm.
+        txs = core.drain()
+        evs = core.events()
+        dl = core.next_deadline()
+        if txs or evs:
+            self._handle(node, txs, evs, dl)
+        elif dl is not None:  # armed is None: the deadline changed
+            node.armed = dl
+            node.timer_gen += 1
+            if node.alive:
+                self._seq += 1
+                heapq.heappush(
+                    self._heap, (dl if dl > now else now, self._seq, _TIMER, node, node.timer_gen)
+                )
 
     def _start_next(self, node: _Node) -> None:
         if not node.queue:
