@@ -324,12 +324,12 @@ class RadioModel:
         "_max_fade",
         "_one_snr_db",
         "_pl_d0",
-        "_prr_cache",
         "_range_cache",
         "_seed_mix",
         "_shadow",
         "_ten_n",
         "preset",
+        "prr_memo",
         "seed",
         "symmetric",
     )
@@ -344,7 +344,11 @@ class RadioModel:
         self._shadow: dict[int, float] = {}  # per link: _LINK_CACHE_MAX
         self._fading_link: dict[int, int] = {}  # per directed link: _LINK_CACHE_MAX
         self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
-        self._prr_cache: dict[int, float] = {}
+        # prr_bits' cache, also read by a caller's inlined lookup (read only): the PRR
+        # at snr_db = rssi - noise floor (below the PRR-one SNR) of `bits` bits is
+        # prr_memo[(round(snr_db * 1000.0) << 16) | bits] when present, else call
+        # prr_bits. The same dict for the model's life (cleared when full).
+        self.prr_memo: dict[int, float] = {}
         self._max_fade = preset.fading_sigma_db * Z_MAX
         self._seed_mix = splitmix64(seed & _M64)  # link_hash's first round
         # path_loss_db's constants (mean_rssi inlines it).
@@ -432,11 +436,6 @@ class RadioModel:
         """Side of the key-expression grid: the max range at the chip's max power."""
         return self.max_range_m(self.preset.max_tx_power_dbm)
 
-    @property
-    def max_fade_db(self) -> float:
-        """The largest per-packet fading gain any draw gives (sigma times the table's max |z|)."""
-        return self._max_fade
-
     def never_delivers(self, mean_rssi_dbm: float) -> bool:
         """True if no fading draw can lift this link's mean RSSI to sensitivity."""
         return mean_rssi_dbm + self._max_fade < self.preset.sensitivity_dbm
@@ -475,21 +474,13 @@ class RadioModel:
         if snr_db >= self._one_snr_db:
             return 1.0
         k = (round(snr_db * 1000.0) << 16) | bits
-        v = self._prr_cache.get(k)
+        v = self.prr_memo.get(k)
         if v is None:
-            if len(self._prr_cache) >= _PRR_CACHE_MAX:
-                self._prr_cache.clear()
+            if len(self.prr_memo) >= _PRR_CACHE_MAX:
+                self.prr_memo.clear()
             v = (1.0 - self._ber(round(snr_db * 1000.0) / 1000.0)) ** bits
-            self._prr_cache[k] = v
+            self.prr_memo[k] = v
         return v
-
-    @property
-    def prr_memo(self) -> dict[int, float]:
-        """:meth:`prr_bits`'s cache, read only, for a caller's inlined lookup: the PRR
-        at ``snr_db = rssi - noise floor`` (below the PRR-one SNR) of ``bits`` bits
-        is ``memo[(round(snr_db * 1000.0) << 16) | bits]`` when present (else call
-        :meth:`prr_bits`). The same dict for the model's life (cleared when full)."""
-        return self._prr_cache
 
     def prr(self, rssi_dbm: float, frame_len: int) -> float:
         """PRR of a frame of ``frame_len`` bytes (ours; PHY overhead is added)."""

@@ -40,7 +40,7 @@ from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
 
 from awaremw.radio.counters import MoteCounters
-from awaremw.radio.model import RadioModel, cell_of
+from awaremw.radio.model import Z_MAX, RadioModel, cell_of
 from awaremw.world.mobility import Mobility, Static
 
 Cell = tuple[int, int]
@@ -241,7 +241,7 @@ class Neighbourhood(Generic[S]):
         link_hash = m.fading_link_hash
         hypot = math.hypot
         # never_delivers(mean), inlined: mean + max fade < sensitivity.
-        max_fade = m.max_fade_db
+        max_fade = m.preset.fading_sigma_db * Z_MAX  # as RadioModel computes it
         sens = m.preset.sensitivity_dbm
         for lst in self.cells_around(cell):
             for r in lst:
