@@ -79,3 +79,17 @@ class MoteCore(Protocol):
     def link_result(self, tx: Transmission, acked: bool, now: float) -> None: ...
 
     def events(self) -> list[object]: ...
+
+
+@runtime_checkable
+class IdleCheck(Protocol):
+    """Optional fast path of a core (the virtual driver uses it after a reception).
+
+    ``idle()`` is True only if, since the driver last took them, the core has
+    queued no frame and no event and its deadline has not changed: ``drain()``
+    and ``events()`` would return ``[]`` and ``next_deadline()`` the value it
+    returned last. A driver may then skip those three calls. It must be cheap
+    (a few attribute reads) and may say False whenever in doubt.
+    """
+
+    def idle(self) -> bool: ...

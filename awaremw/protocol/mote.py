@@ -102,6 +102,12 @@ class AwareMote:
         self._rssi_alpha = self.config.rssi_alpha
         self._rssi_ttl = self.config.rssi_ttl
         self.started = False
+        cls = type(self)
+        self._idle_exact = (
+            cls.next_deadline is AwareMote.next_deadline
+            and cls.drain is AwareMote.drain
+            and cls.events is AwareMote.events
+        )
 
     # ----------------------------------------------------------------- MoteCore
 
@@ -143,6 +149,17 @@ class AwareMote:
             else:
                 self._next_deadline = None if best == _INF else best
         return self._next_deadline
+
+    def idle(self) -> bool:
+        """:class:`~awaremw.protocol.core.IdleCheck`: nothing queued, no timer changed
+        (always False in a subclass that overrides what it vouches for)."""
+        ctx = self.ctx
+        return (
+            self._idle_exact
+            and not ctx.outbox
+            and not ctx.event_list
+            and not self._timer_watch.changed
+        )
 
     def drain(self) -> list[Transmission]:
         out, self.ctx.outbox = self.ctx.outbox, []

@@ -368,6 +368,8 @@ class Air:
         cap = self.capture_mw
         if cap is None:
             return False
+        if len(spans) == 1:  # one interferer: it is the worst instant
+            return _mw(rssi_dbm) >= cap * (self._noise_mw + spans[0][2])
         # Worst instant: the interference is piecewise constant and peaks at the start
         # of some overlap.
         worst = 0.0

@@ -318,13 +318,18 @@ class RadioModel:
 
     __slots__ = (
         "_bn_over_r",
+        "_d0",
+        "_d_min",
         "_fading_link",
         "_max_fade",
         "_one_snr_db",
-        "_prr_cache",
+        "_pl_d0",
         "_range_cache",
+        "_seed_mix",
         "_shadow",
+        "_ten_n",
         "preset",
+        "prr_memo",
         "seed",
         "symmetric",
     )
@@ -339,8 +344,18 @@ class RadioModel:
         self._shadow: dict[int, float] = {}  # per link: _LINK_CACHE_MAX
         self._fading_link: dict[int, int] = {}  # per directed link: _LINK_CACHE_MAX
         self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
-        self._prr_cache: dict[int, float] = {}
+        # prr_bits' cache, also read by a caller's inlined lookup (read only): the PRR
+        # at snr_db = rssi - noise floor (below the PRR-one SNR) of `bits` bits is
+        # prr_memo[(round(snr_db * 1000.0) << 16) | bits] when present, else call
+        # prr_bits. The same dict for the model's life (cleared when full).
+        self.prr_memo: dict[int, float] = {}
         self._max_fade = preset.fading_sigma_db * Z_MAX
+        self._seed_mix = splitmix64(seed & _M64)  # link_hash's first round
+        # path_loss_db's constants (mean_rssi inlines it).
+        self._d0 = preset.d0_m
+        self._d_min = preset.d0_m * 0.1
+        self._pl_d0 = preset.pl_d0_db
+        self._ten_n = 10.0 * preset.path_loss_exponent
         self._one_snr_db = self._snr_db_for_prr_one()
 
     # ---------------------------------------------------------------- geometry
@@ -353,12 +368,19 @@ class RadioModel:
 
     def static_shadow_db(self, src: int, dst: int) -> float:
         """The per-link, time-invariant shadowing loss (dB), cached."""
-        a, b = (min(src, dst), max(src, dst)) if self.symmetric else (src, dst)
+        if src > dst and self.symmetric:
+            a, b = dst, src
+        else:
+            a, b = src, dst
         k = (a << 16) | b
         v = self._shadow.get(k)
         if v is None:
             sigma = self.preset.shadowing_sigma_db
-            v = sigma * _NORMAL[link_hash(self.seed, DOMAIN_SHADOW, a, b) >> _SHIFT]
+            # link_hash(self.seed, DOMAIN_SHADOW, a, b), the seed's round done once.
+            h = splitmix64(
+                self._seed_mix ^ ((DOMAIN_SHADOW << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
+            )
+            v = sigma * _NORMAL[h >> _SHIFT]
             if len(self._shadow) >= _LINK_CACHE_MAX:
                 self._shadow.clear()  # keyed by remote sender ids: bounded, recomputable
             self._shadow[k] = v
@@ -369,7 +391,10 @@ class RadioModel:
         k = (src << 16) | dst
         h = self._fading_link.get(k)
         if h is None:
-            h = link_hash(self.seed, DOMAIN_FADING, src, dst)
+            # link_hash(self.seed, DOMAIN_FADING, src, dst), the seed's round done once.
+            h = splitmix64(
+                self._seed_mix ^ ((DOMAIN_FADING << 40) | ((src & 0xFFFF) << 16) | (dst & 0xFFFF))
+            )
             if len(self._fading_link) >= _LINK_CACHE_MAX:
                 self._fading_link.clear()  # keyed by remote sender ids: bounded, recomputable
             self._fading_link[k] = h
@@ -377,7 +402,10 @@ class RadioModel:
 
     def mean_rssi(self, src: int, dst: int, distance: float, tx_power: float) -> float:
         """Noise-free ground truth: P_tx - PL(d) - static shadow (no per-packet part)."""
-        return tx_power - self.path_loss_db(distance) - self.static_shadow_db(src, dst)
+        # path_loss_db inlined (the same operations in the same order: same bits).
+        d = distance if distance > self._d_min else self._d_min
+        pl = self._pl_d0 + self._ten_n * math.log10(d / self._d0)
+        return tx_power - pl - self.static_shadow_db(src, dst)
 
     def rssi(self, src: int, dst: int, distance: float, tx_power: float, packet_key: int) -> float:
         """RSSI of one packet: mean RSSI minus the packet's fading draw."""
@@ -446,12 +474,12 @@ class RadioModel:
         if snr_db >= self._one_snr_db:
             return 1.0
         k = (round(snr_db * 1000.0) << 16) | bits
-        v = self._prr_cache.get(k)
+        v = self.prr_memo.get(k)
         if v is None:
-            if len(self._prr_cache) >= _PRR_CACHE_MAX:
-                self._prr_cache.clear()
+            if len(self.prr_memo) >= _PRR_CACHE_MAX:
+                self.prr_memo.clear()
             v = (1.0 - self._ber(round(snr_db * 1000.0) / 1000.0)) ** bits
-            self._prr_cache[k] = v
+            self.prr_memo[k] = v
         return v
 
     def prr(self, rssi_dbm: float, frame_len: int) -> float:

@@ -40,7 +40,7 @@ from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
 
 from awaremw.radio.counters import MoteCounters
-from awaremw.radio.model import RadioModel, cell_of
+from awaremw.radio.model import Z_MAX, RadioModel, cell_of
 from awaremw.world.mobility import Mobility, Static
 
 Cell = tuple[int, int]
@@ -237,19 +237,26 @@ class Neighbourhood(Generic[S]):
         c: SenderCache[S] = SenderCache(src, x, y, txp, cell)
         rng = m.max_range_m(txp)
         near, far_loss, far_dist = c.near, c.far_loss, c.far_dist
+        mean_rssi = m.mean_rssi
+        link_hash = m.fading_link_hash
+        hypot = math.hypot
+        # never_delivers(mean), inlined: mean + max fade < sensitivity.
+        max_fade = m.preset.fading_sigma_db * Z_MAX  # as RadioModel computes it
+        sens = m.preset.sensitivity_dbm
         for lst in self.cells_around(cell):
             for r in lst:
-                if r.node_id == src:
+                rid = r.node_id
+                if rid == src:
                     continue
-                d = math.hypot(r.x - x, r.y - y)
+                d = hypot(r.x - x, r.y - y)
                 if d > rng:
                     far_dist.append(r)
                     continue
-                mean = m.mean_rssi(src, r.node_id, d, txp)
-                if m.never_delivers(mean):
+                mean = mean_rssi(src, rid, d, txp)
+                if mean + max_fade < sens:
                     far_loss.append(r)
                 else:
-                    near.append((r, r.counters, mean, m.fading_link_hash(src, r.node_id)))
+                    near.append((r, r.counters, mean, link_hash(src, rid)))
         self._caches[src] = c
         self._by_cell.setdefault(cell, {})[src] = c
         return c

@@ -35,7 +35,7 @@ import math
 from collections.abc import Callable
 from typing import TypeVar
 
-from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
+from awaremw.protocol.core import IdleCheck, MalformedFrame, MoteCore, Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
 from awaremw.radio.capture import RadioTap, lost, refused
@@ -62,7 +62,7 @@ from awaremw.radio.model import (
     RadioModel,
     packet_key,
 )
-from awaremw.radio.neighbourhood import Neighbourhood, Survive, adjacent, hear, hear_link
+from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear, hear_link
 from awaremw.radio.security import FrameGuard, Opened, RadioSecurity
 from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
 from awaremw.world.mobility import Mobility, Static
@@ -77,10 +77,16 @@ _TIMER, _TX_END, _UC_DONE, _START, _CALL, _CCA = range(6)
 _MAX_FIRINGS_AT_ONE_TIME = 100_000
 
 
+def _reaching(others: list[OnAir], cell: Cell) -> list[OnAir]:
+    """The frames of ``others`` sent from ``cell`` or the 8 cells around it."""
+    cx, cy = cell
+    return [o for o in others if -1 <= o.cell[0] - cx <= 1 and -1 <= o.cell[1] - cy <= 1]
+
+
 class _Node(LinkStation):
     """Driver-side state of one mote incarnation: its radio, core and timer."""
 
-    __slots__ = ("armed", "core", "fire_count", "fire_t", "started", "timer_gen")
+    __slots__ = ("armed", "core", "fire_count", "fire_t", "idle", "started", "timer_gen")
 
     def __init__(
         self,
@@ -93,6 +99,9 @@ class _Node(LinkStation):
     ) -> None:
         super().__init__(core.node_id, mobility, tx_power, range_m, counters, battery)
         self.core = core
+        # The core's IdleCheck (protocol/core.py), if it has one: after a reception
+        # that changed nothing, drain/events/next_deadline are not called.
+        self.idle: Callable[[], bool] | None = core.idle if isinstance(core, IdleCheck) else None
         self.started = False
         self.timer_gen = 0
         self.armed: float | None = None
@@ -284,10 +293,10 @@ class VirtualNetwork:
         while heap and heap[0][0] <= t:
             when, _, kind, node, data = pop(heap)
             self._now = when
-            if kind == _TX_END:
-                self._tx_end(node)  # type: ignore[arg-type]
-            elif kind == _TIMER:
+            if kind == _TIMER:  # the most frequent first
                 self._timer(node, data)  # type: ignore[arg-type]
+            elif kind == _TX_END:
+                self._tx_end(node)  # type: ignore[arg-type]
             elif kind == _UC_DONE:
                 self._uc_done(node, data)  # type: ignore[arg-type]
             elif kind == _CCA:
@@ -315,6 +324,13 @@ class VirtualNetwork:
         """Collect what the core wants after any call into it."""
         core = node.core
         self._handle(node, core.drain(), core.events(), core.next_deadline())
+
+    def _after_rx(self, node: _Node) -> None:
+        """:meth:`_after` following a reception (the timer is armed at the core's
+        last deadline, so an idle core has nothing to collect)."""
+        idle = node.idle
+        if idle is None or not idle():
+            self._after(node)
 
     def _handle(
         self, node: _Node, txs: list[Transmission], evs: list[object], dl: float | None
@@ -358,11 +374,25 @@ class VirtualNetwork:
         else:
             node.fire_t, node.fire_count = now, 0
         node.armed = None
+        core = node.core
         try:
-            node.core.handle_timer(now)
+            core.handle_timer(now)
         except Exception as e:
             self._contain(node, "handle_timer", e)
-        self._after(node)
+        # Inlined _after(node): with nothing sent and no event, only re-arm.
+        txs = core.drain()
+        evs = core.events()
+        dl = core.next_deadline()
+        if txs or evs:
+            self._handle(node, txs, evs, dl)
+        elif dl is not None:  # armed is None: the deadline changed
+            node.armed = dl
+            node.timer_gen += 1
+            if node.alive:
+                self._seq += 1
+                heapq.heappush(
+                    self._heap, (dl if dl > now else now, self._seq, _TIMER, node, node.timer_gen)
+                )
 
     def _start_next(self, node: _Node) -> None:
         if not node.queue:
@@ -481,10 +511,12 @@ class VirtualNetwork:
             one = self._one_snr
             sf = self._sigma_f
             prr_bits = self.model.prr_bits
+            memo = self.model.prr_memo
             normal = _NORMAL
             mask = _M64
             mul = _MUL
             shift = _SHIFT
+            rel_by_cell: dict[Cell, list[OnAir]] = {}
             for r, rc, mean, lh in c.near:
                 # Inlined RadioModel.decide(lh, mean, bits, key), the hot path.
                 # packet_hash is z ^ (z >> 31): its top 12 bits (the normal
@@ -498,9 +530,14 @@ class VirtualNetwork:
                         if tap is not None:
                             tap.reception(now, sid, r.node_id, rssi, "path_loss")
                     continue
-                if rssi - noise < one:
+                snr = rssi - noise
+                if snr < one:
                     z ^= z >> 31
-                    if (z & 0xFFFFFFFF) * _U32 >= prr_bits(rssi, bits):
+                    # prr_bits(rssi, bits), its cache looked up inline first.
+                    pv = memo.get((round(snr * 1000.0) << 16) | bits)
+                    if pv is None:
+                        pv = prr_bits(rssi, bits)
+                    if (z & 0xFFFFFFFF) * _U32 >= pv:
                         if r.alive:
                             rc.dropped_loss += 1
                             if tap is not None:
@@ -508,11 +545,19 @@ class VirtualNetwork:
                         continue
                 if not r.alive:
                     continue
-                if others is not None and not air.survives(f, rssi, r.node_id, r.x, r.y, others):  # type: ignore[arg-type]
-                    rc.collisions += 1
-                    if tap is not None:
-                        tap.reception(now, sid, r.node_id, rssi, "collision")
-                    continue
+                if others is not None:
+                    # Only the overlapping frames sent from r's cell or the 8 around
+                    # reach r (Air.power_mw is 0 for the others, and r's own frame
+                    # is in its cell): an empty list means the frame survived.
+                    rel = rel_by_cell.get(r.cell)
+                    if rel is None:
+                        rel = _reaching(others, r.cell)
+                        rel_by_cell[r.cell] = rel
+                    if rel and not air.survives(f, rssi, r.node_id, r.x, r.y, rel):  # type: ignore[arg-type]
+                        rc.collisions += 1
+                        if tap is not None:
+                            tap.reception(now, sid, r.node_id, rssi, "collision")
+                        continue
                 rc.frames_rx += 1
                 rc.bytes_rx += n
                 core = r.core
@@ -524,12 +569,14 @@ class VirtualNetwork:
                         core.receive(data, rssi, now)
                     except Exception as e:
                         self._contain(r, "receive", e)
-                # Inlined _after(r): usually nothing to send, no event, same deadline.
-                txs = core.drain()
-                evs = core.events()
-                dl = core.next_deadline()
-                if txs or evs or dl != r.armed:
-                    self._handle(r, txs, evs, dl)
+                # Inlined _after_rx(r): usually nothing to send, no event, same deadline.
+                idle = r.idle
+                if idle is None or not idle():
+                    txs = core.drain()
+                    evs = core.events()
+                    dl = core.next_deadline()
+                    if txs or evs or dl != r.armed:
+                        self._handle(r, txs, evs, dl)
                 if r.battery is not None:
                     self._check_battery(r)
             if nb.moving:
@@ -591,7 +638,7 @@ class VirtualNetwork:
                 r.core.receive(data, rssi, now)
             except Exception as e:
                 self._contain(r, "receive", e)
-        self._after(r)
+        self._after_rx(r)
         self._check_battery(r)
 
     def _unicast(
@@ -641,7 +688,7 @@ class VirtualNetwork:
                                 r.core.receive(data, rssi, now)
                             except Exception as e:
                                 self._contain(r, "receive", e)
-                            self._after(r)
+                            self._after_rx(r)
                     if self.tap is not None:
                         self.tap.reception(now, s.node_id, r.node_id, rssi, cause)
                     if linklayer.send_ack(r):

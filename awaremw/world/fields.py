@@ -88,10 +88,28 @@ def uniform_hash(*parts: int | float | str) -> float:
 
 def gauss_hash(*parts: int | float | str) -> float:
     """A standard normal number from a hash of ``parts`` (Box-Muller on 2 x 32 bits)."""
-    v = hash_u64(*parts)
+    return _gauss_of(hash_u64(*parts))
+
+
+def _gauss_of(v: int) -> float:
     u1 = ((v >> 32) + 0.5) / 4294967296.0  # in (0, 1): log never sees 0
     u2 = (v & 0xFFFFFFFF) / 4294967296.0
     return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+
+
+@functools.lru_cache(maxsize=1 << 16, typed=True)
+def _noise_prefix(seed: int, node: int, sensor: str) -> int:
+    """:func:`hash_u64`'s state after the parts ``(seed, node, sensor)`` (one per
+    sensor of a mote; the noise hash goes on from it with the time step)."""
+    return hash_u64(seed, node, sensor)
+
+
+def _hash_more(h: int, part: int) -> int:
+    """:func:`hash_u64` continued from state ``h`` with one more integer ``part``."""
+    x = ((h ^ (part & _M64)) + 0x9E3779B97F4A7C15) & _M64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _M64
+    return x ^ (x >> 31)
 
 
 # --------------------------------------------------------------------------- sources
@@ -284,7 +302,8 @@ class World:
         if sigma == 0:
             return 0.0
         step = math.floor(t / self.noise_step)
-        return sigma * gauss_hash(self.seed, node, sensor, step)
+        # gauss_hash(self.seed, node, sensor, step), the first three parts' rounds cached.
+        return sigma * _gauss_of(_hash_more(_noise_prefix(self.seed, node, sensor), step))
 
     # ------------------------------------------------------------------ internals
 
