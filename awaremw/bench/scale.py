@@ -40,7 +40,8 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   keeps among in-range receivers for the frames actually sent (recomputed
   from the seeded model, packet by packet); ``collisions`` (receptions the
   loss model kept that overlapping frames destroyed: the deployment's
-  ``collisions = "sinr"``, docs/radio.md); ``delivery_ratio`` =
+  ``collisions = "sinr"``, docs/radio.md; ``--collisions none`` and ``--mac
+  aloha`` switch them off, reported as ``mac`` and ``collisions_model``); ``delivery_ratio`` =
   ``(frames_rx + collisions) / frames_expected`` (below 1: frames lost by
   the emulation itself -- late subscriptions, dropped Zenoh samples);
   ``late`` (frames whose envelope came after their end + the guard, all
@@ -57,12 +58,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import gc
 import math
 import time
 from typing import Any
 
 from awaremw.bench import aware_load
+from awaremw.bench.medium import add_medium_arguments, medium_of
 from awaremw.bench.profiling import profiled
 from awaremw.nodes import KindsFactory
 from awaremw.protocol.core import MoteCore
@@ -177,6 +180,8 @@ async def run_once(
     min_delivery: float = 0.99,
     workload: str = "hello",
     profile: str | None = None,
+    mac: str = "csma",
+    collisions: str = "sinr",
 ) -> dict[str, Any]:
     """One measured run (see the module docstring for the keys)."""
     if workload not in WORKLOADS:
@@ -189,6 +194,8 @@ async def run_once(
         if aware
         else grid_deployment(motes, seed, radio)
     )
+    # The medium's access and collision model (docs/radio.md), as a deployment sets it.
+    dep = dataclasses.replace(dep, mac=mac, collisions=collisions)
     tally = aware_load.RecordTally()
     h: Handler = "channel" if handler == "channel" else "callback"
     cpu: list[float] = []
@@ -280,6 +287,8 @@ async def run_once(
         "frames_tx": tot.frames_tx,
         "frames_rx": tot.frames_rx,
         "frames_expected": expected,
+        "mac": dep.mac,
+        "collisions_model": dep.collisions,
         "collisions": tot.collisions,
         "late": late,
         "delivery_ratio": None if delivery is None else round(delivery, 5),
@@ -367,6 +376,8 @@ def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "min_delivery": float(args.min_delivery),
         "workload": str(args.workload),
         "profile": args.profile,
+        "mac": medium_of(args)[0],
+        "collisions": medium_of(args)[1],
     }
 
 
@@ -404,6 +415,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="hello: beacons only (the radio); aware: the whole middleware tracking a fire",
     )
     parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
+    add_medium_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
