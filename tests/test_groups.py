@@ -412,7 +412,8 @@ def test_a_part_that_split_off_and_rejoined_keeps_its_split_id_for_the_real_spli
         h.advance(h.now + h.cfg.beacon_period)
         h.hear(beacon(src=4, gid=500, leader=2, weight=45 + k, seq=23 + k, hops=1))
     h.events()
-    h.advance(h.now + timeout + h.cfg.beacon_period + ELECTION_BACKOFF_FACTOR * h.cfg.create_backoff)
+    backoff = ELECTION_BACKOFF_FACTOR * h.cfg.create_backoff
+    h.advance(h.now + timeout + h.cfg.beacon_period + backoff)
     (e2,) = h.events(LeaderElected)
     assert e2.cause is ElectionCause.ELECTION and e2.group_id == split_id
 
