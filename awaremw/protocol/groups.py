@@ -23,7 +23,9 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
   id for ``tentative_periods`` beacon periods (tentative beacons, never joined
   nor forwarded): an established group in range answers and is joined, the
   higher of two would-be ids goes on, so contention at a group's birth ends
-  before any mote holds the losing id;
+  before any mote holds the losing id; answers to an announcement go out after
+  a jitter (with collisions, motes answering the same frame at once collide),
+  and a mote that joins a group after hearing an announcement answers it;
 * members forward only the heaviest group they know: a member hearing a heavier
   group of its type (``(weight, group id)`` compared) switches to it, a leader
   hearing one yields (reports GONE with the survivor's id) and joins it;
@@ -35,7 +37,8 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
   and one more period of patience, drop the group and, still qualifying, run a
   wider creation backoff: the first to fire creates a group with a NEW id (the
   paper's split rule), or takes back the id of the group it left by a merge
-  less than ``unmerge_window_periods`` ago (the merge did not hold);
+  less than ``unmerge_window_periods`` ago (the merge did not hold), or of the
+  split-off group it left when the old group's beacon came back (nor did the split);
 * a mote joining a group from its table of nearby groups announces it (one
   re-broadcast of the remembered beacon).
 """
