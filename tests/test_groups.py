@@ -303,6 +303,7 @@ def test_of_two_would_be_groups_the_higher_id_goes_on_and_the_other_joins_it() -
     w = H(nid=30, tentative_periods=1.0)
     wa = announce(w)
     w.hear(tentative(src=10, gid=1 if wa.group_id > 1 else 2))
+    w.advance(w.now + w.cfg.forward_jitter + 0.001)  # after a jitter
     ((again),) = w.sent()
     assert isinstance(again, LeaderBeacon) and again.tentative and again.group_id == wa.group_id
 
@@ -316,11 +317,13 @@ def test_a_mote_between_two_would_be_groups_relays_the_higher_announcement_once(
     h.hear(tentative(src=30, gid=900))
     assert h.sent() == []  # one announcement: nothing to relay
     h.hear(tentative(src=31, gid=400))
+    h.advance(h.now + h.cfg.forward_jitter + 0.001)  # after a jitter
     (r,) = h.sent()
     assert isinstance(r, LeaderBeacon) and r.tentative
     assert (r.src, r.group_id, r.leader, r.hops) == (10, 900, 30, 1)
     h.hear(tentative(src=31, gid=400))  # repeated: relayed once only
     h.hear(tentative(src=30, gid=900))
+    h.advance(h.now + h.cfg.forward_jitter + 0.001)
     assert h.sent() == []
     # The lower announcer withdraws on the relayed copy.
     low = H(nid=31, tentative_periods=1.0)
@@ -331,6 +334,88 @@ def test_a_mote_between_two_would_be_groups_relays_the_higher_announcement_once(
     assert low.g.stats.tentative_withdrawn == 1
     low.advance(low.now + low.cfg.beacon_period)
     assert low.events() == [] and low.g.membership(1) is None
+
+
+def _first_send_time(h: H, until: float) -> float | None:
+    """Advance ``h`` deadline by deadline up to ``until``; the time of its first frame."""
+    while not h.ctx.outbox:
+        d = h.g.timers.next_deadline()
+        if d is None or d > until:
+            h.advance(until)
+            return None
+        h.advance(d)
+    return h.now
+
+
+def test_motes_that_heard_the_same_announcements_relay_them_at_different_times() -> None:
+    """Fire seeds with collisions on: every mote between two would-be groups hears
+    the same frame at the same instant; answering at once, their relays overlap on
+    the air and the announcer hears none of them."""
+    times = []
+    for nid in (11, 12, 13):
+        h = H(nid=nid, temp=20.0, tentative_periods=1.0)
+        h.g.define(1, HOT, 0.0)
+        h.advance(1.0)
+        h.hear(tentative(src=30, gid=900))
+        h.hear(tentative(src=31, gid=400))
+        t = _first_send_time(h, 1.0 + h.cfg.forward_jitter)
+        assert t is not None  # relayed within the forward jitter
+        times.append(t)
+    airtime = 0.002  # a LeaderBeacon on the CC2420 with its PHY overhead is < 2 ms
+    gaps = [b - a for a, b in zip(sorted(times), sorted(times)[1:], strict=False)]
+    assert min(gaps) > airtime / 10 and max(times) - min(times) > airtime
+
+
+def test_a_mote_that_joins_after_hearing_an_announcement_answers_it() -> None:
+    """Fire seed 6 with collisions on: two motes joined a group after hearing a
+    would-be group's announcement (as waiting motes, which do not answer); their
+    forwards of the group's beacon collided at the would-be mote, which took its
+    id. A joiner that heard an announcement sends a second, later copy."""
+    h = H(temp=20.0, tentative_periods=1.0)
+    h.g.define(1, HOT, 0.0)
+    h.advance(1.0)
+    h.hear(tentative(src=30, gid=900))
+    h.temp = 80.0
+    h.advance(2.2)  # qualifies at its next check; waits for the announced group
+    assert h.g.role(1) is Role.WAITING and h.sent() == []
+    h.hear(beacon(src=4, gid=500, leader=2, seq=3, hops=1))
+    assert h.g.membership(1) is not None
+    h.advance(h.now + 3 * h.cfg.forward_jitter)
+    copies = [f for f in h.sent() if isinstance(f, LeaderBeacon) and f.group_id == 500]
+    assert len(copies) == 2 and all(not f.tentative and f.seq == 3 for f in copies)
+    # Without an announcement heard, a joiner forwards once only.
+    q = H(temp=80.0, tentative_periods=1.0)
+    q.g.define(1, HOT, 0.0)
+    q.hear(beacon(src=4, gid=500, leader=2, seq=3, hops=1))
+    q.advance(q.now + 3 * q.cfg.forward_jitter)
+    assert len([f for f in q.sent() if isinstance(f, LeaderBeacon)]) == 1
+
+
+def test_a_part_that_split_off_and_rejoined_keeps_its_split_id_for_the_real_split() -> None:
+    """Fire seed 1 with collisions on: the bridge to the leader flaps; a part takes
+    a split and a new id, hears the old group again and rejoins it, and splits for
+    good a few beacon periods later. It goes on under the id it split off with,
+    not a third one."""
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=4, gid=500, leader=2, weight=40, seq=17, hops=1))  # 2 hops away
+    timeout = h.cfg.leader_timeout_periods * h.cfg.beacon_period
+    h.advance(timeout + h.cfg.beacon_period + ELECTION_BACKOFF_FACTOR * h.cfg.create_backoff)
+    (e,) = h.events(LeaderElected)
+    split_id = e.group_id
+    assert e.cause is ElectionCause.ELECTION and split_id != 500
+    h.advance(h.now + 0.5)
+    h.hear(beacon(src=4, gid=500, leader=2, weight=44, seq=22, hops=1))  # the bridge again
+    (y,) = h.events(LeaderYielded)
+    assert y.successor == 500 and h.g.membership(1).group_id == 500  # type: ignore[union-attr]
+    for k in range(2):
+        h.advance(h.now + h.cfg.beacon_period)
+        h.hear(beacon(src=4, gid=500, leader=2, weight=45 + k, seq=23 + k, hops=1))
+    h.events()
+    backoff = ELECTION_BACKOFF_FACTOR * h.cfg.create_backoff
+    h.advance(h.now + timeout + h.cfg.beacon_period + backoff)
+    (e2,) = h.events(LeaderElected)
+    assert e2.cause is ElectionCause.ELECTION and e2.group_id == split_id
 
 
 def test_a_waiting_mote_that_heard_an_announcement_does_not_announce_a_contender() -> None:

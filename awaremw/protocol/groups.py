@@ -23,7 +23,9 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
   id for ``tentative_periods`` beacon periods (tentative beacons, never joined
   nor forwarded): an established group in range answers and is joined, the
   higher of two would-be ids goes on, so contention at a group's birth ends
-  before any mote holds the losing id;
+  before any mote holds the losing id; answers to an announcement go out after
+  a jitter (with collisions, motes answering the same frame at once collide),
+  and a mote that joins a group after hearing an announcement answers it;
 * members forward only the heaviest group they know: a member hearing a heavier
   group of its type (``(weight, group id)`` compared) switches to it, a leader
   hearing one yields (reports GONE with the survivor's id) and joins it;
@@ -35,7 +37,8 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
   and one more period of patience, drop the group and, still qualifying, run a
   wider creation backoff: the first to fire creates a group with a NEW id (the
   paper's split rule), or takes back the id of the group it left by a merge
-  less than ``unmerge_window_periods`` ago (the merge did not hold);
+  less than ``unmerge_window_periods`` ago (the merge did not hold), or of the
+  split-off group it left when the old group's beacon came back (nor did the split);
 * a mote joining a group from its table of nearby groups announces it (one
   re-broadcast of the remembered beacon).
 """
@@ -245,6 +248,7 @@ class _TypeState:
     suspect_at: float | None = None  # a unicast to the leader failed at this time
     rebutted: float = -math.inf  # last re-broadcast answering a lighter group's beacon
     split_from: int = 0  # the id whose leader we lost before creating this group
+    split_t: float = -math.inf  # ... and when we lost it
     patience: bool = False  # the split route's extra beacon period was granted for this seq
     former: int = 0  # an established group (weight > 0) we left by a merge ...
     former_until: float = -math.inf  # ... and until when a split may take its id back
@@ -253,6 +257,7 @@ class _TypeState:
     tent_heard: dict[int, float] = field(default_factory=dict)  # tentative id -> heard at
     tent_leader: dict[int, int] = field(default_factory=dict)  # tentative id -> announcer
     tent_relayed: int = 0  # the would-be id whose announcement we relayed last
+    relay: tuple[int, int] | None = None  # (would-be id, announcer) of the pending relay
 
 
 def seq_newer(a: int, b: int) -> bool:
@@ -507,6 +512,13 @@ class Groups(Component):
                 self._claim(st, now)
         elif kind == "rebut" and st.role in (Role.MEMBER, Role.LEADER):
             self._forward(st, count=False)
+        elif kind == "relay" and st.role in (Role.IDLE, Role.WAITING) and not st.tent_gid:
+            if st.relay is not None:
+                (top, who), st.relay = st.relay, None
+                me = self.ctx.node_id
+                self.send(LeaderBeacon(me, BROADCAST, st.gtype, top, who, 0, 0, 1, True))
+        elif kind == "announce" and st.role is Role.WAITING and st.tent_gid:
+            self._send_tentative(st)
         elif kind == "create" and st.role is Role.WAITING:
             best = self._best_nearby(st, now)
             if best is not None:
@@ -664,6 +676,7 @@ class Groups(Component):
         self._become_member(st, gid, h.leader, h.weight, h.seq, h.hops, h.src, h.t, h.rssi, now)
         st.forwarded = False
         self._schedule_forward(st, now)
+        self._answer_tentatives(st, now)
 
     def _adopt(self, st: _TypeState, f: LeaderBeacon, rssi: float, now: float) -> None:
         """Join the group of beacon ``f`` just heard, and forward it."""
@@ -672,6 +685,19 @@ class Groups(Component):
         )
         st.forwarded = False
         self._schedule_forward(st, now)
+        self._answer_tentatives(st, now)
+
+    def _answer_tentatives(self, st: _TypeState, now: float) -> None:
+        """We joined a group after hearing a would-be group announce another id (as
+        a waiting or idle mote, which does not answer): answer it, one more copy of
+        our beacon after the forward, so that one lost forward (two forwarders
+        colliding at the would-be group's radio) does not let it take its id."""
+        hold = self._tentative_hold()
+        if not any(g != st.gid and now - t <= hold for g, t in st.tent_heard.items()):
+            return
+        st.rebutted = now
+        j = self.ctx.config.forward_jitter
+        self.timers.set(("rebut", st.gtype), now + self.ctx.rng.uniform(j, 2 * j))
 
     def _create(self, st: _TypeState, now: float) -> None:
         taken = set(st.nearby) | {st.gid}
@@ -716,10 +742,18 @@ class Groups(Component):
         st.tent_sent += 1
         self.stats.tentative_sent += 1
 
+    def _jitter(self, st: _TypeState, kind: str, now: float) -> None:
+        """An answer to a frame just heard goes out after U(0, forward_jitter): the
+        motes that heard the same frame must not all answer at the same instant."""
+        name = (kind, st.gtype)
+        if name not in self.timers:
+            self.timers.set(name, now + self.ctx.rng.uniform(0, self.ctx.config.forward_jitter))
+
     def _withdraw(self, st: _TypeState) -> None:
         """Give up our would-be group (nobody joined it, nothing was reported)."""
         st.tent_gid = 0
         self.timers.cancel(("confirm", st.gtype))
+        self.timers.cancel(("announce", st.gtype))
         self.stats.tentative_withdrawn += 1
 
     def _on_tentative(self, st: _TypeState, f: LeaderBeacon, now: float) -> None:
@@ -734,9 +768,11 @@ class Groups(Component):
             # relay the higher one's announcement once, the lower one withdraws.
             top = max([*rivals, f.group_id])
             if top != st.tent_relayed:
+                # After a jitter: every mote between the two heard the same frame
+                # at the same instant; relaying at once, they collided.
                 st.tent_relayed = top
-                me, who = self.ctx.node_id, st.tent_leader.get(top, 0)
-                self.send(LeaderBeacon(me, BROADCAST, st.gtype, top, who, 0, 0, 1, True))
+                st.relay = (top, st.tent_leader.get(top, 0))
+                self._jitter(st, "relay", now)
         if role in (Role.MEMBER, Role.LEADER):
             # An established group is in range: answer with our beacon, the
             # would-be group joins us instead of taking its id.
@@ -749,7 +785,7 @@ class Groups(Component):
                 backoff = self.ctx.rng.uniform(0, self.ctx.config.create_backoff)
                 self.timers.set(("create", st.gtype), now + self._tentative_hold() + backoff)
             elif st.tent_sent <= TENTATIVE_BEACONS:
-                self._send_tentative(st)  # it may not have heard ours: once more
+                self._jitter(st, "announce", now)  # it may not have heard ours: once more
 
     def _become_leader(
         self, st: _TypeState, gid: int, weight: int, seq: int, now: float, cause: ElectionCause
@@ -777,12 +813,16 @@ class Groups(Component):
         self.ctx.emit(LeaderElected(self.ctx.node_id, st.gtype, gid, weight, cause, now))
         self._beacon(st, now)
 
-    def _leave(self, st: _TypeState, now: float, reason: LeaveReason) -> None:
+    def _leave(self, st: _TypeState, now: float, reason: LeaveReason, into: int = 0) -> None:
         gid = st.gid
-        if reason in (LeaveReason.SWITCHED, LeaveReason.YIELDED) and st.weight > 0:
+        window = self._unmerge_window()
+        rejoined = into != 0 and into == st.split_from and now - st.split_t <= window
+        if reason in (LeaveReason.SWITCHED, LeaveReason.YIELDED) and (st.weight > 0 or rejoined):
             # Merged into a heavier group: if the merge does not hold (the part
             # loses the merged group's leader soon), the part takes this id back.
-            st.former, st.former_until = gid, now + self._unmerge_window()
+            # The same for a part that split off and met its former group again
+            # (a flapping bridge): when the split comes for good, it is that part.
+            st.former, st.former_until = gid, now + window
         for kind in ("create", "confirm", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
             self.timers.cancel((kind, st.gtype))
         st.role = Role.IDLE
@@ -802,7 +842,10 @@ class Groups(Component):
             self._report(st, now, GroupStatus.GONE)
         if st.role in (Role.MEMBER, Role.LEADER, Role.HANDING_OVER):
             self._leave(st, now, LeaveReason.DELETED)
-        for kind in ("create", "confirm", "lost", "fwd", "beacon", "handover", "claim", "rebut"):
+        for kind in (
+            "create", "confirm", "lost", "fwd", "beacon", "handover", "claim", "rebut",
+            "relay", "announce",
+        ):  # fmt: skip
             self.timers.cancel((kind, group_type))
         if not self._types:
             self.timers.cancel("check")
@@ -822,7 +865,7 @@ class Groups(Component):
             self.timers.set(("lost", st.gtype), now + self.ctx.config.beacon_period)
             return
         dead = st.gid
-        st.split_from = dead  # named by the group this mote may create now
+        st.split_from, st.split_t = dead, now  # named by the group this mote may create now
         self._leave(st, now, LeaveReason.LEADER_LOST)
         st.nearby.pop(dead, None)
         if self._qualifies(st, True, now):
@@ -904,7 +947,7 @@ class Groups(Component):
             if f.group_id == st.gid:
                 self._same_group(st, f, rssi, now)
             elif heavier(f.weight, f.group_id, st.weight, st.gid):
-                self._leave(st, now, LeaveReason.SWITCHED)
+                self._leave(st, now, LeaveReason.SWITCHED, into=f.group_id)
                 self._adopt(st, f, rssi, now)
             else:
                 self._rebut(st, now)
@@ -987,7 +1030,7 @@ class Groups(Component):
         self.ctx.emit(LeaderYielded(self.ctx.node_id, st.gtype, old, f.group_id, now))
         if f.group_id != old:
             self._report(st, now, GroupStatus.GONE, successor=f.group_id)
-        self._leave(st, now, LeaveReason.YIELDED)
+        self._leave(st, now, LeaveReason.YIELDED, into=f.group_id)
         self._adopt(st, f, rssi, now)
 
     # ----------------------------------------------------------------- handover
