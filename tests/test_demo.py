@@ -21,7 +21,7 @@ from awaremw.view.snapshot import GroupLine, MoteDot, RecordLine, Snapshot
 pytestmark = pytest.mark.zenoh
 
 # romeo4r at 10x: the robot is sensed from t = 32 s, records follow within seconds.
-FAST = ["--duration", "45", "--speed", "10"]
+FAST = ["--duration", "60", "--speed", "10"]
 
 
 def _cli(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
@@ -95,7 +95,7 @@ def test_demo_runs_the_large_deployment(tmp_path: Path) -> None:
     """``awaremw demo --deployment large``: 1,026 motes in real time over Zenoh, the
     robot's group forms and its records reach the robot's client over MQTT."""
     p = _cli(
-        "demo", "--deployment", "large", "--duration", "16", "--plain", "--insecure",
+        "demo", "--deployment", "large", "--duration", "20", "--plain", "--insecure",
         "--mqtt-port", "0", "--summary", str(tmp_path / "summary.txt"), timeout=150,
     )  # fmt: skip
     assert p.returncode == 0, p.stderr[-2000:]

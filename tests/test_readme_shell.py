@@ -40,7 +40,7 @@ READY = {
     "gateway": r"awaremw gateway: motes",
 }
 FAST = {  # appended to long real-time runs
-    "demo": "--duration 40 --speed 10 --plain",
+    "demo": "--duration 60 --speed 10 --plain",  # the robot is tracked from ~t=30 s
     "experiment": "--duration 60 --speed 10",
 }
 
