@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import pstats
 from pathlib import Path
 
@@ -36,6 +37,7 @@ KEYS = {
     "records_produced",
     "records_delivered",
     "record_delivery",
+    "first_record_s",
     "leaders",
     "records_untracked",
     "channel_period_s",
@@ -183,3 +185,80 @@ def test_scale_collisions_switch_over_zenoh() -> None:
     assert off["collisions_model"] == "none" and off["collisions"] == 0
     assert on["collisions"] > 0
     assert on["delivery_ratio"] >= 0.99 and off["delivery_ratio"] >= 0.99
+
+
+def test_scale_aware_run_without_records_says_so() -> None:
+    """A run whose counted window (up to ``duration - GRACE_S``) closes before the
+    first record (here 12.5 s: the window ends at 2.5 s, the first record comes
+    at about 5.9 s) has no delivery to measure: ``record_delivery`` is None, not
+    0.0, and the run fails for that reason, not as a loss (issue 14's 4,000-mote
+    trial). The lag target is lifted so that a loaded machine cannot mask it."""
+    from awaremw.bench.scale import run_once
+
+    out = asyncio.run(run_once(16, 12.5, speed=5.0, seed=2, workload="aware", max_p99_ms=1e9))
+    assert out["records_produced"] == 0 and out["records_delivered"] == 0
+    assert out["record_delivery"] is None
+    assert out["reason"] == "no_records" and out["meets_target"] is False
+    # Records did come, after the window: produced late, not lost.
+    assert out["first_record_s"] is not None and out["first_record_s"] > 12.5 - aware_load.GRACE_S
+
+
+def test_scale_aware_refuses_a_duration_with_no_window() -> None:
+    from awaremw.bench.scale import run_once
+
+    with pytest.raises(ValueError, match="--duration above 11 s"):
+        asyncio.run(run_once(16, 11.0, workload="aware"))
+
+
+def test_tally_without_records_has_no_ratio() -> None:
+    res = aware_load.RecordTally().results(30.0)
+    assert res["records_produced"] == 0 and res["record_delivery"] is None
+    assert res["first_record_s"] is None
+
+
+def test_failure_reason_order() -> None:
+    from awaremw.bench.scale import failure_reason
+
+    none = {"records_produced": 0}
+    some = {"records_produced": 4}
+    assert failure_reason(10.0, 50.0, True, some) is None
+    assert failure_reason(10.0, 50.0, True, {}) is None
+    # Overload first: a machine that did not keep real time explains the rest.
+    assert failure_reason(314.0, 50.0, False, none) == "overload"
+    assert failure_reason(math.nan, 50.0, True, some) == "overload"
+    assert failure_reason(10.0, 50.0, False, none) == "no_records"
+    assert failure_reason(10.0, 50.0, False, some) == "records_lost"
+    assert failure_reason(10.0, 50.0, False, {}) == "frames_lost"
+
+
+def test_search_fails_a_trial_without_records_and_says_why(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``--search``: a trial with no record produced is a failure, its reason in
+    the list of trials; the answer is the largest trial that met the target."""
+    import argparse
+
+    from awaremw.bench import scale
+
+    async def fake(n: int, **kw: object) -> dict[str, object]:
+        ok = n <= 1000
+        return {
+            "motes": n,
+            "timer_lag_p99_ms": 20.0,
+            "delivery_ratio": None,
+            "records_produced": 6 if ok else 0,
+            "record_delivery": 1.0 if ok else None,
+            "first_record_s": 6.0 if ok else None,
+            "meets_target": ok,
+            "reason": None if ok else "no_records",
+        }
+
+    monkeypatch.setattr(scale, "run_once", fake)
+    parser = argparse.ArgumentParser()
+    scale.add_arguments(parser)
+    args = parser.parse_args(["--workload", "aware", "--motes", "500", "--search"])
+    out = asyncio.run(scale.search(args))
+    assert out["motes_max"] == 1000 and out["meets_target"] is True
+    failed = [t for t in out["search"] if not t["meets_target"]]
+    assert failed and all(t["reason"] == "no_records" for t in failed)
+    assert all(t["record_delivery"] is None for t in failed)

@@ -13,7 +13,10 @@ per epoch, and collection carries it to the gateway mote.
 
 ``record_delivery`` is the share of records the leaders produced (up to
 :data:`GRACE_S` before the end, so records still in flight do not count
-against it) that arrived at the gateway mote.
+against it) that arrived at the gateway mote; None when no record was
+produced in that window (a run too short for its grid: Drip, the collection
+tree and the group take longer to form on a larger grid, see
+``first_record_s``), so that "none produced" never reads as "none delivered".
 """
 
 from __future__ import annotations
@@ -151,16 +154,20 @@ class RecordTally:
 
     def results(self, end: float) -> dict[str, Any]:
         """``records_produced`` (up to ``end - GRACE_S``), ``records_delivered`` (of
-        those), ``record_delivery`` (their ratio; 0.0 when none was produced),
+        those), ``record_delivery`` (their ratio; None when none was produced in
+        that window: no ratio, not a loss), ``first_record_s`` (emulated time of
+        the earliest record produced, counted or not; None if none),
         ``leaders`` (distinct motes that led an epoch), ``records_untracked``
         (events past :data:`MAX_TRACKED`, 0 in any run of sensible length)."""
         counted = [k for k, t in self.produced.items() if t <= end - GRACE_S]
         got = sum(1 for k in counted if k in self.delivered)
+        first = min(self.produced.values(), default=None)
         return {
             "workload": "aware",
             "records_produced": len(counted),
             "records_delivered": got,
-            "record_delivery": round(got / len(counted), 4) if counted else 0.0,
+            "record_delivery": round(got / len(counted), 4) if counted else None,
+            "first_record_s": None if first is None else round(first, 3),
             "leaders": len(self.leaders),
             "records_untracked": self.untracked,
             "channel_period_s": CHANNEL_PERIOD_S,

@@ -25,8 +25,10 @@ radio's ``delivery_ratio`` in the target (``frames_expected`` and
 
 Target (``--search``): timer lag p99 below ``--max-p99-ms`` (50) and delivery
 (``record_delivery`` with ``--workload aware``) at least ``--min-delivery``
-(0.99). ``--search`` doubles ``--motes`` while the target holds, then bisects
-between the last pass and the first failure.
+(0.99); with ``--workload aware`` at least one record must have been produced
+in the counted window (else ``record_delivery`` is None and the run fails
+with ``reason`` ``"no_records"``). ``--search`` doubles ``--motes`` while the
+target holds, then bisects between the last pass and the first failure.
 
 JSON keys (one object; with ``--search`` the best passing run's keys plus
 ``search`` = the list of trials):
@@ -49,9 +51,16 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   ``rx_per_tx`` (mean receivers per beacon);
 * ``envelopes_rx`` (frames that crossed processes through Zenoh),
   ``malformed``; ``cpu_s`` (all processes), ``cpu_per_process``,
-  ``wall_s``; ``meets_target``; ``workload``; with ``--workload aware``
-  also ``records_produced``, ``records_delivered``, ``record_delivery``,
-  ``leaders``, ``records_untracked``, ``channel_period_s``.
+  ``wall_s``; ``meets_target``; ``reason``: why the target is missed (None
+  when met), the first of ``"overload"`` (lag p99 at or above the target: the
+  machine did not keep real time), ``"no_records"`` (aware: no record produced
+  before ``duration - 10 s``), ``"records_lost"`` / ``"frames_lost"``
+  (delivery below the target); ``workload``; with ``--workload aware``
+  also ``records_produced``, ``records_delivered``, ``record_delivery`` (None
+  when no record was produced), ``first_record_s`` (emulated time of the
+  first record), ``leaders``, ``leaders_per_process`` (with ``--processes N``),
+  ``records_untracked``, ``channel_period_s``. The search's ``search`` list
+  gives each trial's ``reason``.
 """
 
 from __future__ import annotations
@@ -189,6 +198,13 @@ async def run_once(
     aware = workload == "aware"
     if aware and radio != "cc2420":
         raise ValueError("--workload aware uses the cc2420 preset")
+    shortest = aware_load.GRACE_S + aware_load.DEFINE_AT_S
+    if aware and duration <= shortest:
+        raise ValueError(
+            f"--workload aware needs --duration above {shortest:g} s: "
+            f"records produced in the last {aware_load.GRACE_S:g} s do not count and the "
+            f"definitions are injected at {aware_load.DEFINE_AT_S:g} s"
+        )
     dep = (
         aware_load.deployment(motes, seed, duration)
         if aware
@@ -197,6 +213,7 @@ async def run_once(
     # The medium's access and collision model (docs/radio.md), as a deployment sets it.
     dep = dataclasses.replace(dep, mac=mac, collisions=collisions)
     tally = aware_load.RecordTally()
+    leaders_per_process: list[int] = []
     h: Handler = "channel" if handler == "channel" else "callback"
     cpu: list[float] = []
     lag: list[float] = []
@@ -246,6 +263,7 @@ async def run_once(
             tallies = launcher.plugin_results()
             if len(tallies) != processes:
                 raise RuntimeError(f"{processes - len(tallies)} worker(s) returned no tally")
+            leaders_per_process = [len(t.leaders) for t in tallies]
             tally.merge(tallies)
         for r in launcher.results:
             if r.error:
@@ -260,14 +278,19 @@ async def run_once(
         tot.add(c)
     expected: int | None = None
     delivery: float | None = None
+    records: dict[str, Any] = {}
     if aware:
         records = tally.results(duration)
-        ok_delivery = records["record_delivery"] >= min_delivery
+        ratio = records["record_delivery"]
+        ok_delivery = ratio is not None and ratio >= min_delivery
+        if processes > 1:
+            records["leaders_per_process"] = leaders_per_process
     else:
         expected = expected_receptions(dep, {i: c.frames_tx for i, c in counters.items()})
         delivery = (tot.frames_rx + tot.collisions) / expected if expected else math.nan
         ok_delivery = delivery >= min_delivery
     p50, p99 = percentile(lag, 50), percentile(lag, 99)
+    reason = failure_reason(p99, max_p99_ms, ok_delivery, records)
     out: dict[str, Any] = {
         "motes": motes,
         "processes": processes,
@@ -298,12 +321,35 @@ async def run_once(
         "cpu_s": round(sum(cpu), 2),
         "cpu_per_process": [round(c, 2) for c in cpu],
         "wall_s": round(wall, 2),
-        "meets_target": bool(p99 < max_p99_ms and ok_delivery),
+        "meets_target": reason is None,
+        "reason": reason,
         "workload": workload,
     }
     if aware:
         out.update(records)
     return out
+
+
+def failure_reason(
+    p99: float, max_p99_ms: float, ok_delivery: bool, records: dict[str, Any]
+) -> str | None:
+    """Why a run misses the target (None: it meets it), the first that applies:
+
+    * ``"overload"``: timer lag p99 at or above ``max_p99_ms`` (or no sample):
+      the machine did not keep real time, whatever else was measured;
+    * ``"no_records"`` (``--workload aware``): no leader produced a record
+      before ``duration - GRACE_S``, so there is no delivery to measure (the
+      run is too short for the time Drip, the collection tree and the group
+      take to form on this grid; see ``first_record_s``);
+    * ``"records_lost"`` / ``"frames_lost"``: delivery below ``--min-delivery``.
+    """
+    if not p99 < max_p99_ms:  # NaN (no sample) fails too
+        return "overload"
+    if records and not records["records_produced"]:
+        return "no_records"
+    if not ok_delivery:
+        return "records_lost" if records else "frames_lost"
+    return None
 
 
 def _inject(core: MoteCore, now: float) -> None:
@@ -346,7 +392,9 @@ async def search(args: argparse.Namespace) -> dict[str, Any]:
         "delivery_ratio",
         "records_produced",
         "record_delivery",
+        "first_record_s",
         "meets_target",
+        "reason",
     )
     summary = [{k: t[k] for k in keys if k in t} for t in trials]
     out: dict[str, Any]

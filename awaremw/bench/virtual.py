@@ -20,7 +20,8 @@ the counters), ``mac`` and ``collisions_model`` (``--mac csma|aloha``,
 ``--collisions sinr|none``), ``preset``, ``seed``, ``spacing_m``, ``workload``. With
 ``--workload aware`` also ``records_produced``, ``records_delivered``,
 ``record_delivery`` (delivered / produced, records produced in the last 10 s
-left out), ``leaders``, ``records_untracked``, ``channel_period_s``;
+left out; null when none was produced before that), ``first_record_s``
+(emulated time of the first record), ``leaders``, ``records_untracked``, ``channel_period_s``;
 ``mean_neighbours`` is then the mean collection-tree neighbour table size.
 """
 
