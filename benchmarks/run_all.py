@@ -108,6 +108,7 @@ def _scale_aware_cell(r: Result) -> str:
         f"**{_n(r.get('timer_lag_p99_ms', r.get('lag_p99_ms')))} ms**; record delivery "
         f"**{_n(r.get('record_delivery'), 3)}** ({_n(r.get('records_delivered'))} of "
         f"{_n(r.get('records_produced'))}); on target: {_n(r.get('meets_target'))}"
+        + (f" (`{r['reason']}`)" if r.get("reason") else "")
     )
 
 
