@@ -82,7 +82,7 @@ async def test_demo_against_mosquitto_with_acl(
 
     sc = load_scenario("romeo4r")
     summary = await run_demo(
-        sc, 42.0, 10.0, mosquitto.url("gateway"), True, robot_mqtt=mosquitto.url("operator")
+        sc, 60.0, 10.0, mosquitto.url("gateway"), True, robot_mqtt=mosquitto.url("operator")
     )
     assert summary["records_received"] >= 2, capsys.readouterr().out[-3000:]
     # How many group ids form at 10x is timing-dependent (see above): at least
