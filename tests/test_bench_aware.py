@@ -8,6 +8,7 @@ import pstats
 from pathlib import Path
 
 import pytest
+from traces import aware_trace
 
 from awaremw.bench import aware_load
 from awaremw.bench.virtual import run
@@ -149,23 +150,7 @@ def test_tally_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def _trace(motes: int, duration: float) -> list[str]:
-    """Every core event of a seeded aware run (mote, time, event), then every
-    mote's radio counters and pending timers."""
-    load = aware_load.build(motes, 1, duration)
-    out: list[str] = []
-    tally = load.net.on_event
-    assert tally is not None
-
-    def hook(nid: int, ev: object, t: float) -> None:
-        out.append(f"{nid}|{t!r}|{ev!r}")
-        tally(nid, ev, t)
-
-    load.net.on_event = hook
-    load.run_until(duration)
-    for nid, core in sorted(load.net.cores.items()):
-        assert isinstance(core, AwareMote)
-        out.append(f"{nid}|{load.net.counters[nid]!r}|{core.next_deadline()!r}")
-    return out
+    return aware_trace(motes, 1, duration)
 
 
 def test_same_seed_same_events_and_records() -> None:

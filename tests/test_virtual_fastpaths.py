@@ -11,8 +11,8 @@ import math
 import random
 
 import pytest
+from traces import aware_trace
 
-from awaremw.bench import aware_load
 from awaremw.protocol.core import IdleCheck
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.protocol.mote import AwareMote
@@ -34,21 +34,7 @@ from awaremw.world.mobility import Static
 
 
 def _trace(motes: int, duration: float) -> list[str]:
-    """Every core event of a seeded aware run, then every mote's counters and deadline."""
-    load = aware_load.build(motes, 3, duration)
-    out: list[str] = []
-    tally = load.net.on_event
-    assert tally is not None
-
-    def hook(nid: int, ev: object, t: float) -> None:
-        out.append(f"{nid}|{t!r}|{ev!r}")
-        tally(nid, ev, t)
-
-    load.net.on_event = hook
-    load.run_until(duration)
-    for nid, core in sorted(load.net.cores.items()):
-        out.append(f"{nid}|{load.net.counters[nid]!r}|{core.next_deadline()!r}")
-    return out
+    return aware_trace(motes, 3, duration)
 
 
 def test_the_fast_paths_change_no_event_and_no_counter(monkeypatch: pytest.MonkeyPatch) -> None:
