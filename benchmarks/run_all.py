@@ -82,6 +82,7 @@ class Row:
     repeat: int | None = None  # None: --repeat; 1: deterministic figures, one run
     why_once: str = ""
     kind: str = "bench"  # bench: JSON on stdout; experiment: --out DIR/metrics.json
+    build: str = "python"  # python: this interpreter's awaremw; mypyc: the compiled build
 
     @property
     def command(self) -> str:
@@ -120,7 +121,8 @@ def _virtual_cell(r: Result) -> str:
     out = (
         f"{_n(r.get('motes'))} {what} x {_n(r.get('sim_seconds'))} s simulated in "
         f"{_n(r.get('wall_seconds'))} s: **{_n(r.get('speedup'), 1)}x** real time "
-        f"({_ratio(r.get('sim_seconds'), r.get('cpu_seconds'))}x per CPU second); "
+        f"(**{_ratio(r.get('sim_seconds'), r.get('cpu_seconds'))}x per CPU second**, "
+        f"{_n(r.get('cpu_seconds'))} s CPU, build `{r.get('build', 'python')}`); "
         f"{_n(r.get('frames_tx'))} frames, {_n(r.get('deliveries'))} receptions"
     )
     if r.get("workload") == "aware":
@@ -249,6 +251,17 @@ ROWS: tuple[Row, ...] = (
          "--json"),
         ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12", "--json"),
         "speedup", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99"),
+    Row("virtual-aware-60", "virtual clock, whole middleware, 60 s (issue 14's command)",
+        ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "60",
+         "--json"),
+        ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12", "--json"),
+        "cpu_seconds", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99"),
+    Row("virtual-aware-60-compiled",
+        "virtual clock, whole middleware, 60 s, compiled build (`AWAREMW_USE_MYPYC=1`)",
+        ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "60",
+         "--json"),
+        ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12", "--json"),
+        "cpu_seconds", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99", build="mypyc"),
     Row("virtual-aware-no-collisions", "virtual clock, whole middleware, no collisions",
         ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "120",
          "--collisions", "none", "--json"),
@@ -344,14 +357,25 @@ def _loadavg() -> list[float] | None:
         return None
 
 
-def run_one(row: Row, argv: Sequence[str]) -> Result:
-    """One run of ``row``'s command (``argv`` after ``awaremw``): its JSON result."""
+def run_one(row: Row, argv: Sequence[str], compiled: Path | None = None) -> Result:
+    """One run of ``row``'s command (``argv`` after ``awaremw``): its JSON result.
+    A ``mypyc`` row runs the compiled build installed in ``compiled`` (see
+    :func:`build_compiled`), from a directory outside the checkout so that the
+    sources do not shadow it."""
     with tempfile.TemporaryDirectory(prefix="awaremw-run-all-") as tmp:
         cmd = [sys.executable, "-m", "awaremw", *argv]
+        env = None
+        cwd = None
+        if row.build == "mypyc":
+            if compiled is None:
+                raise RuntimeError("a compiled-build row needs the compiled build (build_compiled)")
+            env = {**os.environ, "PYTHONPATH": str(compiled)}
+            cwd = tmp
         if row.kind == "experiment":
             cmd += ["--out", tmp]
         t0 = time.monotonic()
-        p = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, check=False)
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, check=False,
+                           env=env, cwd=cwd)  # fmt: skip
         wall = round(time.monotonic() - t0, 2)
         if p.returncode != 0:
             raise RuntimeError(f"exit {p.returncode}: {p.stderr.strip()[-1500:]}")
@@ -359,8 +383,24 @@ def run_one(row: Row, argv: Sequence[str]) -> Result:
             result: Result = json.loads((Path(tmp) / "metrics.json").read_text())
         else:
             result = json.loads(p.stdout.strip().splitlines()[-1])
+    if row.kind == "bench" and result.get("build", "python") != row.build:
+        raise RuntimeError(f"the row wants the {row.build} build; {result.get('build')} ran")
     result["_process_wall_s"] = wall
     return result
+
+
+def build_compiled(dest: Path) -> float:
+    """Install the compiled build (setup.py, ``AWAREMW_USE_MYPYC=1``) of this checkout
+    into ``dest`` with this interpreter's pip and mypy; returns the seconds it took."""
+    t0 = time.monotonic()
+    env = {**os.environ, "AWAREMW_USE_MYPYC": "1"}
+    cmd = [sys.executable, "-m", "pip", "install", "-q", "--no-build-isolation", "--no-deps",
+           "--target", str(dest), str(HERE.parent)]  # fmt: skip
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S, check=False,
+                       env=env)  # fmt: skip
+    if p.returncode != 0:
+        raise RuntimeError(f"compiled build failed: {p.stderr.strip()[-1500:]}")
+    return round(time.monotonic() - t0, 1)
 
 
 def median_run(runs: Sequence[Result], headline: str) -> tuple[int, list[Any]]:
@@ -383,6 +423,7 @@ class Session:
     repeat: int
     quick: bool
     rows: list[Row]
+    compiled: Path | None = None  # the compiled build's directory (None: built when needed)
     report: dict[str, Any] = field(default_factory=dict)
 
     def run(self) -> dict[str, Any]:
@@ -392,6 +433,27 @@ class Session:
         self.report = {"repeat": self.repeat, "quick": self.quick, "machine": machine(),
                        "rows": {}}  # fmt: skip
         started = time.monotonic()
+        with contextlib.ExitStack() as stack:
+            compiled = self.compiled
+            if compiled is None and any(row.build == "mypyc" for row, _ in plan):
+                compiled = Path(stack.enter_context(tempfile.TemporaryDirectory(
+                    prefix="awaremw-compiled-")))  # fmt: skip
+                print("building the compiled build (setup.py, AWAREMW_USE_MYPYC=1) ...",
+                      file=sys.stderr, flush=True)  # fmt: skip
+                try:
+                    self.report["machine"]["compiled_build_s"] = build_compiled(compiled)
+                except (RuntimeError, OSError, subprocess.TimeoutExpired) as e:
+                    # Its rows report the failure; the others still run.
+                    print(f"    failed: {str(e)[-300:]}", file=sys.stderr, flush=True)
+                    self.report["machine"]["compiled_build_error"] = str(e)[-1500:]
+                    compiled = None
+            self._rows(plan, total, started, compiled)
+        self.report["machine"]["loadavg_end"] = _loadavg()
+        self.report["session_s"] = round(time.monotonic() - started, 1)
+        return self.report
+
+    def _rows(self, plan: list[tuple[Row, int]], total: int, started: float,
+              compiled: Path | None) -> None:  # fmt: skip
         k = 0
         for row, n in plan:
             argv = row.quick if self.quick else row.argv
@@ -402,7 +464,7 @@ class Session:
                 print(f"[{k}/{total}] {row.key} run {i + 1}/{n}: awaremw {' '.join(argv)}",
                       file=sys.stderr, flush=True)  # fmt: skip
                 try:
-                    r = run_one(row, argv)
+                    r = run_one(row, argv, compiled)
                 except (RuntimeError, ValueError, OSError, subprocess.TimeoutExpired) as e:
                     errors.append(str(e))
                     print(f"    failed: {str(e)[-300:]}", file=sys.stderr, flush=True)
@@ -427,9 +489,6 @@ class Session:
                 entry["headline_values"] = values
                 entry["median"] = runs[i]
             self.report["rows"][row.key] = entry
-        self.report["machine"]["loadavg_end"] = _loadavg()
-        self.report["session_s"] = round(time.monotonic() - started, 1)
-        return self.report
 
 
 # --------------------------------------------------------------------------- the table
@@ -478,6 +537,12 @@ def write_readme(table: str, readme: Path = README) -> None:
     readme.write_text(text[: a + len(BEGIN)] + "\n" + table + text[b:], encoding="utf-8")
 
 
+COMPILED_HELP = (
+    "the compiled build, installed in DIR (pip install --target DIR with AWAREMW_USE_MYPYC=1); "
+    "default: built into a temporary directory"
+)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--repeat", type=int, default=None, help="runs per row (default 3; 1 --quick)")
@@ -488,6 +553,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--markdown", action="store_true", help="print the table from --results")
     ap.add_argument("--write-readme", action="store_true", help="put the table into README.md")
     ap.add_argument("--results", default=str(HERE / "results.json"), help="for --markdown")
+    ap.add_argument("--compiled", default=None, metavar="DIR", help=COMPILED_HELP)
     a = ap.parse_args(argv)
     if a.markdown or a.write_readme:
         report = json.loads(Path(a.results).read_text(encoding="utf-8"))
@@ -507,7 +573,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(f"unknown row(s): {', '.join(unknown)}")
     if a.quick and a.out is None:
         ap.error("--quick needs --out (it must not overwrite benchmarks/results.json)")
-    report = Session(repeat, a.quick, [by_key[k] for k in keys]).run()
+    compiled = Path(a.compiled).resolve() if a.compiled else None
+    report = Session(repeat, a.quick, [by_key[k] for k in keys], compiled).run()
     out = Path(a.out) if a.out else HERE / "results.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")

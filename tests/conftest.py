@@ -10,13 +10,20 @@ Hypothesis profiles, chosen by ``AWAREMW_HYPOTHESIS_PROFILE`` (``.ci/run`` sets
   examples per test unless the test sets its own (bounded) ``max_examples``,
   no example database, no deadline (shared CI machines are slow), and the
   failing example printed for reproduction.
+
+``AWAREMW_EXPECT_COMPILED=1`` (``.ci/run``'s run against the compiled build of
+``setup.py``): the session stops at once unless the ``awaremw`` imported is that
+build, so a suite meant for the compiled modules never quietly tests the sources.
 """
 
 from __future__ import annotations
 
 import os
 
+import pytest
 from hypothesis import settings
+
+import awaremw
 
 PROFILE_ENV = "AWAREMW_HYPOTHESIS_PROFILE"
 CI_MAX_EXAMPLES = 200
@@ -31,3 +38,11 @@ settings.register_profile(
     print_blob=True,
 )
 settings.load_profile(os.environ.get(PROFILE_ENV, "dev"))
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    if os.environ.get("AWAREMW_EXPECT_COMPILED") == "1" and not awaremw.compiled_modules():
+        raise pytest.UsageError(
+            f"AWAREMW_EXPECT_COMPILED=1 but {awaremw.__file__} has no compiled module: "
+            "install with AWAREMW_USE_MYPYC=1 (setup.py) and run pytest outside the checkout"
+        )

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import pytest
+from test_virtual import Recorder
 
 from awaremw.protocol.core import Transmission
 from awaremw.radio.mac import GIVE_UP, SENSE, TRANSMIT, Air, MacSender, mac_params
@@ -14,7 +15,6 @@ from awaremw.radio.model import CC1000, CC2420, RadioModel
 from awaremw.runtime.deployment import DeploymentError, load_deployment
 from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.world.mobility import Static
-from tests.test_virtual import Recorder
 
 # No shadowing, no fading: received power is a function of distance alone, so
 # "equal power" and "10 dB stronger" are exact. With n = 3, a factor 10^(1/3) in

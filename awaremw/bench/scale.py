@@ -75,7 +75,7 @@ from typing import Any
 
 from awaremw.bench import aware_load
 from awaremw.bench.medium import add_medium_arguments, medium_of
-from awaremw.bench.profiling import profiled
+from awaremw.bench.profiling import build_facts, profiled
 from awaremw.nodes import KindsFactory
 from awaremw.protocol.core import MoteCore
 from awaremw.radio.counters import MoteCounters
@@ -324,6 +324,7 @@ async def run_once(
         "meets_target": reason is None,
         "reason": reason,
         "workload": workload,
+        **build_facts(),
     }
     if aware:
         out.update(records)

@@ -23,6 +23,8 @@ the counters), ``mac`` and ``collisions_model`` (``--mac csma|aloha``,
 left out; null when none was produced before that), ``first_record_s``
 (emulated time of the first record), ``leaders``, ``records_untracked``, ``channel_period_s``;
 ``mean_neighbours`` is then the mean collection-tree neighbour table size.
+``build`` (``python``, or ``mypyc`` for the compiled build of ``setup.py``) and
+``compiled_modules`` (how many of the hot modules run compiled) say what ran.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import time
 from typing import Any
 
 from awaremw.bench import aware_load
-from awaremw.bench.profiling import profiled
+from awaremw.bench.profiling import build_facts, profiled
 from awaremw.protocol.hello import HelloMote
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import RadioModel, preset
@@ -121,6 +123,7 @@ def run(
         "seed": seed,
         "spacing_m": SPACING_M,
         "workload": workload,
+        **build_facts(),
     }
     if load is not None:
         out.update(load.results(duration))

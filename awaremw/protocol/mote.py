@@ -21,6 +21,8 @@ from __future__ import annotations
 import random
 from collections.abc import Callable
 
+from mypy_extensions import mypyc_attr
+
 from awaremw.protocol.attributes import Application
 from awaremw.protocol.channels import Channels
 from awaremw.protocol.collection import Collection
@@ -53,6 +55,8 @@ _INF = float("inf")
 __all__ = ["AwareMote", "Component", "MoteContext", "RssiSample"]  # the contract is re-exported
 
 
+# Subclassed by Python code (benchmarks, tests) in the compiled build (setup.py).
+@mypyc_attr(allow_interpreted_subclasses=True)
 class AwareMote:
     """One mote running the AWARE middleware (a :class:`MoteCore`)."""
 

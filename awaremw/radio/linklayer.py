@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from collections import deque
 
+from mypy_extensions import mypyc_attr
+
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID
 from awaremw.radio.counters import Battery, MoteCounters
@@ -27,6 +29,8 @@ from awaremw.radio.security import FrameGuard
 from awaremw.world.mobility import Mobility
 
 
+# The Zenoh medium's Radio (not compiled) subclasses it in the compiled build (setup.py).
+@mypyc_attr(allow_interpreted_subclasses=True)
 class LinkStation(Station):
     """A mote's radio: where it is (:class:`Station`) and its link-layer state."""
 

@@ -39,6 +39,8 @@ import math
 from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
 
+from mypy_extensions import mypyc_attr
+
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import Z_MAX, RadioModel, cell_of
 from awaremw.world.mobility import Mobility, Static
@@ -56,6 +58,8 @@ def adjacent(a: Cell, b: Cell) -> bool:
     return abs(a[0] - b[0]) <= 1 and abs(a[1] - b[1]) <= 1
 
 
+# The base of LinkStation, which Python code subclasses in the compiled build (setup.py).
+@mypyc_attr(allow_interpreted_subclasses=True)
 class Station:
     """A mote's radio as the neighbourhood sees it. Subclassed by each medium."""
 

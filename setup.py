@@ -1,0 +1,65 @@
+"""The optional compiled build: the emulator's hot modules compiled with mypyc.
+
+``pip install .`` installs pure Python (everything in pyproject.toml). With
+``AWAREMW_USE_MYPYC=1`` the modules of :data:`COMPILED` are compiled to C
+extensions by mypyc (part of mypy, which the test extra already installs), the
+same sources, type-checked, about 1.6x faster on the virtual clock
+(docs/runtime.md, "The compiled build")::
+
+    pip install 'mypy>=1.10' 'setuptools>=70.1'   # the test extra has both
+    AWAREMW_USE_MYPYC=1 pip install --no-build-isolation .
+
+Not for an editable install: a compiled module next to its source shadows it,
+so edits would silently not run. ``awaremw.build_info.compiled_modules()``
+(and the ``build`` key of ``awaremw bench virtual --json``) says which
+modules a process runs compiled.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from setuptools import setup
+
+# The protocol core, the virtual-clock driver, the radio's link layer and
+# propagation model and the world's fields: where a run spends its time. Pure
+# modules with precise types (mypy --strict), nothing monkeypatched.
+COMPILED = [
+    "awaremw/protocol/channels.py",
+    "awaremw/protocol/collection.py",
+    "awaremw/protocol/commands.py",
+    "awaremw/protocol/component.py",
+    "awaremw/protocol/dissemination.py",
+    "awaremw/protocol/groups.py",
+    "awaremw/protocol/mote.py",
+    "awaremw/protocol/timers.py",
+    "awaremw/protocol/trickle.py",
+    "awaremw/radio/linklayer.py",
+    "awaremw/radio/mac.py",
+    "awaremw/radio/model.py",
+    "awaremw/radio/neighbourhood.py",
+    "awaremw/runtime/virtual.py",
+    "awaremw/world/fields.py",
+]
+
+
+def _ext_modules() -> list[object]:
+    if os.environ.get("AWAREMW_USE_MYPYC", "0") != "1":
+        return []
+    if "editable_wheel" in sys.argv or "develop" in sys.argv:
+        raise SystemExit(
+            "AWAREMW_USE_MYPYC=1 is for a regular install (pip install --no-build-isolation .): "
+            "in an editable install the compiled modules would shadow the sources you edit"
+        )
+    try:
+        from mypyc.build import mypycify
+    except ImportError:
+        raise SystemExit(
+            "AWAREMW_USE_MYPYC=1 needs mypy in the build environment: "
+            "pip install 'mypy>=1.10' 'setuptools>=70.1', then pip install --no-build-isolation ."
+        ) from None
+    return list(mypycify(COMPILED, opt_level="3", group_name="awaremw_compiled"))
+
+
+setup(ext_modules=_ext_modules())
