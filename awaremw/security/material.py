@@ -8,7 +8,8 @@ One loader for every process that ``--secrets DIR`` secures:
   :class:`~awaremw.radio.security.RadioSecurity` (raw bytes, picklable: it goes
   to worker processes inside the fleet settings);
 * :func:`load_signing_key` -- the gateway's Ed25519 *private* key as 32 raw
-  bytes; only the gateway process loads it (fleets get the public key only).
+  bytes; only the gateway process loads it (fleets get the public key only);
+  :func:`load_gateway_keys` loads both, once.
 
 Missing or malformed files raise :class:`~awaremw.security.zenoh_acl.SecretsError`
 with the path and what to do. :data:`OPEN_WARNING` is the one line a process
@@ -92,6 +93,13 @@ def load_signing_key(secrets: Path | str, public_key: bytes | None = None) -> by
     )
 
 
+def load_gateway_keys(secrets: Path | str) -> tuple[RadioSecurity, bytes]:
+    """What a gateway's motes need: the radio security of :func:`load_radio_security`
+    and the signing key of :func:`load_signing_key`, checked to match it."""
+    security = load_radio_security(secrets)
+    return security, load_signing_key(secrets, security.gateway_public_key)
+
+
 def check_secrets(secrets: Path | str) -> RadioSecurity:
     """Check that ``secrets`` holds everything a whole-system run needs (the router's
     and the roles' Zenoh configs, the radio key, the signing pair); its radio
@@ -101,6 +109,4 @@ def check_secrets(secrets: Path | str) -> RadioSecurity:
     router_config_path(secrets)
     for role in ("fleet", "gateway"):
         role_config_path(secrets, role)
-    security = load_radio_security(secrets)
-    load_signing_key(secrets, security.gateway_public_key)
-    return security
+    return load_gateway_keys(secrets)[0]
