@@ -112,19 +112,22 @@ def main(args: argparse.Namespace) -> int:
             print(f"awaremw experiment: {flag} applies to one run, not --seeds", file=sys.stderr)
             return 2
         return _main_seeds(args, name, out)
+    keys = None
     if args.secrets is not None:
         from awaremw.security.material import check_secrets, load_gateway_keys
 
-        # --virtual: the radio key and the signing pair; no Zenoh configs
-        check = load_gateway_keys if args.virtual else check_secrets
-        if load_secrets("awaremw experiment", args.secrets, check) is None:
+        prog = "awaremw experiment"
+        if args.virtual:  # the radio key and the signing pair, read once; no Zenoh configs
+            if (keys := load_secrets(prog, args.secrets, load_gateway_keys)) is None:
+                return 2
+        elif load_secrets(prog, args.secrets, check_secrets) is None:
             return 2
     if args.virtual:
         import importlib
 
         from awaremw.experiments.virtual import VirtualRun
 
-        run = VirtualRun(sc, secrets=args.secrets)
+        run = VirtualRun(sc, keys=keys)
         prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
         if prepare is not None:
             prepare(run)

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Final, TextIO
 
 from cryptography.hazmat.primitives import serialization
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from awaremw.radio.security import RadioSecurity
 from awaremw.security.keys import SecretsDir
@@ -75,11 +75,12 @@ def load_signing_key(secrets: Path | str, public_key: bytes | None = None) -> by
     ``public_key``: the raw public key the motes verify with; a private key that
     does not match it (files from two ``keys init`` runs) is refused."""
     d = SecretsDir(Path(secrets))
-    _read(d.signing_key, secrets)  # a clear error when it is missing
     try:
-        key = d.read_signing_key()
+        key = serialization.load_pem_private_key(_read(d.signing_key, secrets), password=None)
     except (ValueError, TypeError) as e:
         raise SecretsError(f"{d.signing_key}: {e}") from None
+    if not isinstance(key, Ed25519PrivateKey):
+        raise SecretsError(f"{d.signing_key}: not an Ed25519 private key")
     mine = key.public_key().public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw)
     if public_key is not None and mine != public_key:
         raise SecretsError(
