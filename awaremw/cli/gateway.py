@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
-from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
+from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=None,
         metavar="URL",
         help="broker mqtt[s]://[user:pass@]host:port (default: embedded broker)",
+    )
+    p.add_argument(
+        "--mqtt-password-file",
+        default=None,
+        metavar="FILE",
+        help="the password of the --mqtt URL's user (given as mqtt[s]://USER@host:port), "
+        "read from FILE less one trailing newline: not in the process list",
     )
     p.add_argument(
         "--mqtt-port",
@@ -153,7 +160,14 @@ def run(args: argparse.Namespace) -> int:
                 buffer_size=args.buffer,
             )
         )
-    except BadMqttUrl as e:
+        if args.mqtt_password_file is not None:
+            if mqtt is None:
+                raise BadMqttUrl(
+                    "--mqtt-password-file is for the user of --mqtt mqtt[s]://USER@HOST:PORT; "
+                    "the embedded broker has its own account"
+                )
+            mqtt = mqtt.with_password_file(args.mqtt_password_file)
+    except (BadMqttUrl, BadPasswordFile) as e:
         print(f"awaremw gateway: {e}", file=sys.stderr)
         return 2
     args.session_settings = args.security = args.signing_key = None
