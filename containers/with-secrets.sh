@@ -7,8 +7,10 @@
 # service has written DIR (`awaremw keys init DIR --exist-ok`; its manifest
 # DIR/secrets.json is written last), then runs COMMAND ARGS. With
 # AWARE_MQTT_ACCOUNT=USER and AWARE_MQTT_BROKER=HOST:PORT it appends
-# `--mqtt mqtts://USER:PASSWORD@HOST:PORT --ca-file DIR/mqtt/ca.crt`, the
-# password read from DIR/mqtt/accounts.json (the gateway takes no password file).
+# `--mqtt mqtts://USER@HOST:PORT --mqtt-password-file FILE --ca-file
+# DIR/mqtt/ca.crt`, FILE a new 0600 file under ${TMPDIR:-/tmp} holding USER's
+# password from DIR/mqtt/accounts.json: the password is never in an argument
+# list (`ps`, /proc/PID/cmdline).
 set -eu
 dir="${1:?usage: awaremw-with-secrets DIR COMMAND [ARGS...]}"
 shift
@@ -23,9 +25,11 @@ while [ ! -s "$dir/secrets.json" ]; do
     sleep 0.2
 done
 if [ -n "${AWARE_MQTT_ACCOUNT:-}" ]; then
-    pw="$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' \
-        "$dir/mqtt/accounts.json" "$AWARE_MQTT_ACCOUNT")"
-    set -- "$@" --mqtt "mqtts://$AWARE_MQTT_ACCOUNT:$pw@${AWARE_MQTT_BROKER:?set AWARE_MQTT_BROKER=HOST:PORT}" \
+    broker="${AWARE_MQTT_BROKER:?set AWARE_MQTT_BROKER=HOST:PORT}"
+    pwfile="$(mktemp "${TMPDIR:-/tmp}/awaremw-mqtt-password.XXXXXX")"  # mode 0600
+    python3 -c 'import json, sys; open(sys.argv[3], "w").write(json.load(open(sys.argv[1]))[sys.argv[2]] + "\n")' \
+        "$dir/mqtt/accounts.json" "$AWARE_MQTT_ACCOUNT" "$pwfile"
+    set -- "$@" --mqtt "mqtts://$AWARE_MQTT_ACCOUNT@$broker" --mqtt-password-file "$pwfile" \
         --ca-file "$dir/mqtt/ca.crt"
 fi
 exec "$@"

@@ -58,3 +58,17 @@ def test_search_reports_zero_when_the_start_fails(capacity: list[int]) -> None:
     capacity[0] = 100
     out = scale.run(_args(2000, 7000))
     assert out["motes_max"] == 0
+
+
+def test_one_run_gets_the_medium_of_its_flags(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: dict[str, Any] = {}
+
+    async def fake_run_once(motes: int, **kwargs: Any) -> dict[str, Any]:
+        seen.update(kwargs, motes=motes)
+        return {"motes": motes}
+
+    monkeypatch.setattr(scale, "run_once", fake_run_once)
+    p = argparse.ArgumentParser()
+    scale.add_arguments(p)
+    scale.run(p.parse_args(["--motes", "30", "--mac", "aloha", "--collisions", "none"]))
+    assert (seen["motes"], seen["mac"], seen["collisions"]) == (30, "aloha", "none")

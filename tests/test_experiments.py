@@ -327,6 +327,35 @@ def test_virtual_experiment_with_secrets_seals_frames_and_signs_items(tmp_path: 
     assert sum(c.refused for c in run.net.counters.values()) == 0
 
 
+def test_virtual_experiment_reads_each_key_file_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``experiment --virtual --secrets DIR`` checks and uses the keys it read once."""
+    from collections import Counter
+
+    from awaremw.cli import main
+    from awaremw.security.keys import init_secrets
+
+    init_secrets(tmp_path / "sk")
+    reads: Counter[str] = Counter()
+    read_bytes = Path.read_bytes
+
+    def counted(self: Path) -> bytes:
+        if (tmp_path / "sk") in self.parents:
+            reads[self.name] += 1
+        return read_bytes(self)
+
+    monkeypatch.setattr(Path, "read_bytes", counted)
+    out = tmp_path / "out"
+    args = ["experiment", "romeo4r", "--virtual", "--duration", "5", "--out", str(out)]
+    assert main([*args, "--secrets", str(tmp_path / "sk")]) == 0
+    assert reads == {"network.key": 1, "gateway.pub": 1, "gateway.key": 1}
+    assert json.loads((out / "metrics.json").read_text())["duration_s"] == 5.0
+    capsys.readouterr()
+    with pytest.raises(ValueError, match="secrets or keys"):
+        VirtualRun(load_scenario("romeo4r"), secrets=tmp_path / "sk", keys=(None, b""))  # type: ignore[arg-type]
+
+
 def test_experiment_secrets_refuses_seeds_and_missing_files(tmp_path: Path) -> None:
     import subprocess
     import sys

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +15,12 @@ from mosquitto import PASSWORDS, Mosquitto, mosquitto_fixture, require  # noqa: 
 from awaremw.bench import bridge as bench_bridge
 from awaremw.cli import main
 from awaremw.cli.client import UsageError, parse_arg, parse_conditions, parse_target
+from awaremw.gateway.mqtt import (
+    MAX_PASSWORD_BYTES,
+    BadPasswordFile,
+    MqttSettings,
+    read_password_file,
+)
 
 
 def retained(m: Mosquitto, topic: str) -> list[str]:
@@ -113,6 +120,76 @@ def test_gateway_verb_refuses_bad_input() -> None:
         check=False,
     )
     assert r.returncode == 2 and b"scheme must be mqtt:// or mqtts://" in r.stderr
+
+
+def _gateway(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "awaremw", "gateway", "grid_small", *args],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+
+
+@pytest.mark.mosquitto
+def test_gateway_takes_its_mqtt_password_from_a_file(mosquitto: Mosquitto, tmp_path: Path) -> None:
+    """--mqtt-password-file: the password stays off the command line, and only the
+    right one lets the gateway in (its retained status shows it was connected)."""
+    url = f"mqtt://gateway@127.0.0.1:{mosquitto.port}"
+    wrong = tmp_path / "wrong"
+    wrong.write_text("not-the-password\n")
+    r = _gateway("--mqtt", url, "--mqtt-password-file", str(wrong), "--duration", "2",
+                 "--speed", "4", "--no-hbn")  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert retained(mosquitto, "aware/gateway/status") == []  # refused: never connected
+    right = tmp_path / "pw"
+    right.write_text(PASSWORDS["gateway"] + "\n")  # as `echo PW > FILE` writes it
+    right.chmod(0o600)
+    r = _gateway("--mqtt", url, "--mqtt-password-file", str(right), "--duration", "2",
+                 "--speed", "4", "--no-hbn")  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f"MQTT {url} prefix" in r.stdout and PASSWORDS["gateway"] not in r.stdout + r.stderr
+    assert retained(mosquitto, "aware/gateway/status") == ["aware/gateway/status offline"]
+
+
+def test_gateway_password_file_errors(tmp_path: Path) -> None:
+    url = "mqtt://gateway@127.0.0.1:1"
+    empty, newline, unreadable = tmp_path / "empty", tmp_path / "newline", tmp_path / "locked"
+    empty.write_bytes(b"")
+    newline.write_bytes(b"\n")
+    unreadable.write_text("pw")
+    unreadable.chmod(0)
+    cases = [
+        ([url, str(tmp_path / "none")], f"MQTT password file {tmp_path / 'none'}: not found"),
+        ([url, str(empty)], f"MQTT password file {empty}: empty"),
+        ([url, str(newline)], f"MQTT password file {newline}: empty"),
+        ([url, str(tmp_path)], f"MQTT password file {tmp_path}: cannot read: Is a directory"),
+        (["mqtt://gateway:pw@127.0.0.1:1", str(empty)], "do not combine"),
+        (["mqtt://127.0.0.1:1", str(empty)], "names none: mqtt[s]://USER@HOST:PORT"),
+    ]
+    if os.geteuid() != 0:  # root reads any file
+        cases.append(([url, str(unreadable)], "cannot read: Permission denied"))
+    for (mqtt, path), why in cases:
+        r = _gateway("--mqtt", mqtt, "--mqtt-password-file", path)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+        assert r.stderr.startswith("awaremw gateway: ") and why in r.stderr, (why, r.stderr)
+    r = _gateway("--mqtt-password-file", str(empty))  # the embedded broker has its own account
+    assert r.returncode == 2 and "--mqtt-password-file is for the user of --mqtt" in r.stderr
+
+
+def test_password_file_strips_one_trailing_newline_only(tmp_path: Path) -> None:
+    f = tmp_path / "pw"
+    for data, password in ((b"pw\n", "pw"), (b"pw\r\n", "pw"), (b"pw", "pw"),
+                           (b"pw\n\n", "pw\n"), (b" p\rw \n", " p\rw ")):  # fmt: skip
+        f.write_bytes(data)
+        assert read_password_file(f) == password, data
+    f.write_bytes(b"\xff\n")
+    with pytest.raises(BadPasswordFile, match="not UTF-8"):
+        read_password_file(f)
+    f.write_bytes(b"x" * (MAX_PASSWORD_BYTES + 1))
+    with pytest.raises(BadPasswordFile, match="longer than"):
+        read_password_file(f)
+    settings = MqttSettings.from_url("mqtts://gateway@broker:8883")
+    f.write_bytes(b"secret\n")
+    assert settings.with_password_file(f).password == "secret"
 
 
 def test_bench_bridge_throughput_keys() -> None:

@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from awaremw.cli import main
 from awaremw.gateway import schema
 from awaremw.gateway.bridge import GatewayBridge, Outcome
-from awaremw.gateway.broker import EmbeddedBroker, mask_url
+from awaremw.gateway.broker import BrokerLimits, EmbeddedBroker, mask_url
 from awaremw.gateway.store import VersionStore
 
 GROUP = b'{"conditions": [{"attr": "temperature", "op": ">", "value": 45}]}'
@@ -282,7 +282,7 @@ async def test_broker_refuses_anonymous_unless_asked(tmp_path: Path) -> None:
 
 
 async def test_broker_refuses_oversize_and_bounds_retained(tmp_path: Path) -> None:
-    async with EmbeddedBroker(max_retained=3) as b:
+    async with EmbeddedBroker(limits=BrokerLimits(max_retained=3)) as b:
         kw: dict[str, Any] = {"username": b.username, "password": b.password}
         with pytest.raises(aiomqtt.MqttError):
             async with aiomqtt.Client(b.host, b.port, identifier="big", timeout=1, **kw) as c:
@@ -292,6 +292,33 @@ async def test_broker_refuses_oversize_and_bounds_retained(tmp_path: Path) -> No
             for i in range(10):
                 await c.publish(f"t/{i}", b"v", qos=1, retain=True)
         assert b.stats.retained == 3 and b.stats.retained_refused == 7
+
+
+async def _until(check: Any, timeout: float = 10.0) -> None:
+    async with asyncio.timeout(timeout):
+        while not check():
+            await asyncio.sleep(0.05)  # amqtt gives no event for a queued or expired session
+
+
+async def test_broker_drops_the_queue_of_a_client_away_past_the_session_expiry() -> None:
+    """amqtt has no bound on a persistent client's offline queue: the session expiry
+    bounds how long it lives (default one hour)."""
+    async with EmbeddedBroker(anonymous=True) as b:
+        assert b._broker is not None and b._broker.config.session_expiry_interval == 3600
+    # (amqtt drops the sessions of anonymous clients at once: an account here)
+    async with EmbeddedBroker(limits=BrokerLimits(session_expiry_s=3)) as b:
+        kw: dict[str, Any] = {"username": b.username, "password": b.password}
+        async with aiomqtt.Client(
+            b.host, b.port, identifier="away", clean_session=False, **kw
+        ) as c:
+            await c.subscribe("aware/data/#", qos=1)
+        assert b.queued_for("away") == 0
+        async with aiomqtt.Client(b.host, b.port, identifier="pub", **kw) as p:
+            await p.publish("aware/data/1/1/1", b"{}", qos=1)
+        await _until(lambda: b.queued_for("away") == 1, timeout=2.5)  # before the expiry
+        await _until(lambda: b.queued_for("away") is None)  # expired: the queue is gone
+    with pytest.raises(ValueError, match="session_expiry_s >= 1"):
+        BrokerLimits(session_expiry_s=0)
 
 
 def _gateway(state: Path, *extra: str) -> subprocess.Popen[str]:

@@ -383,12 +383,43 @@ def test_demo_with_secrets_runs_the_whole_system_through_the_rules(tmp_path: Pat
     assert int(lines["records received (MQTT)"]) >= 2, p.stdout[-2000:]
 
 
-def test_secrets_flags_report_a_missing_directory(tmp_path: Path) -> None:
-    missing = str(tmp_path / "nope")
-    for args in (
-        ["router", "--secrets", missing],
-        ["fleet", "grid_small", "--secrets", missing, "--duration", "1"],
-        ["fleet-ctl", "--secrets", missing, "list"],
-        ["gateway", "romeo4r", "--secrets", missing],
-    ):
-        assert cli_main(args) == 2, args
+# Every verb with --secrets DIR: its arguments before DIR and after it.
+SECRETS_VERBS: tuple[tuple[list[str], list[str]], ...] = (
+    (["router"], []),
+    (["fleet", "grid_small", "--duration", "1"], []),
+    (["fleet-ctl"], ["list"]),
+    (["gateway", "romeo4r"], []),
+    (["sniff", "--connect", "tcp/127.0.0.1:1", "--pcap", "x.pcapng"], []),
+    (["view", "--mqtt", "mqtt://127.0.0.1:1"], []),
+    (["experiment", "romeo4r", "--virtual"], []),
+    (["experiment", "romeo4r"], []),
+    (["demo", "--plain"], []),
+)
+
+
+@pytest.mark.parametrize(("before", "after"), SECRETS_VERBS, ids=lambda v: "-".join(v))
+def test_secrets_flags_report_a_missing_directory_or_file_in_one_line(
+    before: list[str], after: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One check and one error line for --secrets DIR (awaremw.cli.friendly.load_secrets)."""
+
+    def refused(root: Path) -> list[str]:
+        assert cli_main([*before, "--secrets", str(root), *after]) == 2
+        return capsys.readouterr().err.strip().splitlines()
+
+    prog = f"awaremw {before[0]}"
+    missing = tmp_path / "nope"
+    assert refused(missing) == [
+        f"{prog}: --secrets {missing}: no such directory; make the secrets with "
+        f"`awaremw keys init {missing}`"
+    ]
+    missing.write_text("a file\n")
+    assert refused(missing) == [
+        f"{prog}: --secrets {missing}: not a directory; make the secrets with "
+        f"`awaremw keys init {missing}`"
+    ]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    err = refused(empty)
+    assert len(err) == 1 and err[0].startswith(f"{prog}: {empty}/"), err
+    assert err[0].endswith(f" not found: make the secrets with `awaremw keys init {empty}`")

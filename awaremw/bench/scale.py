@@ -411,6 +411,7 @@ async def search(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    mac, collisions = medium_of(args)
     return {
         "duration": float(args.duration),
         "processes": int(args.processes),
@@ -425,8 +426,8 @@ def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "min_delivery": float(args.min_delivery),
         "workload": str(args.workload),
         "profile": args.profile,
-        "mac": medium_of(args)[0],
-        "collisions": medium_of(args)[1],
+        "mac": mac,
+        "collisions": collisions,
     }
 
 

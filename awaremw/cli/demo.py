@@ -32,6 +32,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from awaremw.cli.friendly import add_secrets_option, load_secrets
+
 
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
@@ -50,11 +52,8 @@ def register(sub: Any) -> None:
         metavar="URL",
         help="the robot client's own broker account (default: the --mqtt URL)",
     )
-    p.add_argument(
-        "--secrets",
-        default=None,
-        metavar="DIR",
-        help="use these secrets (DIR from `awaremw keys init`; default: throw-away ones)",
+    add_secrets_option(
+        p, "use these secrets (DIR from `awaremw keys init`; default: throw-away ones)"
     )
     p.add_argument(
         "--insecure",
@@ -142,6 +141,11 @@ def main(args: argparse.Namespace) -> int:
     if args.insecure and args.secrets is not None:
         print("awaremw demo: --insecure and --secrets do not combine", file=sys.stderr)
         return 2
+    if args.secrets is not None:
+        from awaremw.security.material import check_secrets
+
+        if load_secrets("awaremw demo", args.secrets, check_secrets) is None:
+            return 2
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
     from awaremw.cli.friendly import mqtt_problem
@@ -153,11 +157,7 @@ def main(args: argparse.Namespace) -> int:
             print(f"awaremw demo: {why}", file=sys.stderr)
             return 1
     with contextlib.ExitStack() as stack:
-        try:
-            secrets = _secrets(args, stack)
-        except ValueError as e:  # SecretsError: a missing or bad file of --secrets DIR
-            print(f"awaremw demo: {e}", file=sys.stderr)
-            return 2
+        secrets = _secrets(args, stack)
         try:
             summary = asyncio.run(
                 run_demo(
@@ -211,15 +211,14 @@ def summary_text(s: dict[str, Any]) -> str:
 
 
 def _secrets(args: argparse.Namespace, stack: contextlib.ExitStack) -> str | None:
-    """The secrets directory the demo runs with: --secrets DIR (checked), throw-away
-    ones made now (removed when ``stack`` closes), or None with --insecure."""
-    from awaremw.security.material import check_secrets, warn_open
+    """The secrets directory the demo runs with: --secrets DIR (checked by the caller),
+    throw-away ones made now (removed when ``stack`` closes), or None with --insecure."""
+    from awaremw.security.material import warn_open
 
     if args.insecure:
         warn_open("awaremw demo")
         return None
     if args.secrets is not None:
-        check_secrets(args.secrets)
         return str(args.secrets)
     from awaremw.security.keys import init_secrets
 

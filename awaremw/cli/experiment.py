@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from awaremw.cli.friendly import add_secrets_option, load_secrets
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
 from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
 
@@ -45,11 +46,9 @@ def register(sub: Any) -> None:
         metavar="URL",
         help="the robot client's own broker account (default: the --mqtt URL)",
     )
-    p.add_argument(
-        "--secrets",
-        default=None,
-        metavar="DIR",
-        help="authenticated radio frames and signed items (DIR from `awaremw keys init`); in "
+    add_secrets_option(
+        p,
+        "authenticated radio frames and signed items (DIR from `awaremw keys init`); in "
         "real time also Zenoh with authentication and access control by role",
     )
     p.add_argument("--plain", action="store_true", help="log lines instead of a live view")
@@ -113,29 +112,22 @@ def main(args: argparse.Namespace) -> int:
             print(f"awaremw experiment: {flag} applies to one run, not --seeds", file=sys.stderr)
             return 2
         return _main_seeds(args, name, out)
+    keys = None
     if args.secrets is not None:
-        from awaremw.security.material import (
-            check_secrets,
-            load_radio_security,
-            load_signing_key,
-        )
-        from awaremw.security.zenoh_acl import SecretsError
+        from awaremw.security.material import check_secrets, load_gateway_keys
 
-        try:
-            if args.virtual:  # the radio key and the signing pair; no Zenoh configs
-                key = load_radio_security(args.secrets).gateway_public_key
-                load_signing_key(args.secrets, key)
-            else:
-                check_secrets(args.secrets)
-        except SecretsError as e:
-            print(f"awaremw experiment: {e}", file=sys.stderr)
+        prog = "awaremw experiment"
+        if args.virtual:  # the radio key and the signing pair, read once; no Zenoh configs
+            if (keys := load_secrets(prog, args.secrets, load_gateway_keys)) is None:
+                return 2
+        elif load_secrets(prog, args.secrets, check_secrets) is None:
             return 2
     if args.virtual:
         import importlib
 
         from awaremw.experiments.virtual import VirtualRun
 
-        run = VirtualRun(sc, secrets=args.secrets)
+        run = VirtualRun(sc, keys=keys)
         prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
         if prepare is not None:
             prepare(run)

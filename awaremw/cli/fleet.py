@@ -26,7 +26,7 @@ import signal
 import sys
 from typing import Any
 
-from awaremw.cli.friendly import zenoh_message
+from awaremw.cli.friendly import add_secrets_option, load_secrets, zenoh_message
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 
@@ -102,11 +102,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="PATH",
         help="at the end, write the frames delivered per (src, dst) link as JSON",
     )
-    p.add_argument(
-        "--secrets",
-        default=None,
-        metavar="DIR",
-        help="connect with role fleet (DIR from `awaremw keys init`): to the router at "
+    add_secrets_option(
+        p,
+        "connect with role fleet (DIR from `awaremw keys init`): to the router at "
         "--connect, else to an embedded router started here with DIR's access rules",
     )
     p.set_defaults(func=run_fleet)
@@ -125,12 +123,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     c.add_argument("--prefix", default="aware", help="Zenoh key prefix (default aware)")
     c.add_argument("--timeout", type=float, default=3.0, metavar="S", help="wait for answers")
-    c.add_argument(
-        "--secrets",
-        default=None,
-        metavar="DIR",
-        help="connect to the router with role operator (DIR from `awaremw keys init`)",
-    )
+    add_secrets_option(c, "connect to the router with role operator (DIR from `awaremw keys init`)")
     csub = c.add_subparsers(dest="op", metavar="OP", required=True)
     a = csub.add_parser("add", help="add a mote (validated like a [[nodes]] entry)")
     a.add_argument("id", type=int)
@@ -194,17 +187,21 @@ def run_fleet(args: argparse.Namespace) -> int:
     args.role_config = args.router_config = args.security = None
     if args.secrets is not None:
         from awaremw.security.material import load_radio_security
-        from awaremw.security.zenoh_acl import SecretsError, role_config_path, router_config_path
+        from awaremw.security.zenoh_acl import role_config_path, router_config_path
 
-        try:
-            args.role_config = str(role_config_path(args.secrets, "fleet"))
-            if not args.connect:
-                args.router_config = str(router_config_path(args.secrets))
+        loaded = load_secrets(
+            "awaremw fleet",
+            args.secrets,
             # The network key and the gateway's public key; never its signing key.
-            args.security = load_radio_security(args.secrets)
-        except SecretsError as e:
-            print(f"awaremw fleet: {e}", file=sys.stderr)
+            lambda d: (
+                str(role_config_path(d, "fleet")),
+                None if args.connect else str(router_config_path(d)),
+                load_radio_security(d),
+            ),
+        )
+        if loaded is None:
             return 2
+        args.role_config, args.router_config, args.security = loaded
         if args.part_filter is not None and not args.connect:
             print("awaremw fleet: --part with --secrets needs --connect", file=sys.stderr)
             return 2
@@ -507,12 +504,12 @@ def run_ctl(args: argparse.Namespace) -> int:
     connect = args.connect or [DEFAULT_ROUTER_ENDPOINT]
     config_file = None
     if args.secrets is not None:
-        from awaremw.security.zenoh_acl import SecretsError, role_config_path
+        from awaremw.security.zenoh_acl import role_config_path
 
-        try:
-            config_file = str(role_config_path(args.secrets, "operator"))
-        except SecretsError as e:
-            print(f"awaremw fleet-ctl: {e}", file=sys.stderr)
+        config_file = load_secrets(
+            "awaremw fleet-ctl", args.secrets, lambda d: str(role_config_path(d, "operator"))
+        )
+        if config_file is None:
             return 2
     if args.op == "add":
         try:

@@ -4,15 +4,23 @@ Zenoh's errors (``zenoh.ZError``) carry the Rust source location they were
 raised at (``... at /root/.cargo/git/checkouts/.../orchestrator.rs:388.``);
 :func:`zenoh_message` keeps the sentence and drops the location.
 :func:`mqtt_problem` tries a broker URL once before a long run relies on it.
+:func:`add_secrets_option` and :func:`load_secrets` are the one ``--secrets DIR``
+option of every verb: its help, its check and its error line.
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import re
 import secrets
 import ssl
 import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
 
 # " at /path/to/file.rs:388." (possibly several, possibly without the final dot)
 _RUST_AT = re.compile(r"\s+at\s+\S+\.rs:\d+(?::\d+)?\.?")
@@ -62,3 +70,28 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     except aiomqtt.MqttError as e:
         reason = " ".join(str(e).split()) or type(e).__name__
         return f"cannot connect to the MQTT broker {mask_url(url)}: {reason}"
+
+
+def add_secrets_option(p: argparse.ArgumentParser, help: str) -> None:
+    """``--secrets DIR`` on a verb; ``help`` says what the verb does with DIR."""
+    p.add_argument("--secrets", default=None, metavar="DIR", help=help)
+
+
+def load_secrets(prog: str, secrets: str | Path, load: Callable[[Path], T]) -> T | None:
+    """What a verb takes from ``--secrets DIR``: ``load(DIR)``, or None when DIR is not
+    a directory or ``load`` raises :class:`~awaremw.security.zenoh_acl.SecretsError`
+    (a missing or bad file); then the reason is on stderr in one line, ``prog: why``,
+    and the verb exits 2."""
+    from awaremw.security.zenoh_acl import SecretsError
+
+    root = Path(secrets)
+    try:
+        if not root.is_dir():
+            what = "not a directory" if root.exists() else "no such directory"
+            raise SecretsError(
+                f"--secrets {secrets}: {what}; make the secrets with `awaremw keys init {secrets}`"
+            )
+        return load(root)
+    except SecretsError as e:
+        print(f"{prog}: {e}", file=sys.stderr)
+        return None

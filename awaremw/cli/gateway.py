@@ -31,7 +31,8 @@ import sys
 import time
 from pathlib import Path
 
-from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
+from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=None,
         metavar="URL",
         help="broker mqtt[s]://[user:pass@]host:port (default: embedded broker)",
+    )
+    p.add_argument(
+        "--mqtt-password-file",
+        default=None,
+        metavar="FILE",
+        help="the password of the --mqtt URL's user (given as mqtt[s]://USER@host:port), "
+        "read from FILE less one trailing newline: not in the process list",
     )
     p.add_argument(
         "--mqtt-port",
@@ -85,11 +93,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "or client (everything through the --connect router, e.g. across networks)",
     )
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
-    p.add_argument(
-        "--secrets",
-        default=None,
-        metavar="DIR",
-        help="connect to the router at --connect (default tcp/127.0.0.1:7447) with role "
+    add_secrets_option(
+        p,
+        "connect to the router at --connect (default tcp/127.0.0.1:7447) with role "
         "gateway (DIR from `awaremw keys init`)",
     )
     p.add_argument(
@@ -154,25 +160,33 @@ def run(args: argparse.Namespace) -> int:
                 buffer_size=args.buffer,
             )
         )
-    except BadMqttUrl as e:
+        if args.mqtt_password_file is not None:
+            if mqtt is None:
+                raise BadMqttUrl(
+                    "--mqtt-password-file is for the user of --mqtt mqtt[s]://USER@HOST:PORT; "
+                    "the embedded broker has its own account"
+                )
+            mqtt = mqtt.with_password_file(args.mqtt_password_file)
+    except (BadMqttUrl, BadPasswordFile) as e:
         print(f"awaremw gateway: {e}", file=sys.stderr)
         return 2
     args.session_settings = args.security = args.signing_key = None
     if args.secrets is not None:
-        from awaremw.security.material import load_radio_security, load_signing_key
-        from awaremw.security.zenoh_acl import SecretsError, role_settings
+        from awaremw.security.material import load_gateway_keys
+        from awaremw.security.zenoh_acl import role_settings
 
         if args.listen:
             print("awaremw gateway: --listen and --secrets do not combine", file=sys.stderr)
             return 2
-        try:
-            args.session_settings = role_settings(args.secrets, "gateway", args.connect)
-            args.security = load_radio_security(args.secrets)
-            # Only the gateway holds the signing key: its motes sign what they inject.
-            args.signing_key = load_signing_key(args.secrets, args.security.gateway_public_key)
-        except SecretsError as e:
-            print(f"awaremw gateway: {e}", file=sys.stderr)
+        # Only the gateway holds the signing key: its motes sign what they inject.
+        loaded = load_secrets(
+            "awaremw gateway",
+            args.secrets,
+            lambda d: (role_settings(d, "gateway", args.connect), load_gateway_keys(d)),
+        )
+        if loaded is None:
             return 2
+        args.session_settings, (args.security, args.signing_key) = loaded
     elif args.zenoh_mode == "client":  # everything through the router (e.g. across networks)
         if not args.connect or args.listen:
             print(

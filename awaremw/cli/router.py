@@ -9,6 +9,7 @@ import sys
 import threading
 from types import FrameType
 
+from awaremw.cli.friendly import add_secrets_option, load_secrets
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
 
 CLOSE_TIMEOUT_S = 5.0
@@ -34,11 +35,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="ENDPOINT",
         help="another router to link to (repeatable)",
     )
-    p.add_argument(
-        "--secrets",
-        default=None,
-        metavar="DIR",
-        help="authenticate every session and apply the access rules of DIR/zenoh/router.json5 "
+    add_secrets_option(
+        p,
+        "authenticate every session and apply the access rules of DIR/zenoh/router.json5 "
         "(from `awaremw keys init DIR`)",
     )
     p.set_defaults(func=run)
@@ -57,12 +56,12 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, on_signal)
     config_file: str | None = None
     if args.secrets is not None:
-        from awaremw.security.zenoh_acl import SecretsError, router_config_path
+        from awaremw.security.zenoh_acl import router_config_path
 
-        try:
-            config_file = str(router_config_path(args.secrets))
-        except SecretsError as e:
-            print(f"awaremw router: {e}", file=sys.stderr)
+        config_file = load_secrets(
+            "awaremw router", args.secrets, lambda d: str(router_config_path(d))
+        )
+        if config_file is None:
             return 2
     try:
         router = EmbeddedRouter(listen, args.connect, config_file=config_file).start()

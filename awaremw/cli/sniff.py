@@ -24,6 +24,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from awaremw.cli.friendly import add_secrets_option, load_secrets
+
 DISSECTOR = Path(__file__).resolve().parent.parent / "wireshark" / "awaremw.lua"
 
 
@@ -44,9 +46,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--pcap", default=None, metavar="FILE", help="capture file (pcapng)")
     p.add_argument("--prefix", default="aware", help="Zenoh key prefix of the radio")
-    p.add_argument(
-        "--secrets", default=None, metavar="DIR", help="verify and strip the MIC (keys init DIR)"
-    )
+    add_secrets_option(p, "verify and strip the MIC (keys init DIR)")
     p.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S wall seconds"
     )
@@ -72,14 +72,16 @@ def main(args: argparse.Namespace) -> int:
     settings = SessionSettings("peer", tuple(args.connect))
     if args.secrets is not None:
         from awaremw.security.material import load_radio_security
-        from awaremw.security.zenoh_acl import SecretsError, role_settings
+        from awaremw.security.zenoh_acl import role_settings
 
-        try:
-            settings = role_settings(args.secrets, "fleet", args.connect)
-            security = load_radio_security(args.secrets)
-        except SecretsError as e:
-            print(f"awaremw sniff: {e}", file=sys.stderr)
+        loaded = load_secrets(
+            "awaremw sniff",
+            args.secrets,
+            lambda d: (role_settings(d, "fleet", args.connect), load_radio_security(d)),
+        )
+        if loaded is None:
             return 2
+        settings, security = loaded
     try:
         return asyncio.run(_sniff(args, settings, security))
     except KeyboardInterrupt:

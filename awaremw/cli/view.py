@@ -18,8 +18,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import sys
-from pathlib import Path
 from typing import Any
+
+from awaremw.cli.friendly import add_secrets_option, load_secrets
 
 
 def register(sub: Any) -> None:
@@ -35,8 +36,7 @@ def register(sub: Any) -> None:
     p.add_argument("--deployment", default="romeo4r", help="deployment name or path (the field)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint of the router or a fleet: live positions")  # fmt: skip
-    p.add_argument("--secrets", default=None, metavar="DIR",
-                   help="with --connect: the operator's Zenoh account (keys init DIR)")  # fmt: skip
+    add_secrets_option(p, "with --connect: the operator's Zenoh account (keys init DIR)")
     p.add_argument("--prefix", default="aware", help="MQTT and Zenoh key prefix")
     p.add_argument("--speed", type=float, default=1.0,
                    help="the fleet's speed factor (moves mobile motes)")  # fmt: skip
@@ -64,12 +64,12 @@ def main(args: argparse.Namespace) -> int:
         return 2
     config_file = None
     if args.secrets is not None:
-        from awaremw.security.zenoh_acl import SecretsError, role_config_path
+        from awaremw.security.zenoh_acl import role_config_path
 
-        try:
-            config_file = str(role_config_path(Path(args.secrets), "operator"))
-        except SecretsError as e:
-            print(f"awaremw view: {e}", file=sys.stderr)
+        config_file = load_secrets(
+            "awaremw view", args.secrets, lambda d: str(role_config_path(d, "operator"))
+        )
+        if config_file is None:
             return 2
     dash = dashboard_for(dep, world_of(dep), args.mqtt, args.web, dep.name, args.group_type,
                          prefix=args.prefix)  # fmt: skip

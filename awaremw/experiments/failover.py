@@ -25,7 +25,6 @@ from typing import Any
 from awaremw.experiments import metrics as M
 from awaremw.experiments import plots
 from awaremw.experiments.metrics import RunResult
-from awaremw.experiments.romeo4r import SAMPLE_DT, settle_time
 from awaremw.experiments.virtual import VirtualRun
 from awaremw.protocol.mote import AwareMote
 
@@ -53,23 +52,10 @@ def prepare(run: VirtualRun) -> None:
 
 
 def analyse(result: RunResult, out: Path) -> dict[str, Any]:
-    sc = result.scenario
-    rec = result.recorder
-    truth = sc.truth()
-    gtype = sc.tracking_group
-    defn = sc.group_def()
-    settle = settle_time(sc)
-    end = result.duration - settle
+    a = M.scored(result)
+    sc, rec, gtype = a.sc, a.rec, a.gtype
     t_kill = float(sc.get("kill_at_s", sc.duration / 2))
     period = sc.channel_def().period_ms / 1000.0
-
-    grid = M.instants(sc.define_at, end, SAMPLE_DT)
-    hot = [t for t in grid if truth.members(defn, t, sc.sensors)]
-    t0 = hot[0] if hot else sc.define_at
-    series = M.membership_series(
-        rec, truth, defn, gtype, M.instants(t0, end, SAMPLE_DT), settle, sc.sensors
-    )
-    s = M.score(series)
 
     killed = [n for n, t in rec.down.items() if abs(t - t_kill) < 1e-6]
     victim = killed[0] if killed else None
@@ -93,7 +79,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
         and set(final) == {gid}
         and set(leaders_end) == {gid}
     )
-    metrics = M.run_metrics(result, s, gtype, t0, end, settle)
+    metrics = a.metrics()
     metrics |= {
         "kill_at_s": t_kill,
         "victim": victim,
@@ -109,7 +95,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
     }
     out.mkdir(parents=True, exist_ok=True)
     plots.membership_sizes(
-        out / "failover_membership.png", series,
+        out / "failover_membership.png", a.series,
         title=f"Group size vs truth; leader killed at {t_kill:g} s",
     )  # fmt: skip
     return M.rounded(metrics)

@@ -26,7 +26,6 @@ from typing import Any
 from awaremw.experiments import metrics as M
 from awaremw.experiments import plots
 from awaremw.experiments.metrics import RunResult
-from awaremw.experiments.romeo4r import SAMPLE_DT, settle_time
 from awaremw.experiments.scenario import Scenario
 from awaremw.experiments.truth import GroundTruth
 
@@ -64,21 +63,9 @@ def _majority(values: Sequence[Any]) -> Any:
 
 
 def analyse(result: RunResult, out: Path) -> dict[str, Any]:
-    sc = result.scenario
-    rec = result.recorder
-    truth = sc.truth()
-    gtype = sc.tracking_group
-    defn = sc.group_def()
-    settle = settle_time(sc)
-    end = result.duration - settle
-
-    grid = M.instants(sc.define_at, end, SAMPLE_DT)
-    hot = [t for t in grid if truth.members(defn, t, sc.sensors)]
-    t0 = hot[0] if hot else sc.define_at
-    series = M.membership_series(
-        rec, truth, defn, gtype, M.instants(t0, end, SAMPLE_DT), settle, sc.sensors
-    )
-    s = M.score(series)
+    a = M.scored(result)
+    sc, rec, truth, gtype, defn = a.sc, a.rec, a.truth, a.gtype, a.defn
+    settle, end, t0 = a.settle, a.end, a.t0
 
     def views(key: str) -> list[PhaseView]:
         a, b = (float(x) for x in sc.get(key, [0.0, 0.0]))
@@ -136,7 +123,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
         else:
             # The merged leader is gone: both parts must have new ids.
             new_ok = all(g is not None and g != merged_id for g in last.gids)
-    metrics = M.run_metrics(result, s, gtype, t0, end, settle)
+    metrics = a.metrics()
     metrics |= {
         "merges_yielded": len([y for y in rec.yields if y[2] == gtype]),
         "first_fire_sensed_s": t0,
@@ -162,7 +149,7 @@ def analyse(result: RunResult, out: Path) -> dict[str, Any]:
         sc.field, threshold=thr, titles=labels, settle=settle,
     )  # fmt: skip
     plots.membership_sizes(
-        out / "fire_membership.png", series,
+        out / "fire_membership.png", a.series,
         title=f"Fire group members vs truth (members compared {settle:g} s later)",
     )  # fmt: skip
     return M.rounded(metrics)

@@ -14,6 +14,9 @@ The metrics (docs/experiments.md defines each):
   leader-beacon period) to reach that state (:func:`membership_series`);
 * distinct group ids seen over a window; handovers; time to the first record;
   record delivery ratio; frames and radio energy per mote.
+
+:func:`scored` is the start every experiment's ``analyse`` shares: the ground
+truth, the settle lag and the tracking group's membership scored against it.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from typing import Any
 
 from awaremw.experiments.scenario import Scenario
 from awaremw.experiments.truth import GroundTruth
+from awaremw.nodes import config_for
 from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.collection import Delivered
 from awaremw.protocol.frames import DataRecord, GroupTypeDef
@@ -40,6 +44,7 @@ from awaremw.protocol.groups import (
 from awaremw.runtime.events import MoteDown
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
+SAMPLE_DT = 0.5  # s between scored instants
 
 
 @dataclass(frozen=True, slots=True)
@@ -405,6 +410,75 @@ def run_metrics(
         "energy_mj_per_mote": tr.energy_mj,
         "motes_scored": len(sc.sensors),
     }
+
+
+def settle_time(sc: Scenario) -> float:
+    """One leader-beacon period of the sensing motes: the lag the scoring allows."""
+    spec = sc.deployment.node(sc.sensors[0])
+    return config_for(spec, sc.deployment).beacon_period
+
+
+@dataclass(frozen=True, slots=True)
+class Scored:
+    """A finished run with its tracking group scored against the ground truth over
+    the sensed window [t0, t1] (:func:`scored`): what every analysis starts from."""
+
+    result: RunResult
+    truth: GroundTruth
+    settle: float  # s the protocol is allowed to reach a state (:func:`settle_time`)
+    t0: float  # first instant the truth has members (else the definition time)
+    t1: float  # the last scored instant
+    series: list[Instant]
+    score: MembershipScore
+
+    @property
+    def sc(self) -> Scenario:
+        return self.result.scenario
+
+    @property
+    def rec(self) -> Recorder:
+        return self.result.recorder
+
+    @property
+    def gtype(self) -> int:
+        """The tracking group's type."""
+        return self.sc.tracking_group
+
+    @property
+    def defn(self) -> GroupTypeDef:
+        """The tracking group's definition."""
+        return self.sc.group_def()
+
+    @property
+    def end(self) -> float:
+        """The last instant scorable: the run's end less ``settle``."""
+        return self.result.duration - self.settle
+
+    def metrics(self) -> dict[str, Any]:
+        """:func:`run_metrics` over the scored window."""
+        return run_metrics(self.result, self.score, self.gtype, self.t0, self.t1, self.settle)
+
+
+def scored(result: RunResult, *, through_last_sensed: bool = False) -> Scored:
+    """Score the tracking group of ``result`` every :data:`SAMPLE_DT` from the first
+    instant the ground truth has members (else the definition time) to the end of
+    the run less the settle lag, or, with ``through_last_sensed``, to the last
+    instant the truth has members (a pass of a robot)."""
+    sc = result.scenario
+    truth = sc.truth()
+    defn = sc.group_def()
+    sensors = sc.sensors
+    settle = settle_time(sc)
+    end = result.duration - settle
+    grid = instants(sc.define_at, end, SAMPLE_DT)
+    sensed = [t for t in grid if truth.members(defn, t, sensors)]
+    t0 = sensed[0] if sensed else sc.define_at
+    t1 = sensed[-1] if sensed and through_last_sensed else end
+    gtype = sc.tracking_group
+    series = membership_series(
+        result.recorder, truth, defn, gtype, instants(t0, t1, SAMPLE_DT), settle, sensors
+    )
+    return Scored(result, truth, settle, t0, t1, series, score(series))
 
 
 def rounded(d: Mapping[str, Any], digits: int = 4) -> dict[str, Any]:

@@ -20,18 +20,10 @@ from awaremw.experiments import metrics as M
 from awaremw.experiments import plots
 from awaremw.experiments.metrics import RunResult
 from awaremw.experiments.scenario import Scenario
-from awaremw.nodes import config_for
 from awaremw.protocol.attributes import is_rssi
 from awaremw.protocol.frames import Op
 
-SAMPLE_DT = 0.5  # s between scored instants
 IDEAL_IDS = 1  # one group id for the whole pass (summary of --seeds)
-
-
-def settle_time(sc: Scenario) -> float:
-    """One leader-beacon period of the sensing motes: the lag the scoring allows."""
-    spec = sc.deployment.node(sc.sensors[0])
-    return config_for(spec, sc.deployment).beacon_period
 
 
 def threshold_of(sc: Scenario) -> tuple[float, float]:
@@ -54,30 +46,16 @@ def analyse_tracking(
     """The robot-tracking metrics of any scenario with a robot and an
     ``rssi:<robot> >`` group; figures named ``<prefix>_*.png``; ``window_m``: the
     snapshot panels show the square of that half-side around the robot."""
-    sc = result.scenario
-    rec = result.recorder
-    truth = sc.truth()
-    gtype = sc.tracking_group
-    defn = sc.group_def()
-    sensors = sc.sensors
-    robot = sc.robot
-    if robot is None:
-        raise ValueError(f"{sc.name}: no robot in the deployment")
-    settle = settle_time(sc)
-    end = result.duration - settle
-
+    if result.scenario.robot is None:
+        raise ValueError(f"{result.scenario.name}: no robot in the deployment")
     # The pass: while the ground truth has members (the robot is sensed).
-    grid = M.instants(sc.define_at, end, SAMPLE_DT)
-    sensed = [t for t in grid if truth.members(defn, t, sensors)]
-    t0, t1 = (sensed[0], sensed[-1]) if sensed else (sc.define_at, end)
-    series = M.membership_series(rec, truth, defn, gtype, M.instants(t0, t1, SAMPLE_DT), settle,
-                                 sensors)  # fmt: skip
-    s = M.score(series)
+    a = M.scored(result, through_last_sensed=True)
     out.mkdir(parents=True, exist_ok=True)
-    metrics = M.run_metrics(result, s, gtype, t0, t1, settle)
-    metrics["pass_s"] = [t0, t1]
-    metrics["robot_entry_s"] = t0
-    _figures(sc, rec, truth, series, out, settle, prefix, title, result.duration, window_m)
+    metrics = a.metrics()
+    metrics["pass_s"] = [a.t0, a.t1]
+    metrics["robot_entry_s"] = a.t0
+    _figures(a.sc, a.rec, a.truth, a.series, out, a.settle, prefix, title, result.duration,
+             window_m)  # fmt: skip
     return M.rounded(metrics)
 
 

@@ -20,8 +20,9 @@ from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.attributes import rssi_attribute
 from awaremw.protocol.core import MoteCore, Transmission
 from awaremw.protocol.mote import AwareMote
+from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.virtual import VirtualNetwork
-from awaremw.security.material import load_radio_security, load_signing_key
+from awaremw.security.material import load_gateway_keys
 
 
 class ScriptedCore:
@@ -77,16 +78,19 @@ class VirtualRun:
         sample_dt: float = 0.5,
         rssi_motes: list[int] | None = None,
         secrets: str | Path | None = None,
+        keys: tuple[RadioSecurity, bytes] | None = None,
     ) -> None:
         self.scenario = scenario
         self.recorder = recorder or Recorder()
         d = scenario.deployment
         # With secrets (`awaremw keys init`): frames authenticated with the network
         # key, definitions signed with the gateway's key, as in a secured fleet.
-        security, key = None, None
+        # ``keys``: those already loaded (load_gateway_keys), ``secrets``: their DIR.
+        if secrets is not None and keys is not None:
+            raise ValueError("VirtualRun: give secrets or keys, not both")
         if secrets is not None:
-            security = load_radio_security(secrets)
-            key = load_signing_key(secrets, security.gateway_public_key)
+            keys = load_gateway_keys(secrets)
+        security, key = (None, None) if keys is None else keys
         factory = KindsFactory(scenario.world, security=security, signing_key=key)
         self.net = VirtualNetwork(
             d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions, security=security

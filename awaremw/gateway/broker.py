@@ -19,6 +19,11 @@ it does beyond plain amqtt (see docs/robustness.md):
   at most ``max_retained`` retained topics and ``max_retained_bytes`` of their
   payloads are kept (a retained message beyond either is delivered but not
   retained). All refusals are counted in :attr:`EmbeddedBroker.stats`.
+* **offline sessions expire**: amqtt queues the messages of a persistent
+  client that is away without a bound on their number, and has no setting for
+  one; its ``session_expiry_interval`` is set (``BrokerLimits.session_expiry_s``,
+  default one hour), so a client away longer loses its session and that queue with it
+  (:meth:`EmbeddedBroker.queued_for` tells what is queued).
 * **retained messages survive a restart**: with a state directory they are kept
   in ``retained.sqlite`` and put back before the listener opens. (amqtt's own
   ``SessionDBPlugin`` would need SQLAlchemy; the standard library's sqlite3
@@ -56,6 +61,7 @@ DEFAULT_USER = "awaremw"
 MAX_MESSAGE_BYTES = 65_536  # one MQTT packet; the gateway's payloads are <= 4 KiB
 MAX_RETAINED = 10_000  # retained topics
 MAX_RETAINED_BYTES = 16 * 1024 * 1024  # sum of retained payloads
+SESSION_EXPIRY_S = 3600  # a persistent client away longer loses its session and queue
 ACCOUNT_FILE = "mqtt-account"  # user:password, 0600
 PASSWD_FILE = "mqtt.passwd"  # user:argon2-hash, 0600 (amqtt FileAuthPlugin)
 PORT_FILE = "broker.json"
@@ -89,6 +95,24 @@ def mask_url(url: str) -> str:
     if not sep or not at or ":" not in creds:
         return url
     return f"{scheme}://{creds.split(':', 1)[0]}:***@{host}"
+
+
+@dataclass(frozen=True, slots=True)
+class BrokerLimits:
+    """What the embedded broker holds at most (module docstring, docs/robustness.md)."""
+
+    max_message_bytes: int = MAX_MESSAGE_BYTES  # one packet
+    max_retained: int = MAX_RETAINED  # retained topics
+    max_retained_bytes: int = MAX_RETAINED_BYTES  # their payloads
+    session_expiry_s: int = SESSION_EXPIRY_S  # how long an away client's session is kept
+
+    def __post_init__(self) -> None:
+        if self.max_message_bytes < 1024:
+            raise ValueError("broker limits: max_message_bytes >= 1024")
+        if min(self.max_retained, self.max_retained_bytes, self.session_expiry_s) < 1:
+            raise ValueError(
+                "broker limits: max_retained, max_retained_bytes and session_expiry_s >= 1"
+            )
 
 
 @dataclass(slots=True)
@@ -244,12 +268,8 @@ class EmbeddedBroker:
         state_dir: str | Path | None = None,
         anonymous: bool = False,
         username: str = DEFAULT_USER,
-        max_message_bytes: int = MAX_MESSAGE_BYTES,
-        max_retained: int = MAX_RETAINED,
-        max_retained_bytes: int = MAX_RETAINED_BYTES,
+        limits: BrokerLimits | None = None,
     ) -> None:
-        if max_message_bytes < 1024 or max_retained < 1 or max_retained_bytes < 1:
-            raise ValueError("broker limits: max_message_bytes >= 1024, the others >= 1")
         self.host = host
         self.port = 0 if port is None else port
         self._requested_port = port
@@ -259,7 +279,7 @@ class EmbeddedBroker:
         self.password = ""
         self.password_generated = False  # True when this start made a new password
         self.moved_from: int | None = None  # the busy port this start did not get
-        self.limits = (max_message_bytes, max_retained, max_retained_bytes)
+        self.limits = limits or BrokerLimits()
         self.stats = BrokerStats()
         self._broker: _LimitedBroker | None = None
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
@@ -307,13 +327,14 @@ class EmbeddedBroker:
             "listeners": {"default": {"type": "tcp", "bind": f"{self.host}:{self.port}"}},
             # No $SYS publisher, no per-packet logging.
             "plugins": plugins,
+            # amqtt checks every second; it bounds the offline queues in time only.
+            "session_expiry_interval": self.limits.session_expiry_s,
         }
-        mm, mr, mb = self.limits
         broker = _LimitedBroker(
             config,
-            max_message_bytes=mm,
-            max_retained=mr,
-            max_retained_bytes=mb,
+            max_message_bytes=self.limits.max_message_bytes,
+            max_retained=self.limits.max_retained,
+            max_retained_bytes=self.limits.max_retained_bytes,
             db_path=None if self.state_dir is None else state / RETAINED_FILE,
             stats=self.stats,
         )
@@ -343,6 +364,14 @@ class EmbeddedBroker:
     async def __aenter__(self) -> EmbeddedBroker:
         await self.start()
         return self
+
+    def queued_for(self, client_id: str) -> int | None:
+        """Messages queued for the persistent client ``client_id`` while it is away;
+        None when the broker holds no session of it (never seen, clean, or expired)."""
+        if self._broker is None:
+            raise RuntimeError("the embedded broker is not running")
+        entry = self._broker.sessions.get(client_id)  # (session, handler)
+        return None if entry is None else int(entry[0].retained_messages.qsize())
 
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()

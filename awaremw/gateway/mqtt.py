@@ -36,6 +36,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Literal
 from urllib.parse import unquote, urlsplit
 
@@ -53,10 +54,39 @@ OnMessage = Callable[[str, bytes, bool, str], object]  # (rel_topic, payload, re
 STATUS_TOPIC = "gateway/status"
 STATS_TOPIC = "gateway/stats"
 ERRORS_TOPIC = "errors"
+MAX_PASSWORD_BYTES = 65_535  # MQTT's binary data: a 16-bit length
 
 
 class BadMqttUrl(ValueError):
     """An MQTT URL the gateway cannot use (a configuration error)."""
+
+
+class BadPasswordFile(ValueError):
+    """A password file that is missing, unreadable or empty (a configuration error)."""
+
+
+def read_password_file(path: str | Path) -> str:
+    """The password kept in the file ``path``: its text less one trailing newline
+    (``\\n`` or ``\\r\\n``, as ``echo`` and editors leave); everything else is kept."""
+    where = f"MQTT password file {path}"
+    try:
+        # bytes: no newline translation inside the password; bounded (not /dev/zero)
+        with Path(path).open("rb") as f:
+            data = f.read(MAX_PASSWORD_BYTES + 3)
+    except FileNotFoundError:
+        raise BadPasswordFile(f"{where}: not found") from None
+    except OSError as e:
+        raise BadPasswordFile(f"{where}: cannot read: {e.strerror or e}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise BadPasswordFile(f"{where}: not UTF-8 text") from None
+    password = text.removesuffix("\r\n") if text.endswith("\r\n") else text.removesuffix("\n")
+    if not password:
+        raise BadPasswordFile(f"{where}: empty")
+    if len(password.encode()) > MAX_PASSWORD_BYTES:
+        raise BadPasswordFile(f"{where}: longer than MQTT's {MAX_PASSWORD_BYTES} bytes")
+    return password
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +139,19 @@ class MqttSettings:
             tls=tls,
         )
         return replace(base, **overrides)  # type: ignore[arg-type]
+
+    def with_password_file(self, path: str | Path) -> MqttSettings:
+        """These settings with the password of the URL's user read from ``path``
+        (:func:`read_password_file`), which keeps it off the command line: the URL
+        must name the user and hold no password."""
+        if self.username is None:
+            raise BadMqttUrl(
+                f"a password file is for the user of the MQTT URL, and {self.url} names none: "
+                "mqtt[s]://USER@HOST:PORT"
+            )
+        if self.password is not None:
+            raise BadMqttUrl("a password in the MQTT URL and a password file do not combine")
+        return replace(self, password=read_password_file(path))
 
     @property
     def url(self) -> str:

@@ -8,7 +8,8 @@ One loader for every process that ``--secrets DIR`` secures:
   :class:`~awaremw.radio.security.RadioSecurity` (raw bytes, picklable: it goes
   to worker processes inside the fleet settings);
 * :func:`load_signing_key` -- the gateway's Ed25519 *private* key as 32 raw
-  bytes; only the gateway process loads it (fleets get the public key only).
+  bytes; only the gateway process loads it (fleets get the public key only);
+  :func:`load_gateway_keys` loads both, once.
 
 Missing or malformed files raise :class:`~awaremw.security.zenoh_acl.SecretsError`
 with the path and what to do. :data:`OPEN_WARNING` is the one line a process
@@ -22,7 +23,7 @@ from pathlib import Path
 from typing import Final, TextIO
 
 from cryptography.hazmat.primitives import serialization
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from awaremw.radio.security import RadioSecurity
 from awaremw.security.keys import SecretsDir
@@ -74,11 +75,12 @@ def load_signing_key(secrets: Path | str, public_key: bytes | None = None) -> by
     ``public_key``: the raw public key the motes verify with; a private key that
     does not match it (files from two ``keys init`` runs) is refused."""
     d = SecretsDir(Path(secrets))
-    _read(d.signing_key, secrets)  # a clear error when it is missing
     try:
-        key = d.read_signing_key()
+        key = serialization.load_pem_private_key(_read(d.signing_key, secrets), password=None)
     except (ValueError, TypeError) as e:
         raise SecretsError(f"{d.signing_key}: {e}") from None
+    if not isinstance(key, Ed25519PrivateKey):
+        raise SecretsError(f"{d.signing_key}: not an Ed25519 private key")
     mine = key.public_key().public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw)
     if public_key is not None and mine != public_key:
         raise SecretsError(
@@ -92,6 +94,13 @@ def load_signing_key(secrets: Path | str, public_key: bytes | None = None) -> by
     )
 
 
+def load_gateway_keys(secrets: Path | str) -> tuple[RadioSecurity, bytes]:
+    """What a gateway's motes need: the radio security of :func:`load_radio_security`
+    and the signing key of :func:`load_signing_key`, checked to match it."""
+    security = load_radio_security(secrets)
+    return security, load_signing_key(secrets, security.gateway_public_key)
+
+
 def check_secrets(secrets: Path | str) -> RadioSecurity:
     """Check that ``secrets`` holds everything a whole-system run needs (the router's
     and the roles' Zenoh configs, the radio key, the signing pair); its radio
@@ -101,6 +110,4 @@ def check_secrets(secrets: Path | str) -> RadioSecurity:
     router_config_path(secrets)
     for role in ("fleet", "gateway"):
         role_config_path(secrets, role)
-    security = load_radio_security(secrets)
-    load_signing_key(secrets, security.gateway_public_key)
-    return security
+    return load_gateway_keys(secrets)[0]
