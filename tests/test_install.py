@@ -12,6 +12,7 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 import venv
 from pathlib import Path
 
@@ -82,3 +83,28 @@ def test_pip_install_runs_an_experiment_outside_the_checkout(tmp_path: Path) -> 
     path = Path(lua.stdout.strip())
     assert env_dir.resolve() in path.resolve().parents
     assert "register_heuristic" in path.read_text(encoding="utf-8")
+
+
+@pytest.mark.timeout(300)
+def test_compiled_build_refuses_an_editable_install(tmp_path: Path) -> None:
+    """``AWAREMW_USE_MYPYC=1`` with ``pip install -e``: compiled modules next to the
+    sources would shadow every later edit, so setup.py stops with a clear error
+    (before compiling anything) and nothing is installed."""
+    src = tmp_path / "src"
+    shutil.copytree(
+        CHECKOUT,
+        src,
+        ignore=shutil.ignore_patterns(
+            ".git", ".venv", "build", "*.egg-info", "out", "__pycache__", ".*_cache"
+        ),
+    )
+    target = tmp_path / "site"
+    env = {**os.environ, "AWAREMW_USE_MYPYC": "1"}
+    got = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-build-isolation", "--no-deps", "-e",
+         str(src), "--target", str(target)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240, check=False,
+    )  # fmt: skip
+    assert got.returncode != 0
+    assert "AWAREMW_USE_MYPYC=1 is for a regular install" in got.stdout + got.stderr
+    assert not list(src.rglob("*.so")) and not (target / "awaremw").exists()
