@@ -35,6 +35,7 @@ COMPILED = [
     "awaremw/protocol/mote.py",
     "awaremw/protocol/timers.py",
     "awaremw/protocol/trickle.py",
+    "awaremw/radio/counters.py",
     "awaremw/radio/linklayer.py",
     "awaremw/radio/mac.py",
     "awaremw/radio/model.py",
