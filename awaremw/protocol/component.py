@@ -9,8 +9,6 @@ import it without importing each other in a circle.
 from __future__ import annotations
 
 import random
-from typing import NamedTuple
-
 from awaremw.protocol.attributes import RSSI_BASE, Application
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
@@ -18,12 +16,26 @@ from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode
 from awaremw.protocol.timers import TimerSet
 
 
-class RssiSample(NamedTuple):
-    """RSSI EWMA of one neighbour's frames (a tuple: one is made per frame heard,
-    and a tuple is built several times faster than a frozen dataclass)."""
+class RssiSample:
+    """RSSI EWMA of one neighbour's frames. Mutable: the mote updates the sample
+    of a neighbour in place on every frame heard (no allocation per frame);
+    only :class:`~awaremw.protocol.mote.AwareMote` writes it, the components read it."""
 
-    dbm: float  # EWMA of recent frames
-    last_heard: float
+    __slots__ = ("dbm", "last_heard")
+
+    def __init__(self, dbm: float, last_heard: float) -> None:
+        self.dbm = dbm  # EWMA of recent frames
+        self.last_heard = last_heard
+
+    def __repr__(self) -> str:
+        return f"RssiSample(dbm={self.dbm!r}, last_heard={self.last_heard!r})"
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, RssiSample):
+            return NotImplemented
+        return self.dbm == other.dbm and self.last_heard == other.last_heard
+
+    __hash__ = None  # type: ignore[assignment]  # mutable
 
 
 class MoteContext:

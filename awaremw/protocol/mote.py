@@ -122,9 +122,21 @@ class AwareMote:
         except FrameError as e:
             self.ctx.emit(MalformedFrame(str(e), len(frame)))
             return
-        if f.dst != BROADCAST and f.dst != self.node_id:
+        dst = f.dst
+        if dst != BROADCAST and dst != self.node_id:
             return  # overheard unicast for someone else
-        self._note_rssi(f.src, rssi_dbm, now)
+        # The RSSI EWMA of src (once per frame heard): its sample updated in place.
+        src = f.src
+        s = self._rssi.get(src)
+        if s is None:
+            self._rssi[src] = RssiSample(rssi_dbm, now)
+        elif now - s.last_heard > self._rssi_ttl:
+            s.dbm = rssi_dbm
+            s.last_heard = now
+        else:
+            a = self._rssi_alpha
+            s.dbm = a * rssi_dbm + (1 - a) * s.dbm
+            s.last_heard = now
         self._by_type[f.TYPE].on_frame(f, rssi_dbm, now)
 
     def handle_timer(self, now: float) -> None:
@@ -192,15 +204,6 @@ class AwareMote:
         self.dissemination.inject(kind, item_id, version, item, now, signature)
 
     # ----------------------------------------------------------------- internals
-
-    def _note_rssi(self, src: int, rssi_dbm: float, now: float) -> None:
-        table = self._rssi
-        old = table.get(src)
-        if old is None or now - old.last_heard > self._rssi_ttl:
-            table[src] = RssiSample(rssi_dbm, now)
-        else:
-            a = self._rssi_alpha
-            table[src] = RssiSample(a * rssi_dbm + (1 - a) * old.dbm, now)
 
     def _on_item(self, kind: ItemKind, item_id: int, item: ItemBody | None, now: float) -> None:
         handler: Callable[[int, ItemBody | None, float], None] = {
