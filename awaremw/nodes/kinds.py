@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 from awaremw.protocol import attributes as A
 from awaremw.protocol.frames import CommandDef
-from awaremw.world.fields import World
+from awaremw.world.fields import Source, World
 
 Position = Callable[[float], tuple[float, float]]
 EnergyProbe = Callable[[], float]  # joules spent so far by this mote
@@ -232,6 +232,11 @@ class NodeApp:
         self.leds: dict[str, bool] = dict.fromkeys(self.LEDS, False)
         self.sample_period: float = 0.0  # "set_rate": sample-and-hold period, 0 = every read
         self._held: dict[int, tuple[float, float | None]] = {}
+        # Sensor-read caches (group checks read a sensor every check period):
+        # the fires that can reach the mote where it last was, and each noisy
+        # sensor's constant part of its noise hash (World.noise_key).
+        self._near: tuple[float, float, tuple[Source, ...]] | None = None
+        self._noise_keys: dict[str, int] = {}
         self._readers: dict[int, Callable[[float], float | None]] = {
             A.X: lambda t: self.position(t)[0],
             A.Y: lambda t: self.position(t)[1],
@@ -276,6 +281,11 @@ class NodeApp:
     def true_value(self, name: str, now: float) -> float:
         """The noise-free world value this mote's sensor for ``name`` would see."""
         x, y = self.position(now)
+        if name == "temperature":
+            near = self._near
+            if near is None or near[0] != x or near[1] != y:  # moved (or first read)
+                near = self._near = (x, y, self.world.fires_reaching(x, y))
+            return self.world.temperature_near(near[2], x, y, now)
         return self.world.value(name, x, y, now)
 
     def _sensed(self, name: str, now: float) -> tuple[float, float]:
@@ -284,8 +294,11 @@ class NodeApp:
         n = self.noise.get(name)
         if n is None:
             return true, true
+        key = self._noise_keys.get(name)
+        if key is None:
+            key = self._noise_keys[name] = self.world.noise_key(self.node_id, name)
         sigma = n.sigma + n.relative * abs(true)
-        return true, true + self.world.noise(self.node_id, name, now, sigma)
+        return true, true + self.world.noise_at(key, now, sigma)
 
     def _battery(self, now: float) -> float:
         spent = self.energy() if self.energy is not None else 0.0

@@ -569,7 +569,10 @@ class Groups(Component):
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
         read = self.ctx.read
-        return all(condition_holds(c, read(c.attr, now), relax) for c in st.defn.conditions)
+        for c in st.defn.conditions:  # a loop, not all(...): no generator per check
+            if not condition_holds(c, read(c.attr, now), relax):
+                return False
+        return True
 
     def _check(self, st: _TypeState, now: float) -> None:
         role = st.role
