@@ -93,6 +93,7 @@ class AwareMote:
             Partial.TYPE: self.channels,
         }
         self._timed = tuple((c, c.timers) for c in self._components)  # set once per component
+        self._sets = tuple(c.timers for c in self._components)
         self._timer_watch = TimerWatch()
         for c in self._components:
             c.timers.watch(self._timer_watch)
@@ -141,17 +142,16 @@ class AwareMote:
 
     def handle_timer(self, now: float) -> None:
         for c, t in self._timed:
-            if t.soonest > now:  # a lower bound of its earliest deadline: none due
-                continue
-            for name in t.due(now):
-                c.on_timer(name, now)
+            if t.soonest <= now:  # else (a lower bound of its earliest deadline) none due
+                for name in t.due(now):
+                    c.on_timer(name, now)
 
     def next_deadline(self) -> float | None:
         w = self._timer_watch
         if w.changed:
             w.changed = False
             best = _INF
-            for _c, t in self._timed:
+            for t in self._sets:
                 if t.stale:
                     t.next_deadline()  # refreshes soonest
                 if t.soonest < best:

@@ -86,17 +86,23 @@ class TimerSet:
         deadlines in the order they were first set)."""
         if self.soonest > now:  # a lower bound: nothing is due
             return []
-        if self.stale:
-            self.soonest = min(self._deadlines.values(), default=_INF)
-            self.stale = False
-            if self.soonest > now:
-                return []
+        # One pass: the due names and the earliest of the others (the new soonest,
+        # exact, so the mote's next_deadline needs no scan of this set).
         d = self._deadlines
-        names = [n for n, t in d.items() if t <= now]
+        names: list[Hashable] = []
+        rest = _INF
+        for n, t in d.items():
+            if t <= now:
+                names.append(n)
+            elif t < rest:
+                rest = t
+        self.soonest = rest
+        self.stale = False
+        if not names:  # soonest was a stale lower bound
+            return names
         if len(names) > 1:
             names.sort(key=d.__getitem__)
         for n in names:
             del d[n]
-        self.stale = True
         self._watch.changed = True
         return names
