@@ -592,8 +592,10 @@ class Groups(Component):
             self._start_handover(st, now)
 
     def _purge(self, st: _TypeState, now: float) -> None:
-        ttl = self._timeout()
         # Most motes hear no group most of the time: skip the empty tables.
+        if not (st.nearby or st.upstream or st.failed or st.children or st.tent_heard):
+            return
+        ttl = self._timeout()
         if st.nearby:
             for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
                 del st.nearby[gid]

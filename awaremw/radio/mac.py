@@ -356,6 +356,16 @@ class Air:
         """Did frame ``f``, received at ``rssi_dbm`` by ``rid`` at ``(rx, ry)``, survive
         the ``others`` (:meth:`overlapping`)? False if ``rid`` itself transmitted
         during it (deaf) or its SINR fell below the capture threshold at any instant."""
+        if len(others) == 1:  # the usual case (after the driver's cell filter): no spans
+            o = others[0]
+            if o.src == rid:
+                return False  # half duplex: a transmitting radio hears nothing
+            p1 = self.power_mw(o, rid, rx, ry)
+            if p1 <= 0.0:
+                return True
+            cap1 = self.capture_mw
+            # One interferer: it is the worst instant (as below).
+            return cap1 is not None and _mw(rssi_dbm) >= cap1 * (self._noise_mw + p1)
         spans = []
         for o in others:
             if o.src == rid:
