@@ -353,10 +353,11 @@ class Groups(Component):
 
     def memberships(self) -> dict[int, Membership]:
         out: dict[int, Membership] = {}
-        for g in self._types:
-            m = self.membership(g)
-            if m is not None:
-                out[g] = m
+        for g, st in self._types.items():
+            if st.role is Role.MEMBER or st.role is Role.LEADER:  # else membership() is None
+                m = self.membership(g)
+                if m is not None:
+                    out[g] = m
         return out
 
     def role(self, group_type: int) -> Role | None:
