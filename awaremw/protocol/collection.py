@@ -254,9 +254,7 @@ class Collection(Component):
         self._arm_beacon()
 
     def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
-        if type(frame) is CtpBeacon:  # the common case (frames are final classes)
-            self._on_beacon(frame, rssi_dbm, now)
-        elif isinstance(frame, CtpBeacon):
+        if isinstance(frame, CtpBeacon):
             self._on_beacon(frame, rssi_dbm, now)
         elif isinstance(frame, CtpData):
             self._on_data(frame, rssi_dbm, now)

@@ -9,6 +9,7 @@ import it without importing each other in a circle.
 from __future__ import annotations
 
 import random
+
 from awaremw.protocol.attributes import RSSI_BASE, Application
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission

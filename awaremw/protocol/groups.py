@@ -570,7 +570,7 @@ class Groups(Component):
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
         read = self.ctx.read
-        for c in st.defn.conditions:  # a loop, not all(...): no generator per check
+        for c in st.defn.conditions:  # noqa: SIM110 (a loop, not all(): no generator per check)
             if not condition_holds(c, read(c.attr, now), relax):
                 return False
         return True

@@ -245,7 +245,8 @@ class Air:
     """
 
     __slots__ = (
-        "_noise_mw", "_pairs", "_sens", "capture_mw", "cell_size", "frames", "horizon_s", "model",
+        "_noise_mw", "_pairs", "_sens", "_sens_mw", "capture_mw", "cell_size", "frames",
+        "horizon_s", "model",
     )  # fmt: skip
 
     def __init__(self, model: RadioModel, capture_db: float | None, horizon_s: float) -> None:
@@ -255,6 +256,7 @@ class Air:
         self.horizon_s = horizon_s
         self._noise_mw = _mw(model.preset.noise_floor_dbm)
         self._sens = model.preset.sensitivity_dbm
+        self._sens_mw = _mw(self._sens)  # for carrier sense (once, not per assessment)
         self.frames: list[OnAir] = []
         # (src << 16 | receiver) -> (sender x, y, power, receiver x, y, mean mW): the
         # same pair at the same places costs one lookup (static motes: every frame).
@@ -340,7 +342,7 @@ class Air:
         frames of others on the air then reaches ``threshold_dbm``, or (with
         ``carrier_sense``) one of them is received at or above the sensitivity."""
         total = 0.0
-        sens = _mw(self._sens)
+        sens = self._sens_mw
         for o in self.frames:
             if o.src == rid or o.start >= t1 or o.end <= t0:
                 continue

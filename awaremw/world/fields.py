@@ -227,7 +227,8 @@ class Source:
         ks = self.keyframes
         reach = max(k.radius for k in ks) + _CUT_EDGES * self.edge
         # The centre moves on the polyline of the keyframes (linear interpolation).
-        d = min(_to_segment(x, y, a.x, a.y, b.x, b.y) for a, b in zip(ks, ks[1:] or ks))
+        pairs = zip(ks, ks[1:] or ks, strict=False)
+        d = min(_to_segment(x, y, a.x, a.y, b.x, b.y) for a, b in pairs)
         return d <= reach * (1.0 + 1e-9) + 1e-6
 
 
