@@ -278,8 +278,10 @@ class Air:
         """Forget the frames that ended more than ``horizon_s`` before ``now``."""
         cut = now - self.horizon_s
         fr = self.frames
-        if fr and min(f.end for f in fr) < cut:
-            self.frames = [f for f in fr if f.end >= cut]
+        for old in fr:  # any frame to forget? (a loop: no generator per transmission)
+            if old.end < cut:
+                self.frames = [f for f in fr if f.end >= cut]
+                return
 
     def cut(self, src: int, now: float) -> None:
         """``src`` was switched off at ``now``: its frame stops there (or never starts)."""
