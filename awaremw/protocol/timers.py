@@ -19,12 +19,14 @@ _INF = math.inf
 
 
 class TimerWatch:
-    """Marked (``changed = True``) by every change of the sets watching it."""
+    """Marked (``changed = True``) by every change of the sets watching it, and
+    ``grew = True`` when one of them gets its first timer ever (``armed``)."""
 
-    __slots__ = ("changed",)
+    __slots__ = ("changed", "grew")
 
     def __init__(self) -> None:
         self.changed = True
+        self.grew = True
 
 
 class TimerSet:
@@ -34,21 +36,26 @@ class TimerSet:
     the set when ``soonest > now`` (nothing is due) without a call. Both are
     read-only outside this class."""
 
-    __slots__ = ("_deadlines", "_watch", "soonest", "stale")
+    __slots__ = ("_deadlines", "_watch", "armed", "soonest", "stale")
 
     def __init__(self) -> None:
         self._deadlines: dict[Hashable, float] = {}
         self.soonest = _INF  # lower bound of the earliest deadline; exact unless stale
         self.stale = False
+        self.armed = False  # ever set a timer (a set never armed is empty: skip it)
         self._watch = TimerWatch()
 
     def watch(self, w: TimerWatch) -> None:
         """Mark ``w`` (instead of a private watch) on every later change."""
         self._watch = w
         w.changed = True
+        w.grew = True
 
     def set(self, name: Hashable, when: float) -> None:
         self._watch.changed = True
+        if not self.armed:
+            self.armed = True
+            self._watch.grew = True
         d = self._deadlines
         old = d.get(name)
         d[name] = when
