@@ -302,9 +302,9 @@ class Air:
         return [
             o
             for o in self.frames
-            if o is not f
+            if o.end > s  # the test most frames fail first (they ended before f began)
             and o.start < e
-            and o.end > s
+            and o is not f
             and abs(o.cell[0] - cx) <= 2
             and abs(o.cell[1] - cy) <= 2
         ]
@@ -326,12 +326,14 @@ class Air:
             ):
                 v = hit[5]
             else:
-                c = cell_of(rx, ry, self.cell_size)
-                if abs(c[0] - o.cell[0]) > 1 or abs(c[1] - o.cell[1]) > 1:
+                # cell_of and _mw inlined (the same operations).
+                cs = self.cell_size
+                oc = o.cell
+                if abs(math.floor(rx / cs) - oc[0]) > 1 or abs(math.floor(ry / cs) - oc[1]) > 1:
                     v = 0.0
                 else:
                     d = math.hypot(rx - o.x, ry - o.y)
-                    v = _mw(self.model.mean_rssi(o.src, rid, d, o.tx_power))
+                    v = 10.0 ** (self.model.mean_rssi(o.src, rid, d, o.tx_power) / 10.0)
                 if len(self._pairs) >= MAX_PAIRS:
                     self._pairs.clear()
                 self._pairs[k] = (o.x, o.y, o.tx_power, rx, ry, v)
