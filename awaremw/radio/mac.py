@@ -231,8 +231,6 @@ def _mw(dbm: float) -> float:
 # Bound of Air's list: one frame per sender on the air plus those kept for late
 # decisions; a medium with more concurrent frames than this has a bug.
 MAX_ON_AIR: Final = 1 << 16
-# Bound of Air's cache of mean powers per (sender, receiver) pair; cleared when full.
-MAX_PAIRS: Final = 1 << 18
 
 
 class Air:
@@ -245,7 +243,7 @@ class Air:
     """
 
     __slots__ = (
-        "_noise_mw", "_pairs", "_sens", "_sens_mw", "capture_mw", "cell_size", "frames",
+        "_noise_mw", "_sens", "_sens_mw", "capture_mw", "cell_size", "frames",
         "horizon_s", "model",
     )  # fmt: skip
 
@@ -258,9 +256,6 @@ class Air:
         self._sens = model.preset.sensitivity_dbm
         self._sens_mw = _mw(self._sens)  # for carrier sense (once, not per assessment)
         self.frames: list[OnAir] = []
-        # (src << 16 | receiver) -> (sender x, y, power, receiver x, y, mean mW): the
-        # same pair at the same places costs one lookup (static motes: every frame).
-        self._pairs: dict[int, tuple[float, float, float, float, float, float]] = {}
 
     def add(
         self, src: int, x: float, y: float, tx_power: float, start: float, end: float, key: int = 0
@@ -314,29 +309,16 @@ class Air:
         0 if ``rid`` does not listen to ``o``'s cell."""
         v = o.mw_cache.get(rid)
         if v is None:
-            k = o.src << 16 | rid
-            hit = self._pairs.get(k)
-            if (
-                hit is not None
-                and hit[0] == o.x
-                and hit[1] == o.y
-                and hit[2] == o.tx_power
-                and hit[3] == rx
-                and hit[4] == ry
-            ):
-                v = hit[5]
+            # No cache across frames: most (sender, receiver) pairs meet once or
+            # twice per run, and a table of them cost more (memory) than it saved.
+            # cell_of and _mw inlined (the same operations).
+            cs = self.cell_size
+            oc = o.cell
+            if abs(math.floor(rx / cs) - oc[0]) > 1 or abs(math.floor(ry / cs) - oc[1]) > 1:
+                v = 0.0
             else:
-                # cell_of and _mw inlined (the same operations).
-                cs = self.cell_size
-                oc = o.cell
-                if abs(math.floor(rx / cs) - oc[0]) > 1 or abs(math.floor(ry / cs) - oc[1]) > 1:
-                    v = 0.0
-                else:
-                    d = math.hypot(rx - o.x, ry - o.y)
-                    v = 10.0 ** (self.model.mean_rssi(o.src, rid, d, o.tx_power) / 10.0)
-                if len(self._pairs) >= MAX_PAIRS:
-                    self._pairs.clear()
-                self._pairs[k] = (o.x, o.y, o.tx_power, rx, ry, v)
+                d = math.hypot(rx - o.x, ry - o.y)
+                v = 10.0 ** (self.model.mean_rssi(o.src, rid, d, o.tx_power) / 10.0)
             o.mw_cache[rid] = v
         return v
 
