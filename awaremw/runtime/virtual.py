@@ -516,7 +516,7 @@ class VirtualNetwork:
             mask = _M64
             mul = _MUL
             shift = _SHIFT
-            rel_by_cell: dict[Cell, list[OnAir]] = {}
+            rel_by_cell: dict[Cell, list[OnAir]] | None = None if others is None else {}
             for r, rc, mean, lh in c.near:
                 # Inlined RadioModel.decide(lh, mean, bits, key), the hot path.
                 # packet_hash is z ^ (z >> 31): its top 12 bits (the normal
@@ -545,13 +545,13 @@ class VirtualNetwork:
                         continue
                 if not r.alive:
                     continue
-                if others is not None:
+                if rel_by_cell is not None:  # others is not None
                     # Only the overlapping frames sent from r's cell or the 8 around
                     # reach r (Air.power_mw is 0 for the others, and r's own frame
                     # is in its cell): an empty list means the frame survived.
                     rel = rel_by_cell.get(r.cell)
                     if rel is None:
-                        rel = _reaching(others, r.cell)
+                        rel = _reaching(others, r.cell)  # type: ignore[arg-type]
                         rel_by_cell[r.cell] = rel
                     if rel and not air.survives(f, rssi, r.node_id, r.x, r.y, rel):  # type: ignore[arg-type]
                         rc.collisions += 1
