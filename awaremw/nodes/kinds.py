@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 from awaremw.protocol import attributes as A
 from awaremw.protocol.frames import CommandDef
-from awaremw.world.fields import Source, World
+from awaremw.world.fields import GAUSS_BOUND, Source, World
 
 Position = Callable[[float], tuple[float, float]]
 EnergyProbe = Callable[[], float]  # joules spent so far by this mote
@@ -366,6 +366,39 @@ class TmoteSky(NodeApp):
         self._readers[A.TEMPERATURE] = self._temperature
         self._readers[A.HUMIDITY] = self._humidity
         self._readers[A.LIGHT] = self._light
+        # read_bounds of the temperature where no fire reaches: (x, y, noise, bounds).
+        self._cold: tuple[float, float, SensorNoise | None, tuple[float, float]] | None = None
+
+    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
+        """:class:`~awaremw.protocol.attributes.ReadBounds`: the temperature of a
+        mote no fire can reach (ambient, plus noise of at most ``GAUSS_BOUND``
+        sigmas), through the SHT11 conversion, which is monotonic; None for a
+        mote a fire may reach, for other attributes, and with a sample-and-hold
+        period (a read then updates the held sample)."""
+        if attr != A.TEMPERATURE or self.sample_period > 0:
+            return None
+        x, y = self.position(now)
+        n = self.noise.get("temperature")
+        c = self._cold
+        if c is None or c[0] != x or c[1] != y or c[2] is not n:
+            c = self._cold = (x, y, n, self._cold_bounds(x, y, now, n))
+        b = c[3]
+        return None if b[0] > b[1] else b
+
+    def _cold_bounds(
+        self, x: float, y: float, now: float, n: SensorNoise | None
+    ) -> tuple[float, float]:
+        """The bounds at (x, y) when no fire reaches it (else an empty interval)."""
+        fires = self.world.fires_reaching(x, y)
+        if fires:
+            return math.inf, -math.inf
+        # The noise-free value is then the same at every time: ambient (+ texture).
+        true = self.world.temperature_near(fires, x, y, now)
+        # _sensed adds sigma * g with |g| < GAUSS_BOUND (rounding is monotonic).
+        spread = 0.0 if n is None else (n.sigma + n.relative * abs(true)) * GAUSS_BOUND
+        lo = Sht11.temperature_si(Sht11.temperature_raw(true - spread))
+        hi = Sht11.temperature_si(Sht11.temperature_raw(true + spread))
+        return lo, hi
 
     def raw_temperature(self, now: float) -> int:
         return Sht11.temperature_raw(self._sensed("temperature", now)[1])

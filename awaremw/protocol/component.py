@@ -9,8 +9,9 @@ import it without importing each other in a circle.
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
 
-from awaremw.protocol.attributes import RSSI_BASE, Application
+from awaremw.protocol.attributes import RSSI_BASE, Application, ReadBounds
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode
@@ -58,6 +59,9 @@ class MoteContext:
         self.outbox: list[Transmission] = []
         self.pending: dict[int, tuple[Component, Frame]] = {}
         self.event_list: list[object] = []
+        # The application's read_bounds (ReadBounds), looked up again if app changes.
+        self._bounds_app: Application | None = None
+        self._bounds: Callable[[int, float], tuple[float, float] | None] | None = None
 
     def send(self, owner: Component, frame: Frame) -> Transmission:
         """Encode ``frame`` (MTU enforced: an oversize frame is our bug) and queue it."""
@@ -72,6 +76,18 @@ class MoteContext:
 
     def emit(self, event: object) -> None:
         self.event_list.append(event)
+
+    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
+        """An interval :meth:`read` is certain to fall in now, with no side effect
+        (:class:`~awaremw.protocol.attributes.ReadBounds`), or None: unknown."""
+        app = self.app
+        if app is None or attr & RSSI_BASE:
+            return None
+        if app is not self._bounds_app:
+            self._bounds_app = app
+            self._bounds = app.read_bounds if isinstance(app, ReadBounds) else None
+        b = self._bounds
+        return None if b is None else b(attr, now)
 
     def read(self, attr: int, now: float) -> float | None:
         """An attribute's current value, or None if this mote cannot give it."""

@@ -296,6 +296,25 @@ def condition_holds(c: Condition, value: float | None, relax: float) -> bool:
     return value != thr
 
 
+def condition_may_hold(c: Condition, lo: float, hi: float, relax: float) -> bool:
+    """Whether :func:`condition_holds` may be True for a value in ``[lo, hi]``
+    (False: it is False for every such value; the comparisons are the same
+    floating-point operations, which are monotonic)."""
+    thr = c.value
+    op = c.op
+    if op is Op.GT:
+        return hi > thr - relax
+    if op is Op.GE:
+        return hi >= thr - relax
+    if op is Op.LT:
+        return lo < thr + relax
+    if op is Op.LE:
+        return lo <= thr + relax
+    if op is Op.EQ:
+        return not (lo - thr > relax or thr - hi > relax)
+    return True  # != (and anything else): read it
+
+
 # --------------------------------------------------------------------------- the component
 
 
@@ -577,9 +596,14 @@ class Groups(Component):
 
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
-        read = self.ctx.read
-        for c in st.defn.conditions:  # noqa: SIM110 (a loop, not all(): no generator per check)
-            if not condition_holds(c, read(c.attr, now), relax):
+        ctx = self.ctx
+        for c in st.defn.conditions:
+            # A reading certain to fail the condition is not taken (most motes,
+            # far from what a group tracks, most of the time): the same answer.
+            b = ctx.read_bounds(c.attr, now)
+            if b is not None and not condition_may_hold(c, b[0], b[1], relax):
+                return False
+            if not condition_holds(c, ctx.read(c.attr, now), relax):
                 return False
         return True
 

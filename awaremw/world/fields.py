@@ -91,6 +91,11 @@ def gauss_hash(*parts: int | float | str) -> float:
     return _gauss_of(hash_u64(*parts))
 
 
+# |_gauss_of(v)| for any 64-bit v is below this: u1 >= 2**-33, so the radius
+# sqrt(-2 ln u1) <= sqrt(66 ln 2) = 6.7637..., and |cos| <= 1.
+GAUSS_BOUND = 6.77
+
+
 def _gauss_of(v: int) -> float:
     u1 = ((v >> 32) + 0.5) / 4294967296.0  # in (0, 1): log never sees 0
     u2 = (v & 0xFFFFFFFF) / 4294967296.0
