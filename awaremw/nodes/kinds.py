@@ -366,8 +366,11 @@ class TmoteSky(NodeApp):
         self._readers[A.TEMPERATURE] = self._temperature
         self._readers[A.HUMIDITY] = self._humidity
         self._readers[A.LIGHT] = self._light
-        # read_bounds of the temperature where no fire reaches: (x, y, noise, bounds).
-        self._cold: tuple[float, float, SensorNoise | None, tuple[float, float]] | None = None
+        # read_bounds of the temperature at (x, y) with these noise settings (None:
+        # a fire may reach it): (x, y, noise, bounds).
+        self._cold: tuple[float, float, SensorNoise | None, tuple[float, float] | None] | None = (
+            None
+        )
 
     def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
         """:class:`~awaremw.protocol.attributes.ReadBounds`: the temperature of a
@@ -382,16 +385,15 @@ class TmoteSky(NodeApp):
         c = self._cold
         if c is None or c[0] != x or c[1] != y or c[2] is not n:
             c = self._cold = (x, y, n, self._cold_bounds(x, y, now, n))
-        b = c[3]
-        return None if b[0] > b[1] else b
+        return c[3]
 
     def _cold_bounds(
         self, x: float, y: float, now: float, n: SensorNoise | None
-    ) -> tuple[float, float]:
-        """The bounds at (x, y) when no fire reaches it (else an empty interval)."""
+    ) -> tuple[float, float] | None:
+        """The bounds at (x, y) when no fire reaches it (else None)."""
         fires = self.world.fires_reaching(x, y)
         if fires:
-            return math.inf, -math.inf
+            return None
         # The noise-free value is then the same at every time: ambient (+ texture).
         true = self.world.temperature_near(fires, x, y, now)
         # _sensed adds sigma * g with |g| < GAUSS_BOUND (rounding is monotonic).

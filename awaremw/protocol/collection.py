@@ -306,7 +306,15 @@ class Collection(Component):
     # ------------------------------------------------------------------ routing
 
     def _on_beacon(self, b: CtpBeacon, rssi: float, now: float) -> None:
-        self._note(b.src, rssi, now, b.cost, b.parent)
+        n = self._neighbours.get(b.src)
+        if n is None:
+            self._note(b.src, rssi, now, b.cost, b.parent)
+        else:  # _note of a known neighbour, inlined (once per beacon heard)
+            n.cost, n.parent, n.last_heard = b.cost, b.parent, now
+            a = self._rssi_alpha
+            n.rssi = rssi if n.rssi is None else a * rssi + (1 - a) * n.rssi
+            self._recost(n)
+            self._changed(n)
         if b.pull and (self._root or self._parent is not None):
             self._reset_trickle(now)
         if b.src == self._parent and (b.cost >= NO_ROUTE or b.parent == self.ctx.node_id):

@@ -517,7 +517,9 @@ class Groups(Component):
         if name == "check":
             for st in list(self._types.values()):
                 self._check(st, now)
-                self._purge(st, now)
+                # Most motes hear no group most of the time: no tables to purge.
+                if st.nearby or st.upstream or st.failed or st.children or st.tent_heard:
+                    self._purge(st, now)
             if self._types:
                 self.timers.set("check", now + self.ctx.config.check_period)
             return
@@ -611,7 +613,7 @@ class Groups(Component):
         role = st.role
         if role is Role.HANDING_OVER:
             return
-        q = self._qualifies(st, role in (Role.MEMBER, Role.LEADER), now)
+        q = self._qualifies(st, role is Role.MEMBER or role is Role.LEADER, now)
         if role is Role.IDLE and q:
             self._join_or_wait(st, now, ElectionCause.CREATED)
         elif role is Role.WAITING and not q:
@@ -625,9 +627,6 @@ class Groups(Component):
             self._start_handover(st, now)
 
     def _purge(self, st: _TypeState, now: float) -> None:
-        # Most motes hear no group most of the time: skip the empty tables.
-        if not (st.nearby or st.upstream or st.failed or st.children or st.tent_heard):
-            return
         ttl = self._timeout()
         if st.nearby:
             for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
