@@ -208,10 +208,11 @@ class Channels(Component):
         if self._pending:  # most motes are in no group: nothing pending
             for key in [k for k in self._pending if k[0] == cid and k[3] < e - KEEP_EPOCHS]:
                 self._forget(key)
-        if not self.groups.in_a_group():  # most motes: no membership to sample for
+        ms = self.groups.memberships()
+        if not ms:  # most motes: no membership to sample for
             return
         agg = aggregation.by_id(d.agg)
-        for m in self.groups.memberships().values():
+        for m in ms.values():
             if not channel_matches(d, m):
                 continue
             key = (cid, m.group_type, m.group_id, e)

@@ -370,14 +370,6 @@ class Groups(Component):
             weight=st.weight,
         )
 
-    def in_a_group(self) -> bool:
-        """Whether this mote is a member or leader of a group of any type (a
-        cheap :meth:`memberships` test: no records built)."""
-        for st in self._types.values():  # noqa: SIM110 (no generator: once per epoch per mote)
-            if st.role is Role.MEMBER or st.role is Role.LEADER:
-                return True
-        return False
-
     def memberships(self) -> dict[int, Membership]:
         out: dict[int, Membership] = {}
         for g, st in self._types.items():
