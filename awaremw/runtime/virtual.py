@@ -380,11 +380,24 @@ class VirtualNetwork:
         except Exception as e:
             self._contain(node, "handle_timer", e)
         # Inlined _after(node): with nothing sent and no event, only re-arm.
-        txs = core.drain()
-        evs = core.events()
-        dl = core.next_deadline()
+        idle = node.idle
+        txs: list[Transmission] | None
+        evs: list[object] | None
+        if idle is None:
+            txs = core.drain()
+            evs = core.events()
+            dl = core.next_deadline()
+        else:
+            # An IdleCheck core: its deadline first; idle then means nothing was
+            # queued and no event emitted (drain and events would return []).
+            dl = core.next_deadline()
+            if idle():
+                txs = evs = None
+            else:
+                txs = core.drain()
+                evs = core.events()
         if txs or evs:
-            self._handle(node, txs, evs, dl)
+            self._handle(node, txs or [], evs or [], dl)
         elif dl is not None:  # armed is None: the deadline changed
             node.armed = dl
             node.timer_gen += 1
