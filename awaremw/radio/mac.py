@@ -330,7 +330,7 @@ class Air:
         total = 0.0
         sens = self._sens_mw
         for o in self.frames:
-            if o.src == rid or o.start >= t1 or o.end <= t0:
+            if o.end <= t0 or o.start >= t1 or o.src == rid:  # most frames ended before t0
                 continue
             p = self.power_mw(o, rid, x, y)
             if carrier_sense and p >= sens:
