@@ -14,7 +14,7 @@ from collections.abc import Callable
 from awaremw.protocol.attributes import RSSI_BASE, Application, ReadBounds
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode
+from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode, note_sent
 from awaremw.protocol.timers import TimerSet
 
 
@@ -66,6 +66,7 @@ class MoteContext:
     def send(self, owner: Component, frame: Frame) -> Transmission:
         """Encode ``frame`` (MTU enforced: an oversize frame is our bug) and queue it."""
         data = encode(frame, self.config.mtu)
+        note_sent(data, frame)  # its receivers here need not decode it again
         if frame.dst == BROADCAST:
             tx = Transmission.broadcast(data)
         else:
