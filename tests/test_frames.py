@@ -279,3 +279,29 @@ def test_decode_shared_shares_equal_bytes_and_never_keeps_failures() -> None:
     assert decode_shared(a) is fa  # the failure did not replace the entry
     fb = decode_shared(b)
     assert fb == decode(b) and fb is not fa
+
+
+def test_a_frame_noted_as_sent_is_what_its_bytes_decode_to() -> None:
+    from enum import IntEnum
+
+    from awaremw.protocol import frames as F
+
+    b = F.CtpBeacon(3, F.BROADCAST, 40, 7, True)
+    data = F.encode(b)
+    F.note_sent(data, b)
+    got = F.decode_shared(data)
+    assert got is b and got == F.decode(data)  # the first receiver takes the object
+    assert data not in F._sent  # and the entry is gone
+
+    class Small(IntEnum):
+        SEVEN = 7
+
+    odd = F.CtpBeacon(3, F.BROADCAST, 41, Small.SEVEN, False)  # decodes to a plain int
+    F.note_sent(F.encode(odd), odd)
+    assert F.encode(odd) not in F._sent
+    item = F.DripSummary(4, F.BROADCAST, 1, 2)
+    F.note_sent(F.encode(item), item)
+    assert F.decode_shared(F.encode(item)) == item
+    part = F.Partial(5, 6, 1, 1, 9, 3, 0, 1, (0.1,))  # a float field: never kept
+    F.note_sent(F.encode(part), part)
+    assert F.encode(part) not in F._sent

@@ -6,6 +6,8 @@ import random
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE
 from awaremw.protocol.config import MiddlewareConfig
@@ -36,6 +38,7 @@ from awaremw.protocol.groups import (
     LeaveReason,
     Role,
     condition_holds,
+    condition_may_hold,
     heavier,
     seq_newer,
 )
@@ -1034,3 +1037,47 @@ def test_a_split_long_after_the_merge_gets_a_new_id() -> None:
 def h_window() -> float:
     cfg = H().cfg
     return cfg.unmerge_window_periods * cfg.beacon_period
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    st.sampled_from(list(Op)),
+    st.floats(-100, 100),
+    st.floats(0, 5),
+    st.floats(-100, 100),
+    st.floats(0, 30),
+    st.floats(0, 1),
+)
+def test_a_condition_that_may_not_hold_on_an_interval_fails_everywhere_in_it(
+    op: Op, thr: float, relax: float, lo: float, width: float, f: float
+) -> None:
+    # Group checks skip a read when condition_may_hold says no (ReadBounds).
+    c = Condition(TEMPERATURE, op, thr)
+    hi = lo + width
+    if not condition_may_hold(c, lo, hi, relax):
+        for v in (lo, hi, lo + f * width, thr, thr - relax, thr + relax):
+            if lo <= v <= hi:
+                assert not condition_holds(c, v, relax)
+    if condition_holds(c, lo + f * width, relax):
+        assert condition_may_hold(c, lo, hi, relax)
+
+
+def test_a_group_check_takes_no_reading_outside_what_can_qualify() -> None:
+    class Bounded(App):
+        reads = 0
+
+        def read(self, attr: int, now: float) -> float | None:
+            self.reads += 1
+            return super().read(attr, now)
+
+        def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
+            v = self.values.get(attr)
+            return None if v is None else (v - 1.0, v + 1.0)
+
+    for temp, reads in ((20.0, 0), (80.0, 1)):
+        h = H()
+        app = Bounded(t=temp)
+        h.ctx.app = app
+        h.g.define(1, HOT, 0.0)
+        assert app.reads == reads  # the hot mote read (and qualifies); the cold one did not
+        assert h.g.role(1) is (Role.IDLE if temp == 20.0 else Role.WAITING)

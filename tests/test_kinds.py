@@ -21,7 +21,7 @@ from awaremw.nodes.kinds import (
     kind_info,
 )
 from awaremw.protocol import attributes as A
-from awaremw.protocol.attributes import Application
+from awaremw.protocol.attributes import Application, ReadBounds
 from awaremw.protocol.frames import CommandDef
 from awaremw.world.fields import Keyframe, Source, World
 
@@ -180,3 +180,50 @@ def test_registry() -> None:
     assert kind_info("mica2").radio == "cc1000" and kind_info("tmote").radio == "cc2420"
     with pytest.raises(KeyError, match="known: tmote"):
         kind_info("arduino")
+
+
+# ---------------------------------------------------------------- read bounds (group checks)
+
+
+def test_a_gaussian_draw_stays_within_its_bound() -> None:
+    from awaremw.world.fields import GAUSS_BOUND, _gauss_of
+
+    # The extremes: u1 at its smallest (the top 32 bits 0), cos at +1 and -1.
+    top = _gauss_of(0)
+    assert 6.76 < top < GAUSS_BOUND
+    assert -GAUSS_BOUND < _gauss_of(1 << 31) < -6.76
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(0, 400),
+    st.floats(0, 400),
+    st.floats(0, 60),
+    st.floats(0, 3.0),
+    st.floats(0, 0.05),
+    st.integers(0, 5),
+)
+def test_temperature_read_bounds_hold_every_read(
+    x: float, y: float, t: float, sigma: float, rel: float, seed: int
+) -> None:
+    fire = Source("f", (Keyframe(0, 100, 100, 25, 80), Keyframe(60, 300, 300, 25, 80)), edge=4.0)
+    w = World(seed=seed, ambient_temperature=20.0, variation=1.5, fires=(fire,))
+    app = TmoteSky(3, at(x, y), w, noise={"temperature": SensorNoise(sigma, rel)})
+    b = app.read_bounds(A.TEMPERATURE, t)
+    if fire.reaches(x, y):
+        assert b is None  # a fire may heat it: no bounds, read
+        return
+    assert b is not None
+    for dt in (0.0, 0.25, 0.5, 7.3, 33.0):
+        v = app.read(A.TEMPERATURE, t + dt)
+        assert v is not None and b[0] <= v <= b[1]
+        assert app.read_bounds(A.TEMPERATURE, t + dt) == b  # static: the same interval
+
+
+def test_no_read_bounds_with_a_held_sample_or_another_attribute() -> None:
+    app = TmoteSky(3, at(5.0, 5.0), World())
+    assert app.read_bounds(A.TEMPERATURE, 1.0) is not None
+    assert app.read_bounds(A.HUMIDITY, 1.0) is None
+    app.sample_period = 2.0  # a read now would update the held sample
+    assert app.read_bounds(A.TEMPERATURE, 1.0) is None
+    assert not isinstance(Mica2(4, at(5.0, 5.0), World()), ReadBounds)  # reads every time

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.timers import TimerSet, TimerWatch
 
 NAMES = st.sampled_from("abcde")
@@ -54,3 +58,34 @@ def test_equal_deadlines_come_out_in_insertion_order() -> None:
     assert ts.due(3.0) == [] and ts.next_deadline() == 4.0
     assert ts.due(5.0) == ["w", "x", "y", "z"]
     assert ts.next_deadline() is None
+
+
+def test_a_set_armed_during_a_firing_fires_in_it_when_later_in_order(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # AwareMote's timer loops skip the sets never armed (TimerSet.armed); a set
+    # armed by another component's timer must still fire as a loop over every
+    # component in order would: in the same call if it comes later, else next.
+    m = AwareMote(1)
+    fired: list[tuple[str, object]] = []
+
+    def on_collection(name: object, now: float) -> None:
+        fired.append(("collection", name))
+        m.commands.timers.set("later", now)  # after collection, never armed before
+        m.dissemination.timers.set("earlier", now)  # before collection
+
+    def recorder(label: str) -> Callable[[object, float], None]:
+        return lambda name, now: fired.append((label, name))
+
+    monkeypatch.setattr(m.dissemination, "on_timer", recorder("dissemination"))
+    monkeypatch.setattr(m.commands, "on_timer", recorder("commands"))
+    monkeypatch.setattr(m.collection, "on_timer", on_collection)
+    assert m.next_deadline() is None and not m.commands.timers.armed
+    m.collection.timers.set("x", 1.0)
+    assert m.next_deadline() == 1.0
+    m.handle_timer(1.0)
+    assert fired == [("collection", "x"), ("commands", "later")]
+    assert m.next_deadline() == 1.0
+    m.handle_timer(1.0)
+    assert fired[2:] == [("dissemination", "earlier")]
+    assert m.next_deadline() is None

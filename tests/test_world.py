@@ -190,3 +190,43 @@ def test_bad_world_tables_are_clear_errors(table: dict[str, object], needle: str
 def test_unknown_world_keys_are_kept_for_others() -> None:
     w = World.from_table({"area": [12.5, 11]}, seed=3)
     assert w.extra == {"area": [12.5, 11]} and w.seed == 3
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.floats(-200, 200),
+    st.floats(-200, 200),
+    st.floats(0, 80),
+    st.floats(0.1, 20),
+    st.floats(0, 30),
+)
+def test_a_source_that_never_reaches_a_point_gives_it_exactly_zero(
+    x: float, y: float, t: float, edge: float, radius: float
+) -> None:
+    # The sensor-read fast path (World.fires_reaching) skips the fires for which
+    # Source.reaches is False: they must contribute exactly 0 at every time.
+    s = fire("f", (10.0, -50.0, 30.0, radius, 80.0), (70.0, 60.0, -20.0, 2.0, 40.0), edge=edge)
+    w = World(fires=(s,))
+    if not s.reaches(x, y):
+        assert s.value(x, y, t) == 0.0
+        assert w.fires_reaching(x, y) == ()
+    assert w.temperature_near(w.fires_reaching(x, y), x, y, t) == w.temperature(x, y, t)
+
+
+def test_reaches_is_tight_enough_to_skip_far_motes() -> None:
+    s = fire("f", (0.0, 0.0, 0.0, 5.0, 80.0), (60.0, 100.0, 0.0, 5.0, 80.0), edge=2.0)
+    assert s.reaches(100.0, 0.0)  # 5 + 16 m of falloff from the path's end
+    assert s.reaches(100.0 + 20.9, 0.0)
+    assert not s.reaches(100.0 + 21.1, 0.0)
+    assert not s.reaches(50.0, 40.0)  # beside the segment, 40 m off it
+
+
+def test_a_sensor_read_is_the_world_value_plus_the_seeded_noise() -> None:
+    from awaremw.nodes.kinds import TmoteSky
+
+    w = World(seed=3, fires=(fire("f", (0.0, 0.0, 0.0, 5.0, 60.0), (100.0, 50.0, 0.0, 5.0, 60.0)),))
+    app = TmoteSky(7, lambda t: (48.0, 3.0), w)
+    for t in (0.0, 20.0, 49.7, 50.2, 80.0):
+        true, noisy = app._sensed("temperature", t)
+        assert true == w.temperature(48.0, 3.0, t)
+        assert noisy == true + w.noise(7, "temperature", t, app.noise["temperature"].sigma)

@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 from awaremw.protocol import attributes as A
 from awaremw.protocol.frames import CommandDef
-from awaremw.world.fields import World
+from awaremw.world.fields import GAUSS_BOUND, Source, World
 
 Position = Callable[[float], tuple[float, float]]
 EnergyProbe = Callable[[], float]  # joules spent so far by this mote
@@ -232,6 +232,11 @@ class NodeApp:
         self.leds: dict[str, bool] = dict.fromkeys(self.LEDS, False)
         self.sample_period: float = 0.0  # "set_rate": sample-and-hold period, 0 = every read
         self._held: dict[int, tuple[float, float | None]] = {}
+        # Sensor-read caches (group checks read a sensor every check period):
+        # the fires that can reach the mote where it last was, and each noisy
+        # sensor's constant part of its noise hash (World.noise_key).
+        self._near: tuple[float, float, tuple[Source, ...]] | None = None
+        self._noise_keys: dict[str, int] = {}
         self._readers: dict[int, Callable[[float], float | None]] = {
             A.X: lambda t: self.position(t)[0],
             A.Y: lambda t: self.position(t)[1],
@@ -276,6 +281,11 @@ class NodeApp:
     def true_value(self, name: str, now: float) -> float:
         """The noise-free world value this mote's sensor for ``name`` would see."""
         x, y = self.position(now)
+        if name == "temperature":
+            near = self._near
+            if near is None or near[0] != x or near[1] != y:  # moved (or first read)
+                near = self._near = (x, y, self.world.fires_reaching(x, y))
+            return self.world.temperature_near(near[2], x, y, now)
         return self.world.value(name, x, y, now)
 
     def _sensed(self, name: str, now: float) -> tuple[float, float]:
@@ -284,8 +294,11 @@ class NodeApp:
         n = self.noise.get(name)
         if n is None:
             return true, true
+        key = self._noise_keys.get(name)
+        if key is None:
+            key = self._noise_keys[name] = self.world.noise_key(self.node_id, name)
         sigma = n.sigma + n.relative * abs(true)
-        return true, true + self.world.noise(self.node_id, name, now, sigma)
+        return true, true + self.world.noise_at(key, now, sigma)
 
     def _battery(self, now: float) -> float:
         spent = self.energy() if self.energy is not None else 0.0
@@ -353,6 +366,41 @@ class TmoteSky(NodeApp):
         self._readers[A.TEMPERATURE] = self._temperature
         self._readers[A.HUMIDITY] = self._humidity
         self._readers[A.LIGHT] = self._light
+        # read_bounds of the temperature at (x, y) with these noise settings (None:
+        # a fire may reach it): (x, y, noise, bounds).
+        self._cold: tuple[float, float, SensorNoise | None, tuple[float, float] | None] | None = (
+            None
+        )
+
+    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
+        """:class:`~awaremw.protocol.attributes.ReadBounds`: the temperature of a
+        mote no fire can reach (ambient, plus noise of at most ``GAUSS_BOUND``
+        sigmas), through the SHT11 conversion, which is monotonic; None for a
+        mote a fire may reach, for other attributes, and with a sample-and-hold
+        period (a read then updates the held sample)."""
+        if attr != A.TEMPERATURE or self.sample_period > 0:
+            return None
+        x, y = self.position(now)
+        n = self.noise.get("temperature")
+        c = self._cold
+        if c is None or c[0] != x or c[1] != y or c[2] is not n:
+            c = self._cold = (x, y, n, self._cold_bounds(x, y, now, n))
+        return c[3]
+
+    def _cold_bounds(
+        self, x: float, y: float, now: float, n: SensorNoise | None
+    ) -> tuple[float, float] | None:
+        """The bounds at (x, y) when no fire reaches it (else None)."""
+        fires = self.world.fires_reaching(x, y)
+        if fires:
+            return None
+        # The noise-free value is then the same at every time: ambient (+ texture).
+        true = self.world.temperature_near(fires, x, y, now)
+        # _sensed adds sigma * g with |g| < GAUSS_BOUND (rounding is monotonic).
+        spread = 0.0 if n is None else (n.sigma + n.relative * abs(true)) * GAUSS_BOUND
+        lo = Sht11.temperature_si(Sht11.temperature_raw(true - spread))
+        hi = Sht11.temperature_si(Sht11.temperature_raw(true + spread))
+        return lo, hi
 
     def raw_temperature(self, now: float) -> int:
         return Sht11.temperature_raw(self._sensed("temperature", now)[1])

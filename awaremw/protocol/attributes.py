@@ -113,3 +113,14 @@ class Application(Protocol):
     def read(self, attr: int, now: float) -> float | None: ...
 
     def on_command(self, command: CommandDef, now: float) -> None: ...
+
+
+@runtime_checkable
+class ReadBounds(Protocol):
+    """Optional for an :class:`Application`: ``read_bounds(attr, now)`` is
+    ``(lo, hi)`` when ``read(attr, now)`` is certain to return a number in that
+    interval and to change nothing by being read (else None: unknown). A group
+    check skips a read whose interval cannot meet its condition: the same
+    decision, without the sensor model's work."""
+
+    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None: ...

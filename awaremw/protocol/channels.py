@@ -205,10 +205,14 @@ class Channels(Component):
         e = self._next_epoch[cid]
         self._next_epoch[cid] = e + 1
         self.timers.set(("epoch", cid), (e + 1) * self.period(cid))
-        for key in [k for k in self._pending if k[0] == cid and k[3] < e - KEEP_EPOCHS]:
-            self._forget(key)
+        if self._pending:  # most motes are in no group: nothing pending
+            for key in [k for k in self._pending if k[0] == cid and k[3] < e - KEEP_EPOCHS]:
+                self._forget(key)
+        ms = self.groups.memberships()
+        if not ms:  # most motes: no membership to sample for
+            return
         agg = aggregation.by_id(d.agg)
-        for m in self.groups.memberships().values():
+        for m in ms.values():
             if not channel_matches(d, m):
                 continue
             key = (cid, m.group_type, m.group_id, e)

@@ -172,6 +172,13 @@ class Collection(Component):
         self._best_cache: tuple[Neighbour | None, int] | None = None
         self._holddown_until = float("-inf")
         self.stats = CollectionStats()
+        # Read on every beacon heard (the config is frozen and never replaced).
+        self._root = cfg.is_root
+        self._rssi_alpha = cfg.ctp_rssi_alpha
+        self._rssi_floor = cfg.ctp_rssi_floor
+        self._rssi_good = cfg.ctp_rssi_good
+        self._rssi_max_etx = cfg.ctp_rssi_max_etx
+        self._switch = cfg.ctp_parent_switch_threshold
 
     # ------------------------------------------------------------------ public API
 
@@ -222,8 +229,23 @@ class Collection(Component):
     def _recost(self, n: Neighbour) -> None:
         """Refresh ``n``'s cached link and path costs (after any change of
         its cost, RSSI or ACK estimate)."""
-        n.link = link = max(self._rssi_cost(n.rssi), round(n.ack_etx))
-        n.path = NO_ROUTE if n.cost >= NO_ROUTE else min(n.cost + link, MAX_COST)
+        # _rssi_cost inlined (the same operations, once per beacon heard)
+        rssi = n.rssi
+        if rssi is None or rssi <= self._rssi_floor:
+            rc = self._rssi_max_etx
+        elif rssi >= self._rssi_good:
+            rc = ETX_ONE
+        else:
+            x = (self._rssi_good - rssi) / (self._rssi_good - self._rssi_floor)
+            rc = ETX_ONE + round((self._rssi_max_etx - ETX_ONE) * x**3)
+        ack = round(n.ack_etx)
+        n.link = link = rc if rc >= ack else ack  # max(rc, ack)
+        cost = n.cost
+        if cost >= NO_ROUTE:
+            n.path = NO_ROUTE
+        else:
+            p = cost + link
+            n.path = p if p < MAX_COST else MAX_COST  # min(p, MAX_COST)
 
     # ------------------------------------------------------------------ Component hooks
 
@@ -284,14 +306,22 @@ class Collection(Component):
     # ------------------------------------------------------------------ routing
 
     def _on_beacon(self, b: CtpBeacon, rssi: float, now: float) -> None:
-        self._note(b.src, rssi, now, b.cost, b.parent)
-        me = self.ctx.node_id
-        if b.pull and (self.is_root or self._parent is not None):
+        n = self._neighbours.get(b.src)
+        if n is None:
+            self._note(b.src, rssi, now, b.cost, b.parent)
+        else:  # _note of a known neighbour, inlined (once per beacon heard)
+            n.cost, n.parent, n.last_heard = b.cost, b.parent, now
+            a = self._rssi_alpha
+            n.rssi = rssi if n.rssi is None else a * rssi + (1 - a) * n.rssi
+            self._recost(n)
+            self._changed(n)
+        if b.pull and (self._root or self._parent is not None):
             self._reset_trickle(now)
-        if b.src == self._parent and (b.cost >= NO_ROUTE or b.parent == me):
+        if b.src == self._parent and (b.cost >= NO_ROUTE or b.parent == self.ctx.node_id):
             self._lose_parent(now)
         self._update_route(now)
-        self._pump(now)
+        if self._queue:  # else _pump has nothing to do
+            self._pump(now)
 
     def _note(self, node: int, rssi: float, now: float, cost: int, parent: int) -> None:
         n = self._neighbours.get(node)
@@ -312,7 +342,7 @@ class Collection(Component):
             self._changed(n)
             return
         n.cost, n.parent, n.last_heard = cost, parent, now
-        a = self.ctx.config.ctp_rssi_alpha
+        a = self._rssi_alpha
         n.rssi = rssi if n.rssi is None else a * rssi + (1 - a) * n.rssi
         self._recost(n)
         self._changed(n)
@@ -374,18 +404,18 @@ class Collection(Component):
             self._best_cache = (n, p)
 
     def _update_route(self, now: float) -> None:
-        if self.is_root:
+        if self._root:
             return
         cached = self._best_cache
         if cached is None:
             cached = self._best_cache = self._best(fresh_since=self._fresh_since)
         best, best_path = cached
-        if self._parent is not None:
-            cur = self._path_via(self._neighbours[self._parent])
-            threshold = self.ctx.config.ctp_parent_switch_threshold
-            if best is not None and best.node != self._parent and best_path + threshold < cur:
+        parent = self._parent
+        if parent is not None:
+            cur = self._neighbours[parent].path  # _path_via
+            if best is not None and best.node != parent and best_path + self._switch < cur:
                 self._set_parent(best, best_path, now)
-            else:
+            elif cur != self._cost:
                 self._set_cost(cur, now)
             return
         if best is None:

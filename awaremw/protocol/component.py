@@ -9,21 +9,35 @@ import it without importing each other in a circle.
 from __future__ import annotations
 
 import random
-from typing import NamedTuple
+from collections.abc import Callable
 
-from awaremw.protocol.attributes import RSSI_BASE, Application
+from awaremw.protocol.attributes import RSSI_BASE, Application, ReadBounds
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode
+from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode, note_sent
 from awaremw.protocol.timers import TimerSet
 
 
-class RssiSample(NamedTuple):
-    """RSSI EWMA of one neighbour's frames (a tuple: one is made per frame heard,
-    and a tuple is built several times faster than a frozen dataclass)."""
+class RssiSample:
+    """RSSI EWMA of one neighbour's frames. Mutable: the mote updates the sample
+    of a neighbour in place on every frame heard (no allocation per frame);
+    only :class:`~awaremw.protocol.mote.AwareMote` writes it, the components read it."""
 
-    dbm: float  # EWMA of recent frames
-    last_heard: float
+    __slots__ = ("dbm", "last_heard")
+
+    def __init__(self, dbm: float, last_heard: float) -> None:
+        self.dbm = dbm  # EWMA of recent frames
+        self.last_heard = last_heard
+
+    def __repr__(self) -> str:
+        return f"RssiSample(dbm={self.dbm!r}, last_heard={self.last_heard!r})"
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, RssiSample):
+            return NotImplemented
+        return self.dbm == other.dbm and self.last_heard == other.last_heard
+
+    __hash__ = None  # type: ignore[assignment]  # mutable
 
 
 class MoteContext:
@@ -45,10 +59,14 @@ class MoteContext:
         self.outbox: list[Transmission] = []
         self.pending: dict[int, tuple[Component, Frame]] = {}
         self.event_list: list[object] = []
+        # The application's read_bounds (ReadBounds), looked up again if app changes.
+        self._bounds_app: Application | None = None
+        self._bounds: Callable[[int, float], tuple[float, float] | None] | None = None
 
     def send(self, owner: Component, frame: Frame) -> Transmission:
         """Encode ``frame`` (MTU enforced: an oversize frame is our bug) and queue it."""
         data = encode(frame, self.config.mtu)
+        note_sent(data, frame)  # its receivers here need not decode it again
         if frame.dst == BROADCAST:
             tx = Transmission.broadcast(data)
         else:
@@ -59,6 +77,18 @@ class MoteContext:
 
     def emit(self, event: object) -> None:
         self.event_list.append(event)
+
+    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
+        """An interval :meth:`read` is certain to fall in now, with no side effect
+        (:class:`~awaremw.protocol.attributes.ReadBounds`), or None: unknown."""
+        app = self.app
+        if app is None or attr & RSSI_BASE:
+            return None
+        if app is not self._bounds_app:
+            self._bounds_app = app
+            self._bounds = app.read_bounds if isinstance(app, ReadBounds) else None
+        b = self._bounds
+        return None if b is None else b(attr, now)
 
     def read(self, attr: int, now: float) -> float | None:
         """An attribute's current value, or None if this mote cannot give it."""

@@ -299,7 +299,9 @@ class Dissemination(Component):
         self.timers.set("summary", now + self.ctx.rng.uniform(0.0, cfg.drip_summary_delay))
 
     def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
-        if isinstance(frame, DripItem):
+        if type(frame) is DripSummary:  # the most frequent, and most often a no-op
+            self._on_summary(frame, now)
+        elif isinstance(frame, DripItem):
             self._on_item_frame(frame, now)
         elif isinstance(frame, DripSummary):
             self._on_summary(frame, now)

@@ -716,6 +716,12 @@ class Partial(Frame):
         )
 
 
+# The frame types whose fields are all ints and bools: msgpack gives them back
+# equal (a float field would come back rounded to float32).
+_LOSSLESS: frozenset[type[Frame]] = frozenset(
+    (Hello, DripSummary, CtpBeacon, LeaderBeacon, Handover)
+)
+
 FRAME_TYPES: dict[int, type[Frame]] = {
     t.TYPE: t
     for t in (
@@ -795,9 +801,29 @@ def decode(data: bytes) -> Frame:
 # atomically (a tuple), compared by value: no unbounded cache, no stale hit.
 _last: tuple[bytes, Frame] | None = None
 
+# Frames a mote of this process just encoded, by their bytes, when decoding the
+# bytes gives back an equal frame (types whose fields are all ints and bools,
+# exactly): their first receiver takes the object instead of decoding the
+# bytes again. An entry leaves at its first use; bounded (oldest dropped).
+_SENT_MAX = 4096
+_sent: dict[bytes, Frame] = {}
+
+
+def note_sent(data: bytes, frame: Frame) -> None:
+    """``data`` is ``encode(frame)``, about to go on the air (see :data:`_sent`)."""
+    if type(frame) not in _LOSSLESS or type(frame.src) is not int or type(frame.dst) is not int:
+        return
+    for v in frame.body():
+        if type(v) is not int and type(v) is not bool:
+            return  # e.g. an IntEnum: the decoded frame would hold a plain int
+    if len(_sent) >= _SENT_MAX:
+        del _sent[next(iter(_sent))]
+    _sent[data] = frame
+
 
 def decode_shared(data: bytes) -> Frame:
-    """:func:`decode`, sharing the result with the previous call on equal bytes.
+    """:func:`decode`, sharing the result with the previous call on equal bytes
+    (and taking a frame :func:`note_sent` kept for them).
 
     Malformed input raises :class:`FrameError` every time (failures are not kept).
     """
@@ -805,6 +831,8 @@ def decode_shared(data: bytes) -> Frame:
     last = _last
     if last is not None and last[0] == data:
         return last[1]
-    f = decode(data)
+    f = _sent.pop(data, None)
+    if f is None:
+        f = decode(data)
     _last = (bytes(data), f)
     return f

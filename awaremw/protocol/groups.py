@@ -296,6 +296,25 @@ def condition_holds(c: Condition, value: float | None, relax: float) -> bool:
     return value != thr
 
 
+def condition_may_hold(c: Condition, lo: float, hi: float, relax: float) -> bool:
+    """Whether :func:`condition_holds` may be True for a value in ``[lo, hi]``
+    (False: it is False for every such value; the comparisons are the same
+    floating-point operations, which are monotonic)."""
+    thr = c.value
+    op = c.op
+    if op is Op.GT:
+        return hi > thr - relax
+    if op is Op.GE:
+        return hi >= thr - relax
+    if op is Op.LT:
+        return lo < thr + relax
+    if op is Op.LE:
+        return lo <= thr + relax
+    if op is Op.EQ:
+        return not (lo - thr > relax or thr - hi > relax)
+    return True  # != (and anything else): read it
+
+
 # --------------------------------------------------------------------------- the component
 
 
@@ -353,10 +372,11 @@ class Groups(Component):
 
     def memberships(self) -> dict[int, Membership]:
         out: dict[int, Membership] = {}
-        for g in self._types:
-            m = self.membership(g)
-            if m is not None:
-                out[g] = m
+        for g, st in self._types.items():
+            if st.role is Role.MEMBER or st.role is Role.LEADER:  # else membership() is None
+                m = self.membership(g)
+                if m is not None:
+                    out[g] = m
         return out
 
     def role(self, group_type: int) -> Role | None:
@@ -489,7 +509,9 @@ class Groups(Component):
         if name == "check":
             for st in list(self._types.values()):
                 self._check(st, now)
-                self._purge(st, now)
+                # Most motes hear no group most of the time: no tables to purge.
+                if st.nearby or st.upstream or st.failed or st.children or st.tent_heard:
+                    self._purge(st, now)
             if self._types:
                 self.timers.set("check", now + self.ctx.config.check_period)
             return
@@ -568,14 +590,22 @@ class Groups(Component):
 
     def _qualifies(self, st: _TypeState, relaxed: bool, now: float) -> bool:
         relax = st.defn.hysteresis if relaxed else 0.0
-        read = self.ctx.read
-        return all(condition_holds(c, read(c.attr, now), relax) for c in st.defn.conditions)
+        ctx = self.ctx
+        for c in st.defn.conditions:
+            # A reading certain to fail the condition is not taken (most motes,
+            # far from what a group tracks, most of the time): the same answer.
+            b = ctx.read_bounds(c.attr, now)
+            if b is not None and not condition_may_hold(c, b[0], b[1], relax):
+                return False
+            if not condition_holds(c, ctx.read(c.attr, now), relax):
+                return False
+        return True
 
     def _check(self, st: _TypeState, now: float) -> None:
         role = st.role
         if role is Role.HANDING_OVER:
             return
-        q = self._qualifies(st, role in (Role.MEMBER, Role.LEADER), now)
+        q = self._qualifies(st, role is Role.MEMBER or role is Role.LEADER, now)
         if role is Role.IDLE and q:
             self._join_or_wait(st, now, ElectionCause.CREATED)
         elif role is Role.WAITING and not q:
@@ -590,7 +620,6 @@ class Groups(Component):
 
     def _purge(self, st: _TypeState, now: float) -> None:
         ttl = self._timeout()
-        # Most motes hear no group most of the time: skip the empty tables.
         if st.nearby:
             for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
                 del st.nearby[gid]

@@ -48,7 +48,7 @@ from awaremw.protocol.frames import (
     decode_shared,
 )
 from awaremw.protocol.groups import Groups
-from awaremw.protocol.timers import TimerWatch
+from awaremw.protocol.timers import TimerSet, TimerWatch
 
 _INF = float("inf")
 
@@ -97,6 +97,10 @@ class AwareMote:
             Partial.TYPE: self.channels,
         }
         self._timed = tuple((c, c.timers) for c in self._components)  # set once per component
+        # The components whose timer set was ever armed, in the same order (the
+        # others have no timer: the timer loops skip them); rebuilt on TimerWatch.grew.
+        self._live: tuple[tuple[Component, TimerSet], ...] = ()
+        self._live_sets: tuple[TimerSet, ...] = ()
         self._timer_watch = TimerWatch()
         for c in self._components:
             c.timers.watch(self._timer_watch)
@@ -126,29 +130,59 @@ class AwareMote:
         except FrameError as e:
             self.ctx.emit(MalformedFrame(str(e), len(frame)))
             return
-        if f.dst != BROADCAST and f.dst != self.node_id:
+        dst = f.dst
+        if dst != BROADCAST and dst != self.node_id:
             return  # overheard unicast for someone else
-        self._note_rssi(f.src, rssi_dbm, now)
+        # The RSSI EWMA of src (once per frame heard): its sample updated in place.
+        src = f.src
+        s = self._rssi.get(src)
+        if s is None:
+            self._rssi[src] = RssiSample(rssi_dbm, now)
+        elif now - s.last_heard > self._rssi_ttl:
+            s.dbm = rssi_dbm
+            s.last_heard = now
+        else:
+            a = self._rssi_alpha
+            s.dbm = a * rssi_dbm + (1 - a) * s.dbm
+            s.last_heard = now
         self._by_type[f.TYPE].on_frame(f, rssi_dbm, now)
 
     def handle_timer(self, now: float) -> None:
-        for c, t in self._timed:
-            if t.soonest > now:  # a lower bound of its earliest deadline: none due
-                continue
-            for name in t.due(now):
-                c.on_timer(name, now)
+        w = self._timer_watch
+        if w.grew:
+            self._relive()
+        for c, t in self._live:
+            if t.soonest <= now:  # else (a lower bound of its earliest deadline) none due
+                for name in t.due(now):
+                    c.on_timer(name, now)
+                if w.grew:
+                    # A component got its first timer meanwhile: go on over every
+                    # component after this one, as a loop over all of them would.
+                    self._relive()
+                    for c2, t2 in self._timed[self._components.index(c) + 1 :]:
+                        if t2.soonest <= now:
+                            for name in t2.due(now):
+                                c2.on_timer(name, now)
+                    return
+
+    def _relive(self) -> None:
+        self._timer_watch.grew = False
+        self._live = tuple((c, t) for c, t in self._timed if t.armed)
+        self._live_sets = tuple(t for _c, t in self._live)
 
     def next_deadline(self) -> float | None:
         w = self._timer_watch
         if w.changed:
             w.changed = False
+            if w.grew:
+                self._relive()
             best = _INF
-            for _c, t in self._timed:
+            for t in self._live_sets:  # the sets never armed are empty
                 if t.stale:
                     t.next_deadline()  # refreshes soonest
                 if t.soonest < best:
                     best = t.soonest  # exact: not stale
-            if best == _INF and any(len(c.timers) for c in self._components):
+            if best == _INF and any(len(t) for t in self._live_sets):
                 self._next_deadline = best  # a timer at infinity is still a timer
             else:
                 self._next_deadline = None if best == _INF else best
@@ -196,15 +230,6 @@ class AwareMote:
         self.dissemination.inject(kind, item_id, version, item, now, signature)
 
     # ----------------------------------------------------------------- internals
-
-    def _note_rssi(self, src: int, rssi_dbm: float, now: float) -> None:
-        table = self._rssi
-        old = table.get(src)
-        if old is None or now - old.last_heard > self._rssi_ttl:
-            table[src] = RssiSample(rssi_dbm, now)
-        else:
-            a = self._rssi_alpha
-            table[src] = RssiSample(a * rssi_dbm + (1 - a) * old.dbm, now)
 
     def _on_item(self, kind: ItemKind, item_id: int, item: ItemBody | None, now: float) -> None:
         handler: Callable[[int, ItemBody | None, float], None] = {

@@ -19,12 +19,14 @@ _INF = math.inf
 
 
 class TimerWatch:
-    """Marked (``changed = True``) by every change of the sets watching it."""
+    """Marked (``changed = True``) by every change of the sets watching it, and
+    ``grew = True`` when one of them gets its first timer ever (``armed``)."""
 
-    __slots__ = ("changed",)
+    __slots__ = ("changed", "grew")
 
     def __init__(self) -> None:
         self.changed = True
+        self.grew = True
 
 
 class TimerSet:
@@ -34,21 +36,26 @@ class TimerSet:
     the set when ``soonest > now`` (nothing is due) without a call. Both are
     read-only outside this class."""
 
-    __slots__ = ("_deadlines", "_watch", "soonest", "stale")
+    __slots__ = ("_deadlines", "_watch", "armed", "soonest", "stale")
 
     def __init__(self) -> None:
         self._deadlines: dict[Hashable, float] = {}
         self.soonest = _INF  # lower bound of the earliest deadline; exact unless stale
         self.stale = False
+        self.armed = False  # ever set a timer (a set never armed is empty: skip it)
         self._watch = TimerWatch()
 
     def watch(self, w: TimerWatch) -> None:
         """Mark ``w`` (instead of a private watch) on every later change."""
         self._watch = w
         w.changed = True
+        w.grew = True
 
     def set(self, name: Hashable, when: float) -> None:
         self._watch.changed = True
+        if not self.armed:
+            self.armed = True
+            self._watch.grew = True
         d = self._deadlines
         old = d.get(name)
         d[name] = when
@@ -86,17 +93,23 @@ class TimerSet:
         deadlines in the order they were first set)."""
         if self.soonest > now:  # a lower bound: nothing is due
             return []
-        if self.stale:
-            self.soonest = min(self._deadlines.values(), default=_INF)
-            self.stale = False
-            if self.soonest > now:
-                return []
+        # One pass: the due names and the earliest of the others (the new soonest,
+        # exact, so the mote's next_deadline needs no scan of this set).
         d = self._deadlines
-        names = [n for n, t in d.items() if t <= now]
+        names: list[Hashable] = []
+        rest = _INF
+        for n, t in d.items():
+            if t <= now:
+                names.append(n)
+            elif t < rest:
+                rest = t
+        self.soonest = rest
+        self.stale = False
+        if not names:  # soonest was a stale lower bound
+            return names
         if len(names) > 1:
             names.sort(key=d.__getitem__)
         for n in names:
             del d[n]
-        self.stale = True
         self._watch.changed = True
         return names

@@ -136,7 +136,7 @@ def _any_reaching(frames: list[OnAir], st: LinkStation, t0: float, t1: float) ->
     nid = st.node_id
     cx, cy = st.cell
     for o in frames:
-        if o.start < t1 and o.end > t0 and o.src != nid:
+        if o.end > t0 and o.start < t1 and o.src != nid:  # most frames ended before t0
             c = o.cell
             if -1 <= c[0] - cx <= 1 and -1 <= c[1] - cy <= 1:
                 return True

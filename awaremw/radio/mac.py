@@ -231,8 +231,6 @@ def _mw(dbm: float) -> float:
 # Bound of Air's list: one frame per sender on the air plus those kept for late
 # decisions; a medium with more concurrent frames than this has a bug.
 MAX_ON_AIR: Final = 1 << 16
-# Bound of Air's cache of mean powers per (sender, receiver) pair; cleared when full.
-MAX_PAIRS: Final = 1 << 18
 
 
 class Air:
@@ -245,7 +243,8 @@ class Air:
     """
 
     __slots__ = (
-        "_noise_mw", "_pairs", "_sens", "capture_mw", "cell_size", "frames", "horizon_s", "model",
+        "_noise_mw", "_sens", "_sens_mw", "capture_mw", "cell_size", "frames",
+        "horizon_s", "model",
     )  # fmt: skip
 
     def __init__(self, model: RadioModel, capture_db: float | None, horizon_s: float) -> None:
@@ -255,10 +254,8 @@ class Air:
         self.horizon_s = horizon_s
         self._noise_mw = _mw(model.preset.noise_floor_dbm)
         self._sens = model.preset.sensitivity_dbm
+        self._sens_mw = _mw(self._sens)  # for carrier sense (once, not per assessment)
         self.frames: list[OnAir] = []
-        # (src << 16 | receiver) -> (sender x, y, power, receiver x, y, mean mW): the
-        # same pair at the same places costs one lookup (static motes: every frame).
-        self._pairs: dict[int, tuple[float, float, float, float, float, float]] = {}
 
     def add(
         self, src: int, x: float, y: float, tx_power: float, start: float, end: float, key: int = 0
@@ -276,8 +273,10 @@ class Air:
         """Forget the frames that ended more than ``horizon_s`` before ``now``."""
         cut = now - self.horizon_s
         fr = self.frames
-        if fr and min(f.end for f in fr) < cut:
-            self.frames = [f for f in fr if f.end >= cut]
+        for old in fr:  # any frame to forget? (a loop: no generator per transmission)
+            if old.end < cut:
+                self.frames = [f for f in fr if f.end >= cut]
+                return
 
     def cut(self, src: int, now: float) -> None:
         """``src`` was switched off at ``now``: its frame stops there (or never starts)."""
@@ -298,9 +297,9 @@ class Air:
         return [
             o
             for o in self.frames
-            if o is not f
+            if o.end > s  # the test most frames fail first (they ended before f began)
             and o.start < e
-            and o.end > s
+            and o is not f
             and abs(o.cell[0] - cx) <= 2
             and abs(o.cell[1] - cy) <= 2
         ]
@@ -310,27 +309,16 @@ class Air:
         0 if ``rid`` does not listen to ``o``'s cell."""
         v = o.mw_cache.get(rid)
         if v is None:
-            k = o.src << 16 | rid
-            hit = self._pairs.get(k)
-            if (
-                hit is not None
-                and hit[0] == o.x
-                and hit[1] == o.y
-                and hit[2] == o.tx_power
-                and hit[3] == rx
-                and hit[4] == ry
-            ):
-                v = hit[5]
+            # No cache across frames: most (sender, receiver) pairs meet once or
+            # twice per run, and a table of them cost more (memory) than it saved.
+            # cell_of and _mw inlined (the same operations).
+            cs = self.cell_size
+            oc = o.cell
+            if abs(math.floor(rx / cs) - oc[0]) > 1 or abs(math.floor(ry / cs) - oc[1]) > 1:
+                v = 0.0
             else:
-                c = cell_of(rx, ry, self.cell_size)
-                if abs(c[0] - o.cell[0]) > 1 or abs(c[1] - o.cell[1]) > 1:
-                    v = 0.0
-                else:
-                    d = math.hypot(rx - o.x, ry - o.y)
-                    v = _mw(self.model.mean_rssi(o.src, rid, d, o.tx_power))
-                if len(self._pairs) >= MAX_PAIRS:
-                    self._pairs.clear()
-                self._pairs[k] = (o.x, o.y, o.tx_power, rx, ry, v)
+                d = math.hypot(rx - o.x, ry - o.y)
+                v = 10.0 ** (self.model.mean_rssi(o.src, rid, d, o.tx_power) / 10.0)
             o.mw_cache[rid] = v
         return v
 
@@ -340,9 +328,9 @@ class Air:
         frames of others on the air then reaches ``threshold_dbm``, or (with
         ``carrier_sense``) one of them is received at or above the sensitivity."""
         total = 0.0
-        sens = _mw(self._sens)
+        sens = self._sens_mw
         for o in self.frames:
-            if o.src == rid or o.start >= t1 or o.end <= t0:
+            if o.end <= t0 or o.start >= t1 or o.src == rid:  # most frames ended before t0
                 continue
             p = self.power_mw(o, rid, x, y)
             if carrier_sense and p >= sens:
@@ -356,6 +344,16 @@ class Air:
         """Did frame ``f``, received at ``rssi_dbm`` by ``rid`` at ``(rx, ry)``, survive
         the ``others`` (:meth:`overlapping`)? False if ``rid`` itself transmitted
         during it (deaf) or its SINR fell below the capture threshold at any instant."""
+        if len(others) == 1:  # the usual case (after the driver's cell filter): no spans
+            o = others[0]
+            if o.src == rid:
+                return False  # half duplex: a transmitting radio hears nothing
+            p1 = self.power_mw(o, rid, rx, ry)
+            if p1 <= 0.0:
+                return True
+            cap1 = self.capture_mw
+            # One interferer: it is the worst instant (as below).
+            return cap1 is not None and _mw(rssi_dbm) >= cap1 * (self._noise_mw + p1)
         spans = []
         for o in others:
             if o.src == rid:

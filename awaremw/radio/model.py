@@ -317,6 +317,7 @@ class RadioModel:
     """
 
     __slots__ = (
+        "_ber_memo",
         "_bn_over_r",
         "_d0",
         "_d_min",
@@ -349,6 +350,7 @@ class RadioModel:
         # prr_memo[(round(snr_db * 1000.0) << 16) | bits] when present, else call
         # prr_bits. The same dict for the model's life (cleared when full).
         self.prr_memo: dict[int, float] = {}
+        self._ber_memo: dict[int, float] = {}  # round(snr_db * 1000) -> BER
         self._max_fade = preset.fading_sigma_db * Z_MAX
         self._seed_mix = splitmix64(seed & _M64)  # link_hash's first round
         # path_loss_db's constants (mean_rssi inlines it).
@@ -405,7 +407,14 @@ class RadioModel:
         # path_loss_db inlined (the same operations in the same order: same bits).
         d = distance if distance > self._d_min else self._d_min
         pl = self._pl_d0 + self._ten_n * math.log10(d / self._d0)
-        return tx_power - pl - self.static_shadow_db(src, dst)
+        # static_shadow_db's cache looked up inline first (the same key).
+        if src > dst and self.symmetric:
+            shadow = self._shadow.get((dst << 16) | src)
+        else:
+            shadow = self._shadow.get((src << 16) | dst)
+        if shadow is None:
+            shadow = self.static_shadow_db(src, dst)
+        return tx_power - pl - shadow
 
     def rssi(self, src: int, dst: int, distance: float, tx_power: float, packet_key: int) -> float:
         """RSSI of one packet: mean RSSI minus the packet's fading draw."""
@@ -473,12 +482,19 @@ class RadioModel:
         snr_db = rssi_dbm - p.noise_floor_dbm
         if snr_db >= self._one_snr_db:
             return 1.0
-        k = (round(snr_db * 1000.0) << 16) | bits
+        milli = round(snr_db * 1000.0)
+        k = (milli << 16) | bits
         v = self.prr_memo.get(k)
         if v is None:
             if len(self.prr_memo) >= _PRR_CACHE_MAX:
                 self.prr_memo.clear()
-            v = (1.0 - self._ber(round(snr_db * 1000.0) / 1000.0)) ** bits
+            # The BER depends on the SNR alone: frames of other lengths share it.
+            ber = self._ber_memo.get(milli)
+            if ber is None:
+                if len(self._ber_memo) >= _PRR_CACHE_MAX:
+                    self._ber_memo.clear()
+                ber = self._ber_memo[milli] = self._ber(milli / 1000.0)
+            v = (1.0 - ber) ** bits
             self.prr_memo[k] = v
         return v
 

@@ -380,11 +380,24 @@ class VirtualNetwork:
         except Exception as e:
             self._contain(node, "handle_timer", e)
         # Inlined _after(node): with nothing sent and no event, only re-arm.
-        txs = core.drain()
-        evs = core.events()
-        dl = core.next_deadline()
+        idle = node.idle
+        txs: list[Transmission] | None
+        evs: list[object] | None
+        if idle is None:
+            txs = core.drain()
+            evs = core.events()
+            dl = core.next_deadline()
+        else:
+            # An IdleCheck core: its deadline first; idle then means nothing was
+            # queued and no event emitted (drain and events would return []).
+            dl = core.next_deadline()
+            if idle():
+                txs = evs = None
+            else:
+                txs = core.drain()
+                evs = core.events()
         if txs or evs:
-            self._handle(node, txs, evs, dl)
+            self._handle(node, txs or [], evs or [], dl)
         elif dl is not None:  # armed is None: the deadline changed
             node.armed = dl
             node.timer_gen += 1
@@ -516,7 +529,7 @@ class VirtualNetwork:
             mask = _M64
             mul = _MUL
             shift = _SHIFT
-            rel_by_cell: dict[Cell, list[OnAir]] = {}
+            rel_by_cell: dict[Cell, list[OnAir]] | None = None if others is None else {}
             for r, rc, mean, lh in c.near:
                 # Inlined RadioModel.decide(lh, mean, bits, key), the hot path.
                 # packet_hash is z ^ (z >> 31): its top 12 bits (the normal
@@ -545,13 +558,13 @@ class VirtualNetwork:
                         continue
                 if not r.alive:
                     continue
-                if others is not None:
+                if rel_by_cell is not None:  # others is not None
                     # Only the overlapping frames sent from r's cell or the 8 around
                     # reach r (Air.power_mw is 0 for the others, and r's own frame
                     # is in its cell): an empty list means the frame survived.
                     rel = rel_by_cell.get(r.cell)
                     if rel is None:
-                        rel = _reaching(others, r.cell)
+                        rel = _reaching(others, r.cell)  # type: ignore[arg-type]
                         rel_by_cell[r.cell] = rel
                     if rel and not air.survives(f, rssi, r.node_id, r.x, r.y, rel):  # type: ignore[arg-type]
                         rc.collisions += 1

@@ -91,6 +91,11 @@ def gauss_hash(*parts: int | float | str) -> float:
     return _gauss_of(hash_u64(*parts))
 
 
+# |_gauss_of(v)| for any 64-bit v is below this: u1 >= 2**-33, so the radius
+# sqrt(-2 ln u1) <= sqrt(66 ln 2) = 6.7637..., and |cos| <= 1.
+GAUSS_BOUND = 6.77
+
+
 def _gauss_of(v: int) -> float:
     u1 = ((v >> 32) + 0.5) / 4294967296.0  # in (0, 1): log never sees 0
     u2 = (v & 0xFFFFFFFF) / 4294967296.0
@@ -174,6 +179,11 @@ class Source:
 
     def state(self, t: float) -> SourceState | None:
         """Interpolated state at ``t``, or None while the source does not exist."""
+        s = self._at(t)
+        return None if s is None else SourceState(*s)
+
+    def _at(self, t: float) -> tuple[float, float, float, float] | None:
+        """:meth:`state` as a plain tuple (cheaper to build: one per sensor read)."""
         ks = self.keyframes
         if t < ks[0].t:
             return None
@@ -181,7 +191,7 @@ class Source:
             if not self.hold and t > ks[-1].t:
                 return None
             k = ks[-1]
-            return SourceState(k.x, k.y, k.radius, k.peak)
+            return k.x, k.y, k.radius, k.peak
         lo, hi = 0, len(ks) - 1  # binary search: ks[lo].t <= t < ks[hi].t
         while hi - lo > 1:
             mid = (lo + hi) // 2
@@ -191,7 +201,7 @@ class Source:
                 hi = mid
         a, b = ks[lo], ks[hi]
         f = 0.0 if b.t == a.t else (t - a.t) / (b.t - a.t)
-        return SourceState(
+        return (
             a.x + f * (b.x - a.x),
             a.y + f * (b.y - a.y),
             a.radius + f * (b.radius - a.radius),
@@ -200,19 +210,42 @@ class Source:
 
     def profile(self, x: float, y: float, t: float) -> float:
         """0..1 shape at (x, y): 1 in the core, Gaussian falloff outside it."""
-        s = self.state(t)
-        return 0.0 if s is None else self._shape(s, x, y)
+        s = self._at(t)
+        return 0.0 if s is None else self._shape(s[0], s[1], s[2], x, y)
 
     def value(self, x: float, y: float, t: float) -> float:
-        s = self.state(t)
-        return 0.0 if s is None else s.peak * self._shape(s, x, y)
+        s = self._at(t)
+        return 0.0 if s is None else s[3] * self._shape(s[0], s[1], s[2], x, y)
 
-    def _shape(self, s: SourceState, x: float, y: float) -> float:
-        d = math.hypot(x - s.x, y - s.y) - s.radius
+    def _shape(self, sx: float, sy: float, radius: float, x: float, y: float) -> float:
+        d = math.hypot(x - sx, y - sy) - radius
         if d <= 0:
             return 1.0
         z = d / self.edge
-        return 0.0 if z > 8.0 else math.exp(-0.5 * z * z)
+        return 0.0 if z > _CUT_EDGES else math.exp(-0.5 * z * z)
+
+    def reaches(self, x: float, y: float) -> bool:
+        """False when (x, y) is, at every time, so far from the source that its
+        profile there is exactly 0 (beyond the cut of the Gaussian falloff at
+        ``_CUT_EDGES`` edges from the largest radius, with a margin for
+        rounding): a static mote then never needs to evaluate it."""
+        ks = self.keyframes
+        reach = max(k.radius for k in ks) + _CUT_EDGES * self.edge
+        # The centre moves on the polyline of the keyframes (linear interpolation).
+        pairs = zip(ks, ks[1:] or ks, strict=False)
+        d = min(_to_segment(x, y, a.x, a.y, b.x, b.y) for a, b in pairs)
+        return d <= reach * (1.0 + 1e-9) + 1e-6
+
+
+_CUT_EDGES = 8.0  # a source's falloff is cut (0) this many edges out of its radius
+
+
+def _to_segment(x: float, y: float, ax: float, ay: float, bx: float, by: float) -> float:
+    """Distance from (x, y) to the segment from (ax, ay) to (bx, by)."""
+    dx, dy = bx - ax, by - ay
+    n = dx * dx + dy * dy
+    f = 0.0 if n == 0 else min(1.0, max(0.0, ((x - ax) * dx + (y - ay) * dy) / n))
+    return math.hypot(x - (ax + f * dx), y - (ay + f * dy))
 
 
 # --------------------------------------------------------------------------- world
@@ -253,6 +286,23 @@ class World:
         """Air temperature (deg C) at (x, y) at time t, without sensor noise."""
         base = self.ambient_temperature + (self._texture(x, y) if self.variation else 0.0)
         fires = self.fires
+        if not fires:
+            hottest = 0.0
+        elif len(fires) == 1:
+            hottest = fires[0].value(x, y, t)
+        else:
+            hottest = max(f.value(x, y, t) for f in fires)
+        return base + max(0.0, hottest)
+
+    def fires_reaching(self, x: float, y: float) -> tuple[Source, ...]:
+        """The fires whose heat can ever reach (x, y) (:meth:`Source.reaches`)."""
+        return tuple(f for f in self.fires if f.reaches(x, y))
+
+    def temperature_near(self, fires: tuple[Source, ...], x: float, y: float, t: float) -> float:
+        """:meth:`temperature` at (x, y), given ``fires_reaching(x, y)`` (the same
+        value: every other fire contributes exactly 0 there, and the hottest
+        fire's contribution is floored at 0)."""
+        base = self.ambient_temperature + (self._texture(x, y) if self.variation else 0.0)
         if not fires:
             hottest = 0.0
         elif len(fires) == 1:
@@ -304,6 +354,16 @@ class World:
         step = math.floor(t / self.noise_step)
         # gauss_hash(self.seed, node, sensor, step), the first three parts' rounds cached.
         return sigma * _gauss_of(_hash_more(_noise_prefix(self.seed, node, sensor), step))
+
+    def noise_key(self, node: int, sensor: str) -> int:
+        """The constant part of the noise hash of ``node``'s ``sensor``, for :meth:`noise_at`."""
+        return hash_u64(self.seed, node, sensor)
+
+    def noise_at(self, key: int, t: float, sigma: float) -> float:
+        """:meth:`noise` with its ``noise_key`` (the same value, one lookup less)."""
+        if sigma == 0:
+            return 0.0
+        return sigma * _gauss_of(_hash_more(key, math.floor(t / self.noise_step)))
 
     # ------------------------------------------------------------------ internals
 
