@@ -46,3 +46,15 @@ def pytest_sessionstart(session: pytest.Session) -> None:
             f"AWAREMW_EXPECT_COMPILED=1 but {awaremw.__file__} has no compiled module: "
             "install with AWAREMW_USE_MYPYC=1 (setup.py) and run pytest outside the checkout"
         )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """``@pytest.mark.pure_python`` tests patch a module's internals (or build an
+    object without its constructor), which the compiled build binds at compile
+    time: they are skipped there, said so."""
+    if not awaremw.compiled_modules():
+        return
+    skip = pytest.mark.skip(reason="patches internals the compiled build binds at compile time")
+    for item in items:
+        if item.get_closest_marker("pure_python") is not None:
+            item.add_marker(skip)

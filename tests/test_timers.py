@@ -60,6 +60,7 @@ def test_equal_deadlines_come_out_in_insertion_order() -> None:
     assert ts.next_deadline() is None
 
 
+@pytest.mark.pure_python
 def test_a_set_armed_during_a_firing_fires_in_it_when_later_in_order(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

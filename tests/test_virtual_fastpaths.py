@@ -37,6 +37,7 @@ def _trace(motes: int, duration: float) -> list[str]:
     return aware_trace(motes, 3, duration)
 
 
+@pytest.mark.pure_python
 def test_the_fast_paths_change_no_event_and_no_counter(monkeypatch: pytest.MonkeyPatch) -> None:
     fast = _trace(120, 25.0)
     assert any("RecordProduced" in line for line in fast)
@@ -83,6 +84,7 @@ def test_survival_against_the_reaching_frames_is_survival_against_all() -> None:
     assert min(checked.values()) > 20
 
 
+@pytest.mark.pure_python  # builds a driver node without its constructor
 def test_no_reaching_frame_means_a_clear_channel() -> None:
     rng = random.Random(6)
     model = RadioModel(CC2420, 9)
