@@ -28,21 +28,26 @@ def _run(cmd: list[str], cwd: Path, timeout: float) -> subprocess.CompletedProce
     )
 
 
+def _copy_checkout(dst: Path) -> Path:
+    """The project's files, copied to ``dst``: pip builds in the source tree, so
+    builds run from a copy and the checkout stays clean."""
+    shutil.copytree(
+        CHECKOUT,
+        dst,
+        ignore=shutil.ignore_patterns(
+            ".git", ".venv", "build", "*.egg-info", "out", "__pycache__", ".*_cache"
+        ),
+    )
+    return dst
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_pip_install_runs_an_experiment_outside_the_checkout(tmp_path: Path) -> None:
     env_dir = tmp_path / "venv"
     venv.create(env_dir, with_pip=True)
     bindir = env_dir / "bin"
-    # pip builds in the source tree: build from a copy so the checkout stays clean.
-    src = tmp_path / "src"
-    shutil.copytree(
-        CHECKOUT,
-        src,
-        ignore=shutil.ignore_patterns(
-            ".git", ".venv", "build", "*.egg-info", "out", "__pycache__", ".*_cache"
-        ),
-    )
+    src = _copy_checkout(tmp_path / "src")
     got = _run(
         [str(bindir / "pip"), "install", "-q", "--no-cache-dir", str(src)],
         cwd=tmp_path,
@@ -90,14 +95,7 @@ def test_compiled_build_refuses_an_editable_install(tmp_path: Path) -> None:
     """``AWAREMW_USE_MYPYC=1`` with ``pip install -e``: compiled modules next to the
     sources would shadow every later edit, so setup.py stops with a clear error
     (before compiling anything) and nothing is installed."""
-    src = tmp_path / "src"
-    shutil.copytree(
-        CHECKOUT,
-        src,
-        ignore=shutil.ignore_patterns(
-            ".git", ".venv", "build", "*.egg-info", "out", "__pycache__", ".*_cache"
-        ),
-    )
+    src = _copy_checkout(tmp_path / "src")
     target = tmp_path / "site"
     env = {**os.environ, "AWAREMW_USE_MYPYC": "1"}
     got = subprocess.run(

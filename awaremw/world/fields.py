@@ -284,15 +284,7 @@ class World:
 
     def temperature(self, x: float, y: float, t: float) -> float:
         """Air temperature (deg C) at (x, y) at time t, without sensor noise."""
-        base = self.ambient_temperature + (self._texture(x, y) if self.variation else 0.0)
-        fires = self.fires
-        if not fires:
-            hottest = 0.0
-        elif len(fires) == 1:
-            hottest = fires[0].value(x, y, t)
-        else:
-            hottest = max(f.value(x, y, t) for f in fires)
-        return base + max(0.0, hottest)
+        return self.temperature_near(self.fires, x, y, t)
 
     def fires_reaching(self, x: float, y: float) -> tuple[Source, ...]:
         """The fires whose heat can ever reach (x, y) (:meth:`Source.reaches`)."""
