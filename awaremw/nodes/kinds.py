@@ -282,11 +282,15 @@ class NodeApp:
         """The noise-free world value this mote's sensor for ``name`` would see."""
         x, y = self.position(now)
         if name == "temperature":
-            near = self._near
-            if near is None or near[0] != x or near[1] != y:  # moved (or first read)
-                near = self._near = (x, y, self.world.fires_reaching(x, y))
-            return self.world.temperature_near(near[2], x, y, now)
+            return self.world.temperature_near(self._fires_at(x, y), x, y, now)
         return self.world.value(name, x, y, now)
+
+    def _fires_at(self, x: float, y: float) -> tuple[Source, ...]:
+        """``World.fires_reaching(x, y)``, kept for the position of the last call."""
+        near = self._near
+        if near is None or near[0] != x or near[1] != y:  # moved (or first call)
+            near = self._near = (x, y, self.world.fires_reaching(x, y))
+        return near[2]
 
     def _sensed(self, name: str, now: float) -> tuple[float, float]:
         """(noise-free value, noisy value) of field ``name`` at this mote, now."""
@@ -391,7 +395,7 @@ class TmoteSky(NodeApp):
         self, x: float, y: float, now: float, n: SensorNoise | None
     ) -> tuple[float, float] | None:
         """The bounds at (x, y) when no fire reaches it (else None)."""
-        fires = self.world.fires_reaching(x, y)
+        fires = self._fires_at(x, y)
         if fires:
             return None
         # The noise-free value is then the same at every time: ambient (+ texture).

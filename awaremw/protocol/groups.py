@@ -509,9 +509,7 @@ class Groups(Component):
         if name == "check":
             for st in list(self._types.values()):
                 self._check(st, now)
-                # Most motes hear no group most of the time: no tables to purge.
-                if st.nearby or st.upstream or st.failed or st.children or st.tent_heard:
-                    self._purge(st, now)
+                self._purge(st, now)
             if self._types:
                 self.timers.set("check", now + self.ctx.config.check_period)
             return
@@ -619,6 +617,9 @@ class Groups(Component):
             self._start_handover(st, now)
 
     def _purge(self, st: _TypeState, now: float) -> None:
+        # Most motes hear no group most of the time: no tables to purge.
+        if not (st.nearby or st.upstream or st.failed or st.children or st.tent_heard):
+            return
         ttl = self._timeout()
         if st.nearby:
             for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
