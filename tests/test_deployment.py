@@ -143,18 +143,18 @@ def test_grid_jitter_is_seeded(tmp_path: Path) -> None:
         ),
         (
             HEAD,
-            '[[nodes]]\nid = 40000\nkind = "tmote"\nposition = [1, 1]\n',
-            "nodes[0] (id 40000): id 40000 is outside 0..32767",
+            '[[nodes]]\nid = 70000\nkind = "tmote"\nposition = [1, 1]\n',
+            "nodes[0] (id 70000): id 70000 is outside 0..65533",
         ),
         (
             HEAD,
             '[[nodes]]\nid = -1\nkind = "tmote"\nposition = [1, 1]\n',
-            "nodes[0] (id -1): id -1 is outside 0..32767",
+            "nodes[0] (id -1): id -1 is outside 0..65533",
         ),
         (
             HEAD,
-            '[[grid]]\nfirst_id = 32760\nkind = "tmote"\nspacing = 1\ncols = 10\nrows = 1\n',
-            "grid[0] (ids 32760..32769): id 32769 is outside 0..32767",
+            '[[grid]]\nfirst_id = 65530\nkind = "tmote"\nspacing = 1\ncols = 10\nrows = 1\n',
+            "grid[0] (ids 65530..65539): id 65539 is outside 0..65533",
         ),
         (
             HEAD.replace("cc2420", "nrf24"),

@@ -241,7 +241,7 @@ def test_specific_errors() -> None:
     with pytest.raises(FrameError):
         decode(msgpack.packb([1, 1, 2]))  # Hello without its seq
     with pytest.raises(FrameError):
-        decode(msgpack.packb([1, 40000, 2, 0]))  # src out of range
+        decode(msgpack.packb([1, 0xFFFE, 2, 0]))  # src out of range (0xFFFE: no short address)
 
 
 def test_float64_on_the_wire_decodes_as_the_float32_it_will_be_re_sent_as() -> None:

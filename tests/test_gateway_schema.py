@@ -142,7 +142,7 @@ MALFORMED: list[tuple[str, str, bytes, type[SchemaError]]] = [
     ("channel", "1", j({"attr": "x"}), schema.MissingField),
     ("command", "blink", j({"target": "some"}), schema.UnknownTarget),
     ("command", "blink", j({"target": {"robot": 3}}), schema.UnknownTarget),
-    ("command", "blink", j({"target": {"node": 40000}}), schema.UnknownTarget),
+    ("command", "blink", j({"target": {"node": 65534}}), schema.UnknownTarget),
     ("command", "blink", j({"args": [1]}), schema.WrongType),
     ("command", "blink", j({"args": {"a": {"b": 1}}}), schema.WrongType),
     ("command", "blink", j({"args": {"msg": "x" * 90}}), schema.DoesNotFitMtu),

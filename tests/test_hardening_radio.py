@@ -145,7 +145,7 @@ def test_envelope_with_any_field_mutated_is_valid_or_rejected(i: int, v: Any) ->
         ("t", 1e12, "time"),
         ("seq", 0x10000, "seq"),
         ("attempt", 200, "attempt"),
-        ("dest", 0x8000, "dest"),
+        ("dest", 0xFFFE, "dest"),
         ("src", -1, "src"),
         ("frame", b"\x00" * (CC2420.mtu + 1), "frame"),
         ("kind", True, "kind"),

@@ -25,7 +25,7 @@ def test_attribute_names_round_trip() -> None:
     assert attribute_id("rssi:17") == RSSI_BASE | 17
 
 
-@pytest.mark.parametrize("bad", ["temp", "rssi:", "rssi:x", "rssi:40000", ""])
+@pytest.mark.parametrize("bad", ["temp", "rssi:", "rssi:x", "rssi:65534", ""])
 def test_unknown_attribute_is_a_specific_error(bad: str) -> None:
     with pytest.raises(UnknownAttribute, match=r"rssi|unknown attribute"):
         attribute_id(bad)
@@ -89,3 +89,16 @@ def test_unicode_digits_are_an_unknown_attribute_not_a_crash() -> None:
         with pytest.raises(UnknownAttribute):
             attribute_id(name)
     assert attribute_id("rssi:100") == attribute_id("rssi:0100")
+
+
+@pytest.mark.parametrize("node", [0, 32767, 32768, 50000, 65533])
+def test_every_short_address_has_its_rssi_attribute(node: int) -> None:
+    """rssi:<id> covers the whole 16-bit short address space (0xFFFE and 0xFFFF
+    are reserved by IEEE 802.15.4), round-trips, and rides in a condition frame."""
+    from awaremw.protocol.attributes import attribute_name, is_rssi
+    from awaremw.protocol.frames import Condition, GroupTypeDef, Op
+
+    attr = attribute_id(f"rssi:{node}")
+    assert is_rssi(attr) and attribute_name(attr) == f"rssi:{node}"
+    assert Condition(attr, Op.GT, -70.0).attr == attr
+    assert GroupTypeDef((Condition(attr, Op.GT, -70.0),)).conditions[0].attr == attr

@@ -189,7 +189,7 @@ def test_envelope_round_trip_and_garbage() -> None:
         msgpack.packb([1, 2, 3]),
         msgpack.packb([2, 0, 1, 0.0, 0.0, 0.0, 0, 0, 0.0, 1, b""]),  # version
         msgpack.packb([1, 5, 1, 0.0, 0.0, 0.0, 0, 0, 0.0, 1, b""]),  # kind
-        msgpack.packb([1, 0, 40000, 0.0, 0.0, 0.0, 0, 0, 0.0, 1, b""]),  # src
+        msgpack.packb([1, 0, 0xFFFE, 0.0, 0.0, 0.0, 0, 0, 0.0, 1, b""]),  # src
         msgpack.packb([1, 0, 1, float("nan"), 0.0, 0.0, 0, 0, 0.0, 1, b""]),  # x
         msgpack.packb([1, 0, 1, 0.0, 0.0, 0.0, 70000, 0, 0.0, 1, b""]),  # seq
         msgpack.packb([1, 0, 1, 0.0, 0.0, 0.0, 0, 0, 0.0, 1, "text"]),  # frame

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 from awaremw.protocol import attributes as A
 from awaremw.protocol.attributes import Application
-from awaremw.protocol.frames import MAX_NODE_ID, GroupTypeDef
+from awaremw.protocol.frames import NODE_MASK, GroupTypeDef
 from awaremw.protocol.groups import condition_holds
 from awaremw.radio.model import Z_MAX, RadioModel
 from awaremw.world.fields import World
@@ -111,7 +111,7 @@ class GroundTruth:
         """The noise-free value of ``attr`` at ``node`` (None: not offered / not heard)."""
         n = self.nodes[node]
         if A.is_rssi(attr):
-            src = attr & MAX_NODE_ID
+            src = attr & NODE_MASK
             if src == node or src not in self.nodes:
                 return None
             d = self.distance(src, node, t)
@@ -156,7 +156,7 @@ class GroundTruth:
         for c in defn.conditions:
             if not A.is_rssi(c.attr):
                 continue
-            s = self.nodes.get(c.attr & MAX_NODE_ID)
+            s = self.nodes.get(c.attr & NODE_MASK)
             if s is None:
                 return ()
             sx, sy = s.mobility.position(t)

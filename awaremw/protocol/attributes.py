@@ -1,7 +1,8 @@
-"""Attributes: numeric values a mote offers, by 16-bit wire id.
+"""Attributes: numeric values a mote offers, by wire id.
 
 The IP side names attributes (``temperature``, ``rssi:12``); the wire carries
-ids. Standard ids are fixed here; ``rssi:<node>`` is ``RSSI_BASE | node`` and is
+ids. Standard ids are fixed here; ``rssi:<node>`` is ``RSSI_BASE | node`` (0x10000 |
+node: every 16-bit short address has its own) and is
 served by the middleware itself from the frames it hears. Node kinds may offer
 more attributes with ids from ``CUSTOM_BASE`` on, registered by name.
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Protocol, runtime_checkable
 
-from awaremw.protocol.frames import MAX_NODE_ID, CommandDef
+from awaremw.protocol.frames import MAX_NODE_ID, NODE_MASK, RSSI_BASE, CommandDef
 
 TEMPERATURE = 0  # deg C
 HUMIDITY = 1  # %RH
@@ -20,7 +21,6 @@ X = 3  # m
 Y = 4  # m
 BATTERY = 5  # V
 GAS = 6  # ppm
-RSSI_BASE = 0x8000  # rssi:<node> = RSSI_BASE | node, dBm of frames heard from node
 
 STANDARD: Mapping[str, int] = {
     "temperature": TEMPERATURE,
@@ -84,7 +84,7 @@ def attribute_id(name: str) -> int:
 def attribute_name(attr: int) -> str:
     """IP-side name of a wire id (inverse of :func:`attribute_id`)."""
     if attr & RSSI_BASE:
-        return f"rssi:{attr & MAX_NODE_ID}"
+        return f"rssi:{attr & NODE_MASK}"
     for name, i in STANDARD.items():
         if i == attr:
             return name

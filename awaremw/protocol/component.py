@@ -14,7 +14,7 @@ from collections.abc import Callable
 from awaremw.protocol.attributes import RSSI_BASE, Application, ReadBounds
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, encode, note_sent
+from awaremw.protocol.frames import BROADCAST, NODE_MASK, Frame, encode, note_sent
 from awaremw.protocol.timers import TimerSet
 
 
@@ -93,7 +93,7 @@ class MoteContext:
     def read(self, attr: int, now: float) -> float | None:
         """An attribute's current value, or None if this mote cannot give it."""
         if attr & RSSI_BASE:
-            s = self.rssi.get(attr & MAX_NODE_ID)
+            s = self.rssi.get(attr & NODE_MASK)
             if s is None or now - s.last_heard > self.config.rssi_ttl:
                 return None
             return s.dbm

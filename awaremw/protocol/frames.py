@@ -24,7 +24,13 @@ from typing import Any, ClassVar, TypeAlias
 import msgpack
 
 BROADCAST = 0xFFFF
-MAX_NODE_ID = 0x7FFF  # node ids 0..32767; rssi:<id> attributes use 0x8000 | id
+# Node ids are IEEE 802.15.4 short addresses: 0xFFFF is broadcast and 0xFFFE
+# means "no short address", so 0..0xFFFD (65,534 motes) name motes.
+MAX_NODE_ID = 0xFFFD
+NODE_MASK = 0xFFFF  # the node id inside an rssi:<id> attribute id
+# Attribute ids: standard and custom ones below RSSI_BASE; rssi:<id> is RSSI_BASE | id.
+RSSI_BASE = 0x10000
+MAX_ATTRIBUTE_ID = RSSI_BASE | MAX_NODE_ID
 ANY_GROUP_TYPE = 0xFF
 ANY_GROUP_ID = 0xFFFF  # never a real group id (real ids are 1..0xFFFE)
 NO_ROUTE = 0xFFFF  # collection cost of a mote without a route
@@ -180,7 +186,7 @@ class Condition:
     value: float
 
     def __post_init__(self) -> None:
-        _u16("attr", self.attr)
+        _int("attr", self.attr, 0, MAX_ATTRIBUTE_ID)
         if not isinstance(self.op, Op):
             object.__setattr__(self, "op", Op(self.op))
         _real("value", self.value)
@@ -232,7 +238,7 @@ class ChannelDef:
     agg: int  # AggId or an extension id registered in aggregation.py
 
     def __post_init__(self) -> None:
-        _u16("attr", self.attr)
+        _int("attr", self.attr, 0, MAX_ATTRIBUTE_ID)
         _u8("group_type", self.group_type)
         _u16("group_id", self.group_id)
         _int("period_ms", self.period_ms, 1, 0xFFFFFFFF)

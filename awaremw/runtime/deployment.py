@@ -307,7 +307,11 @@ class _Parser:
 
     def _check_id(self, where: str, node_id: int) -> None:
         if not 0 <= node_id <= MAX_NODE_ID:
-            raise self._fail(where, f"id {node_id} is outside 0..{MAX_NODE_ID}")
+            raise self._fail(
+                where,
+                f"id {node_id} is outside 0..{MAX_NODE_ID} (IEEE 802.15.4 short "
+                "addresses; 0xFFFE and 0xFFFF are reserved)",
+            )
 
     def _check_battery(self, where: str, mj: float | None) -> None:
         if mj is not None and not mj > 0:

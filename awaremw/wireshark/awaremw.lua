@@ -132,8 +132,8 @@ local function header(tvb)
     if v == nil or type(v) ~= "table" then return nil end
     local t, src, dst = v[1], v[2], v[3]
     if type(t) ~= "number" or FRAME_TYPES[t] == nil then return nil end
-    if type(src) ~= "number" or src < 0 or src > 0x7fff then return nil end
-    if type(dst) ~= "number" or dst < 0 or (dst > 0x7fff and dst ~= 0xffff) then return nil end
+    if type(src) ~= "number" or src < 0 or src > 0xfffd then return nil end
+    if type(dst) ~= "number" or dst < 0 or (dst > 0xfffd and dst ~= 0xffff) then return nil end
     return v, nxt
 end
 
