@@ -1,33 +1,48 @@
-"""The ``--workload aware`` fleet of the scale benchmarks: the whole middleware.
+"""The ``--workload aware`` fleet of the benchmarks: the whole middleware on a
+field that grows with the motes, in a world that does not speed up.
 
 Motes on a square grid (CC2420 preset, 12 m spacing: about ten neighbours
 each), built by the same core factory as a fleet's node kinds
 (:class:`~awaremw.nodes.KindsFactory`: tmote sky applications over a world,
-:class:`~awaremw.protocol.mote.AwareMote` cores); node 0, in a corner, is the
-gateway's mote (collection root). A fire (a disc about 80 degC above ambient,
-25 m radius) crosses the field diagonally during the run; the gateway mote
-injects, as the gateway would, a tracking group type (temperature above 50
-degC) and an AVG temperature channel every 2 s, and Drip spreads them. The
-group forms around the fire and follows it, its leader produces one record
-per epoch, and collection carries it to the gateway mote.
+:class:`~awaremw.protocol.mote.AwareMote` cores). The field is cut into
+``k x k`` regions of about :data:`MOTES_PER_REGION` motes each (``k`` the
+nearest integer to ``sqrt(motes / 1000)``, at least 1):
+
+* each region holds one fire (a disc 80 degC above ambient, 25 m in radius)
+  that loops around the region's centre at :data:`OBJECT_SPEED_MPS`, a fire
+  front's pace, whatever the run's duration or the field's size;
+* collection roots (gateway motes, the sinks) stand on a lattice: one per
+  region at its centre by default, or ``sinks`` of them on the lattice that
+  ``sinks`` asks for (:func:`sink_lattice`), so that no record needs more hops
+  than a region's half-diagonal, however large the field.
+
+The sinks inject, as the gateway service does on every gateway mote, a
+tracking group type (temperature above 50 degC) and an AVG temperature channel
+every 2 s at :data:`DEFINE_AT_S`, and Drip spreads them. A group forms around
+each fire and follows it; its leader produces one record per epoch, and
+collection carries it to the nearest sink.
 
 ``record_delivery`` is the share of records the leaders produced (up to
 :data:`GRACE_S` before the end, so records still in flight do not count
-against it) that arrived at the gateway mote; None when no record was
-produced in that window (a run too short for its grid: Drip, the collection
-tree and the group take longer to form on a larger grid, see
-``first_record_s``), so that "none produced" never reads as "none delivered".
+against it) that arrived at any sink; None when no record was produced in that
+window, so that "none produced" never reads as "none delivered". Tracking per
+object (:func:`score_objects`): a record belongs to the fire nearest its
+leader (within :data:`TRACK_RADIUS_M`); ``objects_tracked`` counts the fires
+with a delivered record in the last quarter of the counted window (the group
+still follows it), ``ids_per_object`` the distinct group ids each fire's
+records carried.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from awaremw.nodes import KindsFactory, kind_names
+from awaremw.nodes import KindsFactory, kind_names, world_of
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.collection import Delivered
@@ -50,7 +65,9 @@ if TYPE_CHECKING:
     from awaremw.runtime.fleet import Fleet
 
 SPACING_M = 12.0
-GATEWAY = 0
+MOTES_PER_REGION = 1000  # one fire and (by default) one sink per region of about this many motes
+OBJECT_SPEED_MPS = 1.0  # a fire front's pace: the world never speeds up with the field
+LOOP_FRACTION = 0.25  # a fire loops at this fraction of its region's side from the centre
 GROUP_TYPE = 1
 CHANNEL = 1
 CHANNEL_PERIOD_S = 2.0
@@ -59,9 +76,103 @@ GRACE_S = 10.0  # records produced this close to the end may still be in flight
 FIRE_RADIUS_M = 25.0
 FIRE_PEAK_C = 80.0
 HOT_C = 50.0
+TRACK_RADIUS_M = FIRE_RADIUS_M + 2 * SPACING_M  # a leader this close to a fire tracks it
 MAX_TRACKED = 200_000  # records remembered by the tally (a 2 s channel: ~110 h per group)
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
+
+
+@dataclass(frozen=True, slots=True)
+class Field:
+    """The grid of a workload: ``cols x rows`` motes ``spacing`` apart, ``regions``
+    per side (see the module docstring)."""
+
+    motes: int
+    spacing: float = SPACING_M
+
+    @property
+    def cols(self) -> int:
+        return max(1, math.ceil(math.sqrt(self.motes)))
+
+    @property
+    def rows(self) -> int:
+        return math.ceil(self.motes / self.cols)
+
+    @property
+    def size(self) -> tuple[float, float]:
+        return self.spacing * self.cols, self.spacing * self.rows
+
+    @property
+    def regions(self) -> int:
+        """Regions per side: about :data:`MOTES_PER_REGION` motes in each."""
+        return max(1, round(math.sqrt(self.motes / MOTES_PER_REGION)))
+
+    def position(self, i: int) -> tuple[float, float]:
+        return self.spacing * (0.5 + i % self.cols), self.spacing * (0.5 + i // self.cols)
+
+    def nearest(self, x: float, y: float) -> int:
+        """The mote of the grid nearest (x, y)."""
+        col = min(self.cols - 1, max(0, math.floor(x / self.spacing)))
+        row = min(self.rows - 1, max(0, math.floor(y / self.spacing)))
+        i = row * self.cols + col
+        while i >= self.motes:  # the last row may be short
+            i -= self.cols
+        return i
+
+
+def sink_lattice(grid: Field, sinks: int | None = None) -> list[int]:
+    """The motes that are collection roots: by default one at the centre of every
+    region; ``sinks`` N asks for N on the centres of a ``ceil(sqrt N)`` lattice
+    (row by row, the first N). Distinct motes, sorted."""
+    if sinks is None:
+        k = grid.regions
+        sinks, per_side = k * k, k
+    else:
+        if not 1 <= sinks <= grid.motes // 2:
+            raise ValueError(
+                f"--sinks {sinks}: needs 1 to {grid.motes // 2} sinks for {grid.motes} motes "
+                "(at least as many sensing motes as sinks)"
+            )
+        per_side = math.ceil(math.sqrt(sinks))
+    w, h = grid.size
+    rows = math.ceil(sinks / per_side)
+    chosen: list[int] = []
+    for n in range(sinks):
+        a, b = n % per_side, n // per_side
+        x, y = w * (a + 0.5) / per_side, h * (b + 0.5) / rows
+        i = grid.nearest(x, y)
+        while i in chosen:  # a dense lattice on a small grid: take the next free mote
+            i = (i + 1) % grid.motes
+        chosen.append(i)
+    return sorted(chosen)
+
+
+def fire_loops(grid: Field, duration: float) -> list[dict[str, Any]]:
+    """One fire per region, looping anticlockwise around the region's centre on a
+    square of half-side ``LOOP_FRACTION x side`` at :data:`OBJECT_SPEED_MPS`, its
+    keyframes covering ``duration`` (deployment ``[[world.fires]]`` tables)."""
+    k = grid.regions
+    w, h = grid.size
+    fires: list[dict[str, Any]] = []
+    for n in range(k * k):
+        a, b = n % k, n // k
+        cx, cy = w * (a + 0.5) / k, h * (b + 0.5) / k
+        r = LOOP_FRACTION * min(w, h) / k
+        corners = [(cx - r, cy - r), (cx + r, cy - r), (cx + r, cy + r), (cx - r, cy + r)]
+        leg = 2 * r / OBJECT_SPEED_MPS
+        keys: list[dict[str, Any]] = []
+        t, c = 0.0, 0
+        while True:
+            x, y = corners[c % 4]
+            key: dict[str, Any] = {"t": t, "x": x, "y": y}
+            if not keys:
+                key |= {"radius": FIRE_RADIUS_M, "peak": FIRE_PEAK_C}
+            keys.append(key)
+            if t >= duration:
+                break
+            t, c = t + leg, c + 1
+        fires.append({"name": f"fire-{n}", "edge": 4.0, "keyframes": keys})
+    return fires
 
 
 def deployment(
@@ -71,27 +182,17 @@ def deployment(
     spacing: float = SPACING_M,
     mac: str = "csma",
     collisions: str = "sinr",
+    sinks: int | None = None,
 ) -> Deployment:
-    """``motes`` motes on a square grid, the gateway's at (0, 0)-ish, a fire crossing."""
+    """``motes`` motes on a square grid, sinks on a lattice, one looping fire per region."""
     if motes < 2:
         raise ValueError("the aware workload needs at least 2 motes (a gateway and a sensor)")
-    cols = max(1, math.ceil(math.sqrt(motes)))
-    rows = math.ceil(motes / cols)
-    w, h = spacing * cols, spacing * rows
-    nodes: list[dict[str, Any]] = []
-    for i in range(motes):
-        pos = [spacing * (0.5 + i % cols), spacing * (0.5 + i // cols)]
-        nodes.append({"id": i, "kind": "gateway" if i == GATEWAY else "tmote", "position": pos})
-    # The fire crosses from one quarter of the diagonal to three quarters, away
-    # from the gateway's corner at the start, over the run.
-    fire = {
-        "name": "front",
-        "edge": 4.0,
-        "keyframes": [
-            {"t": 0.0, "x": 0.3 * w, "y": 0.7 * h, "radius": FIRE_RADIUS_M, "peak": FIRE_PEAK_C},
-            {"t": max(duration, 1.0), "x": 0.7 * w, "y": 0.3 * h},
-        ],
-    }
+    grid = Field(motes, spacing)
+    roots = set(sink_lattice(grid, sinks))
+    nodes = [
+        {"id": i, "kind": "gateway" if i in roots else "tmote", "position": list(grid.position(i))}
+        for i in range(motes)
+    ]
     doc = {
         "name": f"bench-aware-{motes}",
         "radio": "cc2420",
@@ -99,19 +200,25 @@ def deployment(
         "tx_power_dbm": 0.0,
         "mac": mac,
         "collisions": collisions,
-        "area": [w, h],
-        "world": {"ambient_temperature": 20.0, "fires": [fire]},
+        "area": list(grid.size),
+        "world": {"ambient_temperature": 20.0, "fires": fire_loops(grid, duration)},
         "nodes": nodes,
     }
     return parse_deployment(doc, known_kinds=kind_names())
 
 
+def sinks_of(d: Deployment) -> list[int]:
+    """The collection roots of a deployment (its gateway motes), sorted."""
+    return sorted(s.id for s in d.nodes if s.kind == "gateway")
+
+
 @dataclass
 class RecordTally:
-    """Records produced by leaders and records arrived at the gateway mote, from
-    the core events (``on_event`` is an event hook of either driver)."""
+    """Records produced by leaders and records arrived at a sink, from the core
+    events (``on_event`` is an event hook of either driver). A record is known by
+    its key; ``produced`` maps it to (time produced, leader)."""
 
-    produced: dict[RecordKey, float] = field(default_factory=dict)  # key -> time produced
+    produced: dict[RecordKey, tuple[float, int]] = field(default_factory=dict)
     delivered: set[RecordKey] = field(default_factory=set)
     leaders: set[int] = field(default_factory=set)
     untracked: int = 0  # events past MAX_TRACKED, not counted
@@ -121,9 +228,10 @@ class RecordTally:
             if len(self.produced) >= MAX_TRACKED:
                 self.untracked += 1
                 return
-            self.produced.setdefault(_key(ev.record), t)
+            self.produced.setdefault(_key(ev.record), (t, nid))
             self.leaders.add(nid)
-        elif isinstance(ev, Delivered) and nid == GATEWAY and isinstance(ev.payload, DataRecord):
+        elif isinstance(ev, Delivered) and isinstance(ev.payload, DataRecord):
+            # Delivered happens at a root only: any sink counts, a record once.
             if len(self.delivered) >= MAX_TRACKED:
                 self.untracked += 1
                 return
@@ -131,17 +239,17 @@ class RecordTally:
 
     def merge(self, others: Iterable[RecordTally]) -> RecordTally:
         """Fold the tallies of other processes into this one (a record's
-        production time is the earliest any process saw); returns self."""
+        production is the earliest any process saw); returns self."""
         for o in others:
-            for k, t in o.produced.items():
+            for k, made in o.produced.items():
                 old = self.produced.get(k)
                 if old is None:
                     if len(self.produced) >= MAX_TRACKED:
                         self.untracked += 1
                         continue
-                    self.produced[k] = t
-                elif t < old:
-                    self.produced[k] = t
+                    self.produced[k] = made
+                elif made < old:
+                    self.produced[k] = made
             room = MAX_TRACKED - len(self.delivered)
             new = o.delivered - self.delivered
             if len(new) > room:
@@ -152,6 +260,10 @@ class RecordTally:
             self.untracked += o.untracked
         return self
 
+    def counted(self, end: float) -> list[RecordKey]:
+        """The records produced early enough to have arrived by ``end``."""
+        return [k for k, (t, _) in self.produced.items() if t <= end - GRACE_S]
+
     def results(self, end: float) -> dict[str, Any]:
         """``records_produced`` (up to ``end - GRACE_S``), ``records_delivered`` (of
         those), ``record_delivery`` (their ratio; None when none was produced in
@@ -159,9 +271,9 @@ class RecordTally:
         the earliest record produced, counted or not; None if none),
         ``leaders`` (distinct motes that led an epoch), ``records_untracked``
         (events past :data:`MAX_TRACKED`, 0 in any run of sensible length)."""
-        counted = [k for k, t in self.produced.items() if t <= end - GRACE_S]
+        counted = self.counted(end)
         got = sum(1 for k in counted if k in self.delivered)
-        first = min(self.produced.values(), default=None)
+        first = min((t for t, _ in self.produced.values()), default=None)
         return {
             "workload": "aware",
             "records_produced": len(counted),
@@ -174,10 +286,62 @@ class RecordTally:
         }
 
 
+def score_objects(tally: RecordTally, d: Deployment, end: float) -> dict[str, Any]:
+    """Tracking per object (every fire of ``d``'s world): each counted record is
+    given to the fire nearest its leader at the time it was produced, within
+    :data:`TRACK_RADIUS_M` (else to none). ``objects``; ``objects_tracked``
+    (fires with a delivered record produced in the last quarter of the counted
+    window, ``[0.75 (end - GRACE_S), end - GRACE_S]``); ``records_per_object`` and
+    ``ids_per_object`` (delivered records and distinct group ids, per fire, in
+    the order of the deployment); ``records_unattributed`` (records whose leader
+    was near no fire)."""
+    fires = world_of(d).fires
+    where: Mapping[int, tuple[float, float]] = {s.id: s.position for s in d.nodes}
+    window_end = end - GRACE_S
+    late = 0.75 * window_end
+    per = [0] * len(fires)
+    ids: list[set[int]] = [set() for _ in fires]
+    tracked = [False] * len(fires)
+    unattributed = 0
+    for k in tally.counted(end):
+        t, leader = tally.produced[k]
+        obj = _nearest_fire(fires, where.get(leader), t)
+        if obj is None:
+            unattributed += 1
+            continue
+        if k in tally.delivered:
+            per[obj] += 1
+            ids[obj].add(k[2])
+            if t >= late:
+                tracked[obj] = True
+    return {
+        "objects": len(fires),
+        "objects_tracked": sum(tracked),
+        "records_per_object": per,
+        "ids_per_object": [len(s) for s in ids],
+        "records_unattributed": unattributed,
+    }
+
+
+def _nearest_fire(fires: Sequence[Any], pos: tuple[float, float] | None, t: float) -> int | None:
+    if pos is None:
+        return None
+    best, best_d = None, TRACK_RADIUS_M
+    for n, f in enumerate(fires):
+        s = f.state(t)
+        if s is None:
+            continue
+        dist = math.hypot(pos[0] - s.x, pos[1] - s.y)
+        if dist <= best_d:
+            best, best_d = n, dist
+    return best
+
+
 def inject_definitions(root: MoteCore, now: float) -> None:
-    """The gateway mote injects the group type and the channel (Drip spreads them)."""
+    """A sink injects the group type and the channel, as the gateway service does
+    on every gateway mote (Drip spreads them; the same versions everywhere)."""
     if not isinstance(root, AwareMote):
-        raise TypeError(f"node {GATEWAY} is not an AwareMote: {type(root).__name__}")
+        raise TypeError(f"a sink is not an AwareMote: {type(root).__name__}")
     hot = GroupTypeDef((Condition(TEMPERATURE, Op.GT, HOT_C),))
     period_ms = round(CHANNEL_PERIOD_S * 1000)
     chan = ChannelDef(TEMPERATURE, GROUP_TYPE, ANY_GROUP_ID, period_ms, AggId.AVG)
@@ -188,8 +352,8 @@ def inject_definitions(root: MoteCore, now: float) -> None:
 class AwarePlugin:
     """The aware load inside each worker process of a launcher
     (:class:`~awaremw.runtime.fleet_settings.WorkerPlugin`): tallies the records of
-    the motes it runs and, in the worker running the gateway's mote, injects
-    the definitions at :data:`DEFINE_AT_S`, exactly as in one process."""
+    the motes it runs and injects the definitions at :data:`DEFINE_AT_S` on the
+    sinks it runs, exactly as in one process."""
 
     def __init__(self) -> None:
         self.tally = RecordTally()
@@ -206,13 +370,15 @@ class AwarePlugin:
         fleet.on_event(self.tally.on_event)
 
     def started(self, fleet: Fleet) -> None:
-        if GATEWAY in fleet.runners:
-            self._task = asyncio.get_running_loop().create_task(self._inject(fleet))
+        mine = [n for n in sinks_of(fleet.deployment) if n in fleet.runners]
+        if mine:
+            self._task = asyncio.get_running_loop().create_task(self._inject(fleet, mine))
 
-    async def _inject(self, fleet: Fleet) -> None:
+    async def _inject(self, fleet: Fleet, sinks: list[int]) -> None:
         await fleet.wait_until(DEFINE_AT_S)
-        if fleet.alive(GATEWAY):
-            fleet.run_on(GATEWAY, inject_definitions)
+        for n in sinks:
+            if fleet.alive(n):
+                fleet.run_on(n, inject_definitions)
 
     def result(self) -> RecordTally:
         if self._task is not None:
@@ -233,12 +399,17 @@ class AwareLoad:
     def run_until(self, end: float) -> None:
         if self.net.now < DEFINE_AT_S <= end:
             self.net.run_until(DEFINE_AT_S)
-            root = self.net.cores[GATEWAY]
-            self.net.call(GATEWAY, lambda: inject_definitions(root, self.net.now))
+            for n in sinks_of(self.deployment):
+                inject = functools.partial(inject_definitions, self.net.cores[n], self.net.now)
+                self.net.call(n, inject)
         self.net.run_until(end)
 
     def results(self, end: float) -> dict[str, Any]:
-        return self.tally.results(end)
+        return {
+            **self.tally.results(end),
+            "sinks": len(sinks_of(self.deployment)),
+            **score_objects(self.tally, self.deployment, end),
+        }
 
 
 def _key(r: DataRecord) -> RecordKey:
@@ -246,10 +417,15 @@ def _key(r: DataRecord) -> RecordKey:
 
 
 def build(
-    motes: int, seed: int, duration: float, mac: str = "csma", collisions: str = "sinr"
+    motes: int,
+    seed: int,
+    duration: float,
+    mac: str = "csma",
+    collisions: str = "sinr",
+    sinks: int | None = None,
 ) -> AwareLoad:
     """The network, every core from the fleet's :class:`KindsFactory`."""
-    d = deployment(motes, seed, duration, mac=mac, collisions=collisions)
+    d = deployment(motes, seed, duration, mac=mac, collisions=collisions, sinks=sinks)
     factory = KindsFactory()
     net = VirtualNetwork(d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions)
     load = AwareLoad(net, d)

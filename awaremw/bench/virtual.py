@@ -25,18 +25,36 @@ left out; null when none was produced before that), ``first_record_s``
 ``mean_neighbours`` is then the mean collection-tree neighbour table size.
 ``build`` (``python``, or ``mypyc`` for the compiled build of ``setup.py``) and
 ``compiled_modules`` (how many of the hot modules run compiled) say what ran.
+
+``--sizes 1000,10000``: the same run at every size, each in a fresh process
+(so that its memory is its own), and how the cost grows: one JSON object with
+``sizes`` (the runs, each with ``cpu_per_mote_s_us``: CPU microseconds per mote
+per emulated second, and ``rss_per_mote_kb``: resident memory per mote, the
+interpreter's own before the build left out) and ``cpu_per_mote_ratio`` (the
+largest size's CPU per mote-second over the smallest's); ``--plot FILE`` draws
+both against the number of motes. ``--sinks N`` (aware): collection roots on a
+lattice (default one per region of about 1,000 motes). With
+``--workload aware`` the JSON also has ``sinks``, ``objects`` (fires, one per
+region), ``objects_tracked``, ``records_per_object``, ``ids_per_object`` and
+``records_unattributed`` (:func:`awaremw.bench.aware_load.score_objects`).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
 import random
+import resource
+import subprocess
+import sys
 import time
 from typing import Any
 
 from awaremw.bench import aware_load
 from awaremw.bench.profiling import build_facts, profiled
+from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.hello import HelloMote
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import RadioModel, preset
@@ -75,16 +93,25 @@ def run(
     profile: str | None = None,
     mac: str = "csma",
     collisions: str = "sinr",
+    sinks: int | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark. Also accepts the parsed CLI arguments (bench registry)."""
     if isinstance(motes, argparse.Namespace):
         ns = motes
+        if ns.sizes:
+            return run_sizes(ns)
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
         workload, profile = str(ns.workload), ns.profile
-        mac, collisions = str(ns.mac), str(ns.collisions)
+        mac, collisions, sinks = str(ns.mac), str(ns.collisions), ns.sinks
     if workload not in WORKLOADS:
         raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
-    load = aware_load.build(motes, seed, duration, mac, collisions) if workload == "aware" else None
+    check_motes(motes)
+    rss0 = resident_kb()
+    load = (
+        aware_load.build(motes, seed, duration, mac, collisions, sinks)
+        if workload == "aware"
+        else None
+    )
     net = load.net if load is not None else build(motes, seed, mac=mac, collisions=collisions)
     t0 = time.perf_counter()
     c0 = time.process_time()
@@ -95,6 +122,7 @@ def run(
             net.run_until(duration)
     wall = time.perf_counter() - t0
     cpu = time.process_time() - c0
+    rss1 = max(resident_kb(), peak_kb())
     counters = net.counters
     frames_tx = sum(c.frames_tx for c in counters.values())
     deliveries = sum(c.frames_rx for c in counters.values())
@@ -109,6 +137,8 @@ def run(
         "wall_seconds": round(wall, 3),
         "cpu_seconds": round(cpu, 3),
         "speedup": round(duration / wall, 2) if wall > 0 else math.inf,
+        "cpu_per_mote_s_us": round(1e6 * cpu / (motes * duration), 3),
+        "rss_per_mote_kb": round((rss1 - rss0) / motes, 2),
         "frames_tx": frames_tx,
         "deliveries": deliveries,
         "mean_neighbours": round(sum(tables) / max(1, len(tables)), 2),
@@ -130,6 +160,107 @@ def run(
     return out
 
 
+def check_motes(motes: int) -> None:
+    """One line for a network the address space cannot hold (IEEE 802.15.4 short
+    addresses: 0xFFFF is broadcast, 0xFFFE means "no short address")."""
+    if motes < 1:
+        raise ValueError("--motes must be at least 1")
+    if motes > MAX_NODE_ID + 1:
+        raise ValueError(
+            f"--motes {motes}: one network holds at most {MAX_NODE_ID + 1} motes "
+            f"(16-bit short addresses 0..{MAX_NODE_ID}; 0xFFFE and 0xFFFF are reserved "
+            "by IEEE 802.15.4)"
+        )
+
+
+def resident_kb() -> int:
+    """This process's resident memory now, in KiB (0 where /proc is missing)."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return 0
+    return pages * (os.sysconf("SC_PAGE_SIZE") // 1024)
+
+
+def peak_kb() -> int:
+    """This process's peak resident memory, in KiB (Linux reports ru_maxrss in KiB)."""
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
+def parse_sizes(text: str) -> list[int]:
+    """``"1000,10000"`` -> [1000, 10000] (sorted, distinct), one line on bad input."""
+    try:
+        sizes = sorted({int(x) for x in text.split(",") if x.strip()})
+    except ValueError:
+        raise ValueError(f"--sizes {text!r}: a comma-separated list of mote counts") from None
+    if not sizes:
+        raise ValueError("--sizes needs at least one mote count")
+    for n in sizes:
+        check_motes(n)
+    return sizes
+
+
+def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
+    """``--sizes``: the run at every size, each in a fresh interpreter."""
+    sizes = parse_sizes(str(ns.sizes))
+    runs: list[dict[str, Any]] = []
+    for n in sizes:
+        argv = [
+            sys.executable, "-m", "awaremw", "bench", "virtual", "--json",
+            "--motes", str(n), "--duration", str(ns.duration), "--seed", str(ns.seed),
+            "--workload", str(ns.workload), "--mac", str(ns.mac),
+            "--collisions", str(ns.collisions),
+        ]  # fmt: skip
+        if ns.sinks is not None:
+            argv += ["--sinks", str(ns.sinks)]
+        if not ns.json:
+            print(f"bench virtual: {n} motes ...", file=sys.stderr, flush=True)
+        done = subprocess.run(argv, capture_output=True, text=True, check=False)
+        if done.returncode != 0:
+            tail = (done.stderr.strip().splitlines() or ["no output"])[-1]
+            raise RuntimeError(f"bench virtual at {n} motes failed: {tail}")
+        runs.append(json.loads(done.stdout))
+    first, last = runs[0], runs[-1]
+    out: dict[str, Any] = {
+        "sizes": runs,
+        "cpu_per_mote_ratio": round(last["cpu_per_mote_s_us"] / first["cpu_per_mote_s_us"], 3),
+        "rss_per_mote_ratio": round(last["rss_per_mote_kb"] / first["rss_per_mote_kb"], 3)
+        if first["rss_per_mote_kb"] > 0
+        else None,
+        **build_facts(),
+    }
+    if ns.plot:
+        plot_sizes(runs, ns.plot)
+        out["plot"] = str(ns.plot)
+    return out
+
+
+def plot_sizes(runs: list[dict[str, Any]], path: str) -> None:
+    """CPU per mote-second and memory per mote against the number of motes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    motes = [r["motes"] for r in runs]
+    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=120)
+    ax.plot(motes, [r["cpu_per_mote_s_us"] for r in runs], "o-", color="tab:red")
+    ax.set_xscale("log")
+    ax.set_xlabel("motes")
+    ax.set_ylabel("CPU per mote per emulated second (µs)", color="tab:red")
+    ax.set_ylim(bottom=0)
+    mem = ax.twinx()
+    mem.plot(motes, [r["rss_per_mote_kb"] for r in runs], "s--", color="tab:blue")
+    mem.set_ylabel("memory per mote (KiB)", color="tab:blue")
+    mem.set_ylim(bottom=0)
+    w = runs[0]["workload"]
+    ax.set_title(f"bench virtual --workload {w}: cost per mote as the network grows")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--motes", type=int, default=1000, help="number of motes (grid)")
     parser.add_argument("--duration", type=float, default=100.0, help="simulated seconds")
@@ -138,10 +269,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--workload",
         choices=WORKLOADS,
         default="hello",
-        help="hello: beacons only (the radio); aware: the whole middleware tracking a fire",
+        help="hello: beacons only (the radio); aware: the whole middleware tracking fires",
     )
     parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
     parser.add_argument("--mac", choices=("csma", "aloha"), default="csma", help="medium access")
     parser.add_argument(
         "--collisions", choices=("sinr", "none"), default="sinr", help="collision model"
     )
+    parser.add_argument(
+        "--sinks",
+        type=int,
+        default=None,
+        metavar="N",
+        help="aware: collection roots on a lattice (default: one per ~1,000 motes)",
+    )
+    parser.add_argument(
+        "--sizes",
+        metavar="N,N,...",
+        help="run at each of these sizes (fresh process each) and compare the cost per mote",
+    )
+    parser.add_argument("--plot", metavar="FILE", help="with --sizes: draw the cost curve (PNG)")
