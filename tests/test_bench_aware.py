@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 import pstats
 from pathlib import Path
@@ -13,7 +14,7 @@ from traces import aware_trace
 from awaremw import compiled_modules
 from awaremw.bench import aware_load
 from awaremw.bench.virtual import run
-from awaremw.nodes import KindsFactory
+from awaremw.nodes import KindsFactory, world_of
 from awaremw.protocol.mote import AwareMote
 
 KEYS = {
@@ -45,8 +46,16 @@ KEYS = {
     "leaders",
     "records_untracked",
     "channel_period_s",
+    "cpu_per_mote_s_us",
+    "rss_per_mote_kb",
+    "sinks",
+    "objects",
+    "objects_tracked",
+    "records_per_object",
+    "ids_per_object",
+    "records_unattributed",
 }
-TIMING = ("wall_seconds", "cpu_seconds", "speedup")
+TIMING = ("wall_seconds", "cpu_seconds", "speedup", "cpu_per_mote_s_us", "rss_per_mote_kb")
 
 
 def test_aware_workload_tracks_and_delivers(tmp_path: Path) -> None:
@@ -86,7 +95,8 @@ def test_aware_cores_come_from_the_fleet_factory() -> None:
         core = load.net.cores[spec.id]
         assert isinstance(core, AwareMote)
         assert core.ctx.config == ref(spec, d).ctx.config  # type: ignore[attr-defined]
-    assert load.net.cores[aware_load.GATEWAY].collection.is_root  # type: ignore[attr-defined]
+    (sink,) = aware_load.sinks_of(d)
+    assert load.net.cores[sink].collection.is_root  # type: ignore[attr-defined]
 
 
 def test_unknown_workload_and_tiny_fleet_are_refused() -> None:
@@ -130,14 +140,14 @@ def test_tallies_merge_across_processes() -> None:
 
     a, b = RecordTally(), RecordTally()
     k1, k2, k3 = (1, 1, 7, 3), (1, 1, 7, 4), (1, 1, 9, 4)
-    a.produced = {k1: 6.0, k2: 8.0}
+    a.produced = {k1: (6.0, 5), k2: (8.0, 5)}
     a.leaders = {5}
-    b.produced = {k2: 7.5, k3: 40.0}
+    b.produced = {k2: (7.5, 31), k3: (40.0, 31)}
     b.delivered = {k1, k2}
     b.leaders = {31}
     b.untracked = 2
     merged = RecordTally().merge([a, b])
-    assert merged.produced == {k1: 6.0, k2: 7.5, k3: 40.0}
+    assert merged.produced == {k1: (6.0, 5), k2: (7.5, 31), k3: (40.0, 31)}
     assert merged.delivered == {k1, k2} and merged.leaders == {5, 31}
     assert merged.untracked == 2
     res = merged.results(30.0)  # k3 is within GRACE_S of the end: not counted
@@ -256,3 +266,105 @@ def test_search_fails_a_trial_without_records_and_says_why(
     failed = [t for t in out["search"] if not t["meets_target"]]
     assert failed and all(t["reason"] == "no_records" for t in failed)
     assert all(t["record_delivery"] is None for t in failed)
+
+
+# --------------------------------------------------------------- the field at scale
+
+
+@pytest.mark.parametrize(("motes", "regions"), [(100, 1), (1000, 1), (4000, 2), (10000, 3)])
+def test_one_sink_and_one_fire_per_region_of_about_1000_motes(motes: int, regions: int) -> None:
+    d = aware_load.deployment(motes, 1, 120.0)
+    sinks = aware_load.sinks_of(d)
+    assert len(sinks) == regions**2
+    fires = world_of(d).fires
+    assert len(fires) == regions**2
+    grid = aware_load.Field(motes)
+    w, h = grid.size
+    for n, (sink, fire) in enumerate(zip(sinks, sorted(fires, key=_region_order), strict=True)):
+        # Every sink stands within a grid step of its region's centre, and its
+        # region's fire loops around that centre at walking pace, inside the region.
+        a, b = n % regions, n // regions
+        cx, cy = w * (a + 0.5) / regions, h * (b + 0.5) / regions
+        sx, sy = grid.position(sink)
+        assert math.hypot(sx - cx, sy - cy) <= aware_load.SPACING_M
+        keys = fire.keyframes
+        assert keys[-1].t >= 120.0
+        for k0, k1 in itertools.pairwise(keys):
+            speed = math.hypot(k1.x - k0.x, k1.y - k0.y) / (k1.t - k0.t)
+            assert speed == pytest.approx(aware_load.OBJECT_SPEED_MPS)
+        for k in keys:
+            assert w * a / regions < k.x < w * (a + 1) / regions
+            assert h * b / regions < k.y < h * (b + 1) / regions
+
+
+def _region_order(fire: object) -> tuple[float, float]:
+    k = fire.keyframes[0]  # type: ignore[attr-defined]
+    return (k.y, k.x)
+
+
+def test_the_world_does_not_speed_up_with_the_run() -> None:
+    short = world_of(aware_load.deployment(1000, 1, 30.0)).fires[0]
+    long = world_of(aware_load.deployment(1000, 1, 600.0)).fires[0]
+    for t in (0.0, 10.0, 29.0):
+        assert short.state(t) == long.state(t)
+
+
+def test_sinks_on_request_and_out_of_range() -> None:
+    d = aware_load.deployment(400, 1, 30.0, sinks=5)
+    sinks = aware_load.sinks_of(d)
+    assert len(sinks) == 5 == len(set(sinks))
+    with pytest.raises(ValueError, match="--sinks 0: needs 1 to 200 sinks for 400 motes"):
+        aware_load.deployment(400, 1, 30.0, sinks=0)
+    with pytest.raises(ValueError, match="--sinks 201"):
+        aware_load.deployment(400, 1, 30.0, sinks=201)
+
+
+def test_records_reach_the_nearest_of_several_sinks() -> None:
+    """Two sinks: records are delivered at either, each counted once, and the
+    tracking score gives them to the one fire."""
+    out = run(400, 40.0, 2, workload="aware", sinks=2)
+    assert out["sinks"] == 2 and out["objects"] == 1
+    assert out["records_produced"] >= 5 and out["record_delivery"] >= 0.95
+    assert out["objects_tracked"] == 1 and out["records_per_object"][0] == out["records_delivered"]
+    assert out["records_unattributed"] == 0
+
+
+def test_score_objects_attributes_records_to_the_fire_near_their_leader() -> None:
+    d = aware_load.deployment(1000, 1, 60.0)
+    fire = world_of(d).fires[0]
+    grid = aware_load.Field(1000)
+    at = fire.state(40.0)
+    assert at is not None
+    near = grid.nearest(at.x, at.y)
+    far = grid.nearest(1.0, 1.0)
+    tally = aware_load.RecordTally()
+    tally.produced = {
+        (1, 1, 9, 1): (20.0, near),  # produced early: counted, not "late"
+        (1, 1, 9, 2): (40.0, near),  # in the last quarter of the window (37.5..50)
+        (1, 1, 4, 3): (40.0, far),  # its leader is near no fire
+        (1, 1, 9, 4): (55.0, near),  # within GRACE_S of the end: not counted
+    }
+    tally.delivered = {(1, 1, 9, 2), (1, 1, 4, 3), (1, 1, 9, 4)}
+    score = aware_load.score_objects(tally, d, 60.0)
+    assert score == {
+        "objects": 1,
+        "objects_tracked": 1,
+        "records_per_object": [1],
+        "ids_per_object": [1],
+        "records_unattributed": 1,
+    }
+    tally.delivered = {(1, 1, 9, 1)}  # only the early one arrived: no longer tracked
+    assert aware_load.score_objects(tally, d, 60.0)["objects_tracked"] == 0
+
+
+def test_more_motes_than_short_addresses_is_one_line() -> None:
+    from awaremw.bench.virtual import check_motes, parse_sizes
+
+    check_motes(65534)
+    with pytest.raises(ValueError, match=r"at most 65534 motes \(16-bit short addresses"):
+        check_motes(65535)
+    assert parse_sizes("10000, 1000,1000") == [1000, 10000]
+    with pytest.raises(ValueError, match="comma-separated"):
+        parse_sizes("1k")
+    with pytest.raises(ValueError, match="at most 65534"):
+        parse_sizes("1000,70000")

@@ -291,3 +291,41 @@ def test_a_retransmission_backs_off_over_the_wide_window() -> None:
     assert 0.0 <= m.begin(3, 2, 0.0) < a.aloha_backoff_s
     with pytest.raises(ValueError, match="retry_be"):
         dataclasses.replace(p, retry_be=6)
+
+
+def test_the_air_answers_from_the_cells_around_and_forgets_in_order() -> None:
+    """Frames are kept by cell: overlapping and carrier sense see the same frames,
+    in the order they were added, as a scan of every frame would; pruning forgets
+    exactly the frames that ended before the horizon."""
+    import random
+
+    from awaremw.radio.model import cell_of
+
+    rng = random.Random(4)
+    model = RadioModel(CC2420, 5)
+    cs = model.cell_size_m
+    air = Air(model, 4.0, horizon_s=0.01)
+    frames = []
+    for i in range(400):
+        t = rng.uniform(0.0, 0.05)
+        x, y = rng.uniform(0, 12 * cs), rng.uniform(0, 12 * cs)
+        frames.append(air.add(i, x, y, 0.0, t, t + rng.uniform(0.0005, 0.004)))
+    assert len(air) == 400 and air.frames == frames
+    for f in frames[:60]:
+        want = [
+            o
+            for o in frames
+            if o.end > f.start and o.start < f.end and o is not f
+            and abs(o.cell[0] - f.cell[0]) <= 2 and abs(o.cell[1] - f.cell[1]) <= 2
+        ]  # fmt: skip
+        assert air.overlapping(f) == want
+        c = cell_of(f.x, f.y, cs)
+        near = any(
+            o.end > f.start and o.start < f.end and o.src != f.src
+            and abs(o.cell[0] - c[0]) <= 1 and abs(o.cell[1] - c[1]) <= 1
+            for o in frames
+        )  # fmt: skip
+        assert air.any_near(f.src, c, f.start, f.end) == near
+    air.prune(0.03)
+    kept = [f for f in frames if f.end >= 0.02]
+    assert air.frames == kept and len(air) == len(kept)

@@ -390,4 +390,6 @@ def test_bench_smoke() -> None:
         "wall_seconds": out["wall_seconds"],
         "cpu_seconds": out["cpu_seconds"],
         "speedup": out["speedup"],
+        "cpu_per_mote_s_us": out["cpu_per_mote_s_us"],
+        "rss_per_mote_kb": out["rss_per_mote_kb"],
     }

@@ -16,7 +16,6 @@ from traces import aware_trace
 from awaremw.protocol.core import IdleCheck
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.protocol.mote import AwareMote
-from awaremw.radio import linklayer
 from awaremw.radio.mac import Air, _mw
 from awaremw.radio.model import (
     _NORMAL,
@@ -44,7 +43,7 @@ def test_the_fast_paths_change_no_event_and_no_counter(monkeypatch: pytest.Monke
     # Off: every overlapping frame checked, every assessment asked of the Air,
     # every reception followed by drain/events/next_deadline.
     monkeypatch.setattr(virtual, "_reaching", lambda others, cell: others)
-    monkeypatch.setattr(linklayer, "_any_reaching", lambda frames, node, t0, t1: True)
+    monkeypatch.setattr(Air, "any_near", lambda self, rid, cell, t0, t1: True)
     monkeypatch.setattr(AwareMote, "idle", lambda self: False)
     slow = _trace(120, 25.0)
     assert slow == fast
@@ -84,7 +83,6 @@ def test_survival_against_the_reaching_frames_is_survival_against_all() -> None:
     assert min(checked.values()) > 20
 
 
-@pytest.mark.pure_python  # builds a driver node without its constructor
 def test_no_reaching_frame_means_a_clear_channel() -> None:
     rng = random.Random(6)
     model = RadioModel(CC2420, 9)
@@ -94,10 +92,8 @@ def test_no_reaching_frame_means_a_clear_channel() -> None:
         air = Air(model, 4.0, 0.01)
         _frames(rng, air, 4, 6 * cs)
         x, y = rng.uniform(0, 6 * cs), rng.uniform(0, 6 * cs)
-        node = virtual._Node.__new__(virtual._Node)
-        node.node_id, node.cell = 500, cell_of(x, y, cs)
         t1 = rng.uniform(0.0, 0.01)
-        if not linklayer._any_reaching(air.frames, node, t1 - 128e-6, t1):
+        if not air.any_near(500, cell_of(x, y, cs), t1 - 128e-6, t1):
             skipped += 1
             assert not air.busy(500, x, y, t1 - 128e-6, t1, -110.0, True)
     assert skipped > 50

@@ -27,7 +27,7 @@ collection carries it to the nearest sink.
 against it) that arrived at any sink; None when no record was produced in that
 window, so that "none produced" never reads as "none delivered". Tracking per
 object (:func:`score_objects`): a record belongs to the fire nearest its
-leader (within :data:`TRACK_RADIUS_M`); ``objects_tracked`` counts the fires
+leader (:mod:`awaremw.experiments.objects`); ``objects_tracked`` counts the fires
 with a delivered record in the last quarter of the counted window (the group
 still follows it), ``ids_per_object`` the distinct group ids each fire's
 records carried.
@@ -38,10 +38,12 @@ from __future__ import annotations
 import asyncio
 import functools
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from awaremw.experiments import objects
+from awaremw.experiments.objects import fires_of
 from awaremw.nodes import KindsFactory, kind_names, world_of
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.channels import RecordProduced
@@ -76,7 +78,6 @@ GRACE_S = 10.0  # records produced this close to the end may still be in flight
 FIRE_RADIUS_M = 25.0
 FIRE_PEAK_C = 80.0
 HOT_C = 50.0
-TRACK_RADIUS_M = FIRE_RADIUS_M + 2 * SPACING_M  # a leader this close to a fire tracks it
 MAX_TRACKED = 200_000  # records remembered by the tally (a 2 s channel: ~110 h per group)
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
@@ -287,54 +288,19 @@ class RecordTally:
 
 
 def score_objects(tally: RecordTally, d: Deployment, end: float) -> dict[str, Any]:
-    """Tracking per object (every fire of ``d``'s world): each counted record is
-    given to the fire nearest its leader at the time it was produced, within
-    :data:`TRACK_RADIUS_M` (else to none). ``objects``; ``objects_tracked``
-    (fires with a delivered record produced in the last quarter of the counted
-    window, ``[0.75 (end - GRACE_S), end - GRACE_S]``); ``records_per_object`` and
-    ``ids_per_object`` (delivered records and distinct group ids, per fire, in
-    the order of the deployment); ``records_unattributed`` (records whose leader
-    was near no fire)."""
-    fires = world_of(d).fires
-    where: Mapping[int, tuple[float, float]] = {s.id: s.position for s in d.nodes}
-    window_end = end - GRACE_S
-    late = 0.75 * window_end
-    per = [0] * len(fires)
-    ids: list[set[int]] = [set() for _ in fires]
-    tracked = [False] * len(fires)
-    unattributed = 0
-    for k in tally.counted(end):
-        t, leader = tally.produced[k]
-        obj = _nearest_fire(fires, where.get(leader), t)
-        if obj is None:
-            unattributed += 1
-            continue
-        if k in tally.delivered:
-            per[obj] += 1
-            ids[obj].add(k[2])
-            if t >= late:
-                tracked[obj] = True
-    return {
-        "objects": len(fires),
-        "objects_tracked": sum(tracked),
-        "records_per_object": per,
-        "ids_per_object": [len(s) for s in ids],
-        "records_unattributed": unattributed,
+    """Tracking per fire of ``d``'s world (:func:`awaremw.experiments.objects.score`:
+    a record belongs to the fire nearest its leader): ``objects``,
+    ``objects_tracked`` (fires with a delivered record produced in the last
+    quarter of the counted window, ``[0.75 (end - GRACE_S), end - GRACE_S]``),
+    ``records_per_object`` and ``ids_per_object`` (delivered records and
+    distinct group ids per fire, in the order of the deployment),
+    ``records_unattributed`` (records whose leader was near no fire)."""
+    where = {s.id: s.position for s in d.nodes}
+    records = {
+        k: (tally.produced[k][0], where.get(tally.produced[k][1]), k in tally.delivered)
+        for k in tally.counted(end)
     }
-
-
-def _nearest_fire(fires: Sequence[Any], pos: tuple[float, float] | None, t: float) -> int | None:
-    if pos is None:
-        return None
-    best, best_d = None, TRACK_RADIUS_M
-    for n, f in enumerate(fires):
-        s = f.state(t)
-        if s is None:
-            continue
-        dist = math.hypot(pos[0] - s.x, pos[1] - s.y)
-        if dist <= best_d:
-            best, best_d = n, dist
-    return best
+    return objects.score(fires_of(world_of(d)), records, 0.75 * (end - GRACE_S)).as_dict()
 
 
 def inject_definitions(root: MoteCore, now: float) -> None:

@@ -9,16 +9,17 @@ every radio is frozen, frames in flight land for ``--grace`` wall seconds, and
 the counters are gathered.
 
 ``--workload aware``: the whole middleware instead of Hello beacons, cores
-from the fleet's core factory, a fire crossing the field tracked by a group,
-an AVG channel every 2 s, collection to the gateway's mote, Drip (see
-:mod:`awaremw.bench.aware_load`); the definitions are injected at the
-gateway's mote at 1 s. With ``--processes N`` the AwareMotes are split over
+from the fleet's core factory, one fire per region of about 1,000 motes
+looping at 1 m/s, each tracked by a group, an AVG channel every 2 s,
+collection to the nearest of the sinks (gateway motes on a lattice,
+``--sinks N``), Drip (see :mod:`awaremw.bench.aware_load`); the definitions are
+injected at every sink at 1 s. With ``--processes N`` the AwareMotes are split over
 worker processes exactly as ``awaremw fleet --processes N`` runs them
 (``FleetLauncher``, x stripes, one embedded router); each worker tallies the
 records of its motes (:class:`~awaremw.bench.aware_load.AwarePlugin`) and the
 tallies are merged, so a record produced in one process and delivered at the
-gateway's mote in another counts; ``record_delivery`` (records that
-reached the gateway mote over records the leaders produced) replaces the
+sink in another counts; ``record_delivery`` (records that
+reached a sink over records the leaders produced) replaces the
 radio's ``delivery_ratio`` in the target (``frames_expected`` and
 ``delivery_ratio`` are None: the loss recount knows only Hello frames).
 ``--profile FILE``: cProfile of the run (this process only).
@@ -59,7 +60,9 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   also ``records_produced``, ``records_delivered``, ``record_delivery`` (None
   when no record was produced), ``first_record_s`` (emulated time of the
   first record), ``leaders``, ``leaders_per_process`` (with ``--processes N``),
-  ``records_untracked``, ``channel_period_s``. The search's ``search`` list
+  ``records_untracked``, ``channel_period_s``, ``sinks``, ``objects``,
+  ``objects_tracked``, ``records_per_object``, ``ids_per_object``,
+  ``records_unattributed`` (as ``bench virtual``). The search's ``search`` list
   gives each trial's ``reason``.
 """
 
@@ -76,6 +79,7 @@ from typing import Any
 from awaremw.bench import aware_load
 from awaremw.bench.medium import add_medium_arguments, medium_of
 from awaremw.bench.profiling import build_facts, profiled
+from awaremw.bench.virtual import check_motes
 from awaremw.nodes import KindsFactory
 from awaremw.protocol.core import MoteCore
 from awaremw.radio.counters import MoteCounters
@@ -191,8 +195,10 @@ async def run_once(
     profile: str | None = None,
     mac: str = "csma",
     collisions: str = "sinr",
+    sinks: int | None = None,
 ) -> dict[str, Any]:
     """One measured run (see the module docstring for the keys)."""
+    check_motes(motes)
     if workload not in WORKLOADS:
         raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
     aware = workload == "aware"
@@ -206,7 +212,7 @@ async def run_once(
             f"definitions are injected at {aware_load.DEFINE_AT_S:g} s"
         )
     dep = (
-        aware_load.deployment(motes, seed, duration)
+        aware_load.deployment(motes, seed, duration, sinks=sinks)
         if aware
         else grid_deployment(motes, seed, radio)
     )
@@ -229,7 +235,8 @@ async def run_once(
                 if aware:
                     fleet.on_event(tally.on_event)
                     await fleet.wait_until(aware_load.DEFINE_AT_S)
-                    fleet.run_on(aware_load.GATEWAY, _inject)
+                    for sink in aware_load.sinks_of(dep):
+                        fleet.run_on(sink, _inject)
                 await fleet.wait_until(warmup)
                 assert fleet.lag is not None
                 fleet.lag.clear()
@@ -280,7 +287,11 @@ async def run_once(
     delivery: float | None = None
     records: dict[str, Any] = {}
     if aware:
-        records = tally.results(duration)
+        records = {
+            **tally.results(duration),
+            "sinks": len(aware_load.sinks_of(dep)),
+            **aware_load.score_objects(tally, dep, duration),
+        }
         ratio = records["record_delivery"]
         ok_delivery = ratio is not None and ratio >= min_delivery
         if processes > 1:
@@ -428,6 +439,7 @@ def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "profile": args.profile,
         "mac": mac,
         "collisions": collisions,
+        "sinks": args.sinks,
     }
 
 
@@ -462,7 +474,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--workload",
         choices=WORKLOADS,
         default="hello",
-        help="hello: beacons only (the radio); aware: the whole middleware tracking a fire",
+        help="hello: beacons only (the radio); aware: the whole middleware tracking fires",
+    )
+    parser.add_argument(
+        "--sinks",
+        type=int,
+        default=None,
+        metavar="N",
+        help="aware: collection roots on a lattice (default: one per ~1,000 motes)",
     )
     parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
     add_medium_arguments(parser)

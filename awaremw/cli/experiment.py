@@ -27,7 +27,7 @@ REALTIME = ("romeo4r", "fire", "large")  # experiments that also run in real tim
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "experiment",
-        help="run an experiment (romeo4r, fire, failover, large) with figures and metrics",
+        help="run an experiment (romeo4r, fire, failover, large, city) with figures and metrics",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -22,6 +22,7 @@ EXPERIMENTS: dict[str, tuple[str, str]] = {
     "fire": ("fire", "awaremw.experiments.fire"),
     "failover": ("failover", "awaremw.experiments.failover"),
     "large": ("large", "awaremw.experiments.large"),
+    "city": ("city", "awaremw.experiments.city"),
 }
 
 

@@ -218,7 +218,8 @@ def summarise(name: str, per_seed: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "frames_per_mote": mean_ci([m["frames_per_mote"] for m in per_seed]),
     }
     for key in ("merge_id_inherited", "merge_single_id", "split_leader_part_keeps_id",
-                "split_new_id", "two_fires_distinct_ids", "id_kept", "second_group"):  # fmt: skip
+                "split_new_id", "two_fires_distinct_ids", "id_kept", "second_group",
+                "one_id_per_object", "every_object_tracked"):  # fmt: skip
         vals = [m[key] for m in per_seed if key in m]
         if vals:
             s[f"{key}_fraction"] = round(sum(bool(v) for v in vals) / len(vals), 4)

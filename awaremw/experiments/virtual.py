@@ -11,6 +11,7 @@ plotted motes believe the robot's RSSI is.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from pathlib import Path
 
@@ -97,13 +98,14 @@ class VirtualRun:
         )
         self.net.on_event = self.recorder.on_event
         self.cores: dict[int, MoteCore] = {}
-        gw_id = scenario.gateway
+        # The gateway service injects every definition at every gateway mote.
+        self._roots = [s.id for s in d.of_kind("gateway")] or [scenario.gateway]
         for spec in d.nodes:
             core = factory(spec, d)
             self.cores[spec.id] = core
-            if spec.id == gw_id:
+            if spec.id in self._roots:
                 wrapped = ScriptedCore(core)
-                wrapped.at(scenario.define_at, self._define)
+                wrapped.at(scenario.define_at, functools.partial(self._define, spec.id))
                 core = wrapped
             self.net.add(
                 core,
@@ -129,8 +131,8 @@ class VirtualRun:
 
         return probe
 
-    def _define(self, now: float) -> None:
-        core = self.cores[self.scenario.gateway]
+    def _define(self, root: int, now: float) -> None:
+        core = self.cores[root]
         assert isinstance(core, AwareMote)
         for d in self.scenario.definitions:
             core.inject(d.kind, d.item_id, 1, d.body, now)

@@ -12,7 +12,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Protocol, runtime_checkable
 
-from awaremw.protocol.frames import MAX_NODE_ID, NODE_MASK, RSSI_BASE, CommandDef
+from awaremw.protocol.frames import MAX_NODE_ID, NODE_MASK, CommandDef
+from awaremw.protocol.frames import RSSI_BASE as RSSI_BASE  # rssi:<node> = RSSI_BASE | node
 
 TEMPERATURE = 0  # deg C
 HUMIDITY = 1  # %RH

@@ -11,10 +11,10 @@ from __future__ import annotations
 import random
 from collections.abc import Callable
 
-from awaremw.protocol.attributes import RSSI_BASE, Application, ReadBounds
+from awaremw.protocol.attributes import Application, ReadBounds
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.frames import BROADCAST, NODE_MASK, Frame, encode, note_sent
+from awaremw.protocol.frames import BROADCAST, NODE_MASK, RSSI_BASE, Frame, encode, note_sent
 from awaremw.protocol.timers import TimerSet
 
 

@@ -121,26 +121,13 @@ def assess(st: LinkStation, air: Air, p: MacParams, now: float) -> tuple[int, fl
     ``TRANSMIT`` (call :func:`put_on_air` with ``t``), ``SENSE`` (assess again,
     ending at ``t``) or ``GIVE_UP`` (call :func:`give_up`)."""
     t0 = now - p.cca_s
-    if st.static and not _any_reaching(air.frames, st, t0, now):
+    if st.static and not air.any_near(st.node_id, st.cell, t0, now):
         busy = False  # no frame of another mote near enough during the assessment
     else:
         busy = air.busy(st.node_id, st.x, st.y, t0, now, p.cca_threshold_dbm, p.carrier_sense)
     if busy:
         st.counters.cca_busy += 1
     return st.mac.cca(busy, now)  # type: ignore[union-attr]
-
-
-def _any_reaching(frames: list[OnAir], st: LinkStation, t0: float, t1: float) -> bool:
-    """True if a frame of another mote is on the air during ``(t0, t1)`` from
-    ``st``'s cell or the 8 around it (the only frames Air.busy gives power to)."""
-    nid = st.node_id
-    cx, cy = st.cell
-    for o in frames:
-        if o.end > t0 and o.start < t1 and o.src != nid:  # most frames ended before t0
-            c = o.cell
-            if -1 <= c[0] - cx <= 1 and -1 <= c[1] - cy <= 1:
-                return True
-    return False
 
 
 def airtime_end(preset: RadioPreset, start: float, n: int) -> float:

@@ -36,6 +36,7 @@ neighbours just heard end): they neither collide nor make the channel busy.
 
 from __future__ import annotations
 
+import heapq
 import math
 from dataclasses import dataclass
 from typing import Final
@@ -200,7 +201,7 @@ class MacSender:
 class OnAir:
     """A frame on the air: who sent it, from where, at what power, when."""
 
-    __slots__ = ("cell", "end", "key", "mw_cache", "src", "start", "tx_power", "x", "y")
+    __slots__ = ("cell", "end", "key", "mw_cache", "n", "src", "start", "tx_power", "x", "y")
 
     def __init__(
         self,
@@ -222,6 +223,11 @@ class OnAir:
         self.end = end
         self.key = key  # the sender's link sequence number << 8 | attempt << 1 (packet_key)
         self.mw_cache: dict[int, float] = {}  # receiver id -> mean received power (mW)
+        self.n = 0  # the Air's insertion number (its frames' order, whatever their cells)
+
+
+def _order(f: OnAir) -> int:
+    return f.n
 
 
 def _mw(dbm: float) -> float:
@@ -240,11 +246,15 @@ class Air:
     capture at all (any overlap destroys both frames; the ``bench mac``
     collision domain). ``horizon_s``: how long after its end a frame is kept
     (at least the longest airtime plus, for the Zenoh medium, the guard).
+
+    Frames are kept by their sender's cell, so that every question (who
+    overlaps a frame, is the channel busy here) looks at the cells around one
+    place only: the work per frame does not grow with the network.
     """
 
     __slots__ = (
-        "_noise_mw", "_sens", "_sens_mw", "capture_mw", "cell_size", "frames",
-        "horizon_s", "model",
+        "_by_cell", "_count", "_ends", "_n", "_noise_mw", "_sens", "_sens_mw", "capture_mw",
+        "cell_size", "horizon_s", "model",
     )  # fmt: skip
 
     def __init__(self, model: RadioModel, capture_db: float | None, horizon_s: float) -> None:
@@ -255,7 +265,18 @@ class Air:
         self._noise_mw = _mw(model.preset.noise_floor_dbm)
         self._sens = model.preset.sensitivity_dbm
         self._sens_mw = _mw(self._sens)  # for carrier sense (once, not per assessment)
-        self.frames: list[OnAir] = []
+        self._by_cell: dict[tuple[int, int], list[OnAir]] = {}  # sender cell -> frames, in order
+        self._ends: list[tuple[float, int, OnAir]] = []  # heap of (end, n, frame): pruning
+        self._count = 0
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._count
+
+    @property
+    def frames(self) -> list[OnAir]:
+        """Every frame kept, in the order they were added (tests, inspection)."""
+        return sorted((f for fs in self._by_cell.values() for f in fs), key=_order)
 
     def add(
         self, src: int, x: float, y: float, tx_power: float, start: float, end: float, key: int = 0
@@ -263,46 +284,101 @@ class Air:
         """Put a frame on the air (in any order of start times)."""
         if end < start:
             raise ValueError(f"frame of {src} ends ({end}) before it starts ({start})")
-        if len(self.frames) >= MAX_ON_AIR:
+        if self._count >= MAX_ON_AIR:
             raise RuntimeError(f"more than {MAX_ON_AIR} frames on the air: frames never pruned")
         f = OnAir(src, x, y, cell_of(x, y, self.cell_size), tx_power, start, end, key)
-        self.frames.append(f)
+        self._n += 1
+        f.n = self._n
+        lst = self._by_cell.get(f.cell)
+        if lst is None:
+            self._by_cell[f.cell] = [f]
+        else:
+            lst.append(f)
+        self._count += 1
+        heapq.heappush(self._ends, (end, f.n, f))
         return f
 
     def prune(self, now: float) -> None:
         """Forget the frames that ended more than ``horizon_s`` before ``now``."""
         cut = now - self.horizon_s
-        fr = self.frames
-        for old in fr:  # any frame to forget? (a loop: no generator per transmission)
-            if old.end < cut:
-                self.frames = [f for f in fr if f.end >= cut]
+        ends = self._ends
+        while ends and ends[0][0] < cut:
+            f = heapq.heappop(ends)[2]
+            self._forget(f)
+
+    def _forget(self, f: OnAir) -> None:
+        lst = self._by_cell.get(f.cell)
+        if lst is None:
+            return
+        for i, o in enumerate(lst):
+            if o is f:
+                del lst[i]
+                self._count -= 1
+                if not lst:
+                    del self._by_cell[f.cell]
                 return
 
     def cut(self, src: int, now: float) -> None:
         """``src`` was switched off at ``now``: its frame stops there (or never starts)."""
-        keep = []
-        for f in self.frames:
-            if f.src == src and f.end > now:
-                if f.start >= now:
-                    continue
-                f.end = now
-            keep.append(f)
-        self.frames = keep
+        gone = []
+        for lst in self._by_cell.values():
+            for f in lst:
+                if f.src == src and f.end > now:
+                    if f.start >= now:
+                        gone.append(f)
+                    else:
+                        f.end = now  # its heap entry keeps the later end: pruned later, harmless
+        for f in gone:
+            self._forget(f)
+
+    def near(self, cell: tuple[int, int], reach: int) -> list[OnAir]:
+        """The frames sent from the cells within ``reach`` cells of ``cell``, in order."""
+        cx, cy = cell
+        by_cell = self._by_cell
+        if len(by_cell) <= (2 * reach + 1) ** 2:  # few cells on the air: scan them
+            out = [
+                f
+                for (x, y), fs in by_cell.items()
+                if -reach <= x - cx <= reach and -reach <= y - cy <= reach
+                for f in fs
+            ]
+        else:
+            out = []
+            for dx in range(-reach, reach + 1):
+                for dy in range(-reach, reach + 1):
+                    fs = by_cell.get((cx + dx, cy + dy))
+                    if fs:
+                        out.extend(fs)
+        if len(out) > 1:
+            out.sort(key=_order)
+        return out
 
     def overlapping(self, f: OnAir) -> list[OnAir]:
         """The other frames on the air during ``f`` whose sender is near enough
         (within two cells) to reach a receiver of ``f``."""
-        cx, cy = f.cell
         s, e = f.start, f.end
         return [
             o
-            for o in self.frames
+            for o in self.near(f.cell, 2)
             if o.end > s  # the test most frames fail first (they ended before f began)
             and o.start < e
             and o is not f
-            and abs(o.cell[0] - cx) <= 2
-            and abs(o.cell[1] - cy) <= 2
         ]
+
+    def any_near(self, rid: int, cell: tuple[int, int], t0: float, t1: float) -> bool:
+        """True if a frame of another mote than ``rid`` is on the air during
+        ``(t0, t1)`` from ``cell`` or the 8 around it (the only frames
+        :meth:`busy` gives power to at a receiver in ``cell``)."""
+        cx, cy = cell
+        by_cell = self._by_cell
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                fs = by_cell.get((cx + dx, cy + dy))
+                if fs:
+                    for o in fs:
+                        if o.end > t0 and o.start < t1 and o.src != rid:
+                            return True
+        return False
 
     def power_mw(self, o: OnAir, rid: int, rx: float, ry: float) -> float:
         """Mean power (mW) of frame ``o`` at receiver ``rid`` standing at ``(rx, ry)``;
@@ -329,7 +405,9 @@ class Air:
         ``carrier_sense``) one of them is received at or above the sensitivity."""
         total = 0.0
         sens = self._sens_mw
-        for o in self.frames:
+        cs = self.cell_size
+        # power_mw is 0 beyond one cell of the receiver's: only those frames count.
+        for o in self.near((math.floor(x / cs), math.floor(y / cs)), 1):
             if o.end <= t0 or o.start >= t1 or o.src == rid:  # most frames ended before t0
                 continue
             p = self.power_mw(o, rid, x, y)

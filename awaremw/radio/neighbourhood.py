@@ -50,6 +50,10 @@ Cell = tuple[int, int]
 
 # Bound of the sender caches (one per sender id heard, ids chosen by remote
 # senders): beyond it the oldest built is dropped (its bulk counts folded in).
+# It grows with the static motes of the medium (twice their number: each is a
+# sender, and as many remote ones may stand near them), so that a large network
+# never rebuilds its caches over and over (10,000 motes in one process thrashed
+# a fixed bound of 4,096).
 MAX_SENDER_CACHES = 4096
 
 
@@ -146,7 +150,9 @@ class Neighbourhood(Generic[S]):
     moves a mote into another cell (the Zenoh medium subscribes to it).
     """
 
-    __slots__ = ("_by_cell", "_caches", "_grid", "cell_size", "model", "moving", "on_cell")
+    __slots__ = (
+        "_by_cell", "_caches", "_grid", "_static", "cell_size", "model", "moving", "on_cell",
+    )  # fmt: skip
 
     def __init__(self, model: RadioModel, on_cell: Callable[[Cell], None] | None = None) -> None:
         self.model = model
@@ -156,6 +162,7 @@ class Neighbourhood(Generic[S]):
         self.moving: list[S] = []  # moving motes on the air (do not mutate)
         self._caches: dict[int, SenderCache[S]] = {}  # by sender id; MAX_SENDER_CACHES
         self._by_cell: dict[Cell, dict[int, SenderCache[S]]] = {}  # the same, by sender cell
+        self._static = 0  # static motes on the air (the cache bound grows with them)
 
     # ------------------------------------------------------------------ motes
 
@@ -166,6 +173,7 @@ class Neighbourhood(Generic[S]):
         r.pos_t = now
         if r.static:
             self._grid.setdefault(r.cell, []).append(r)
+            self._static += 1
             self.touch(r.cell)
         else:
             self.moving.append(r)
@@ -174,6 +182,7 @@ class Neighbourhood(Generic[S]):
         """Take ``r`` out (switched off, or about to change its mobility)."""
         if r.static:
             self._grid[r.cell].remove(r)
+            self._static -= 1
             self.touch(r.cell)  # its own cache too: a sender is within one cell of itself
         else:
             self.moving.remove(r)
@@ -234,7 +243,7 @@ class Neighbourhood(Generic[S]):
 
     def _build(self, src: int, x: float, y: float, txp: float) -> SenderCache[S]:
         self.drop(src)
-        if len(self._caches) >= MAX_SENDER_CACHES:
+        if len(self._caches) >= max(MAX_SENDER_CACHES, 2 * self._static):
             self.drop(next(iter(self._caches)))  # the oldest built (ids are remote-chosen)
         m = self.model
         cell = cell_of(x, y, self.cell_size)

@@ -594,7 +594,7 @@ class ZenohMedium:
         """A remote frame on the Air; None (``rejected["air full"]``) if the Air is full."""
         air = self._air
         air.prune(self.clock.now())
-        if len(air.frames) >= MAX_ON_AIR:
+        if len(air) >= MAX_ON_AIR:
             self.rejected.count("air full", f"{MAX_ON_AIR} frames on the air")
             return None
         return air.add(src, x, y, txp, start, end, packet_key(seq, attempt))
