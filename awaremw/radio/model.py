@@ -289,7 +289,8 @@ def cell_of(x: float, y: float, cell_size_m: float) -> tuple[int, int]:
 _PRR_ONE_EPS: Final = 1e-12
 _PRR_CACHE_MAX: Final = 1 << 17
 _RANGE_CACHE_MAX: Final = 64  # distinct tx powers (a mote uses one; presets a handful)
-_LINK_CACHE_MAX: Final = 1 << 18  # links (local receivers x senders heard)
+_LINK_CACHE_MAX: Final = 1 << 18  # links (local receivers x senders heard), at least
+LINKS_PER_MOTE: Final = 64  # the link caches' bound grows with the motes (expect_motes)
 _OQPSK_COEF: Final[tuple[tuple[float, float], ...]] = tuple(
     ((-1) ** k * math.comb(16, k), 20.0 * (1.0 / k - 1.0)) for k in range(2, 17)
 )
@@ -322,6 +323,7 @@ class RadioModel:
         "_d0",
         "_d_min",
         "_fading_link",
+        "_link_max",
         "_max_fade",
         "_one_snr_db",
         "_pl_d0",
@@ -342,8 +344,9 @@ class RadioModel:
         self._bn_over_r = preset.noise_bandwidth_hz / preset.bitrate_bps
         # Bounds (entries; each cache is cleared when full, its values are pure
         # functions, so clearing only costs recomputation):
-        self._shadow: dict[int, float] = {}  # per link: _LINK_CACHE_MAX
-        self._fading_link: dict[int, int] = {}  # per directed link: _LINK_CACHE_MAX
+        self._shadow: dict[int, float] = {}  # per link: _link_max
+        self._fading_link: dict[int, int] = {}  # per directed link: _link_max
+        self._link_max = _LINK_CACHE_MAX
         self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
         # prr_bits' cache, also read by a caller's inlined lookup (read only): the PRR
         # at snr_db = rssi - noise floor (below the PRR-one SNR) of `bits` bits is
@@ -368,6 +371,12 @@ class RadioModel:
         d = max(distance_m, p.d0_m * 0.1)
         return p.pl_d0_db + 10.0 * p.path_loss_exponent * math.log10(d / p.d0_m)
 
+    def expect_motes(self, motes: int) -> None:
+        """A medium holds ``motes`` motes: size the link caches for them (about
+        :data:`LINKS_PER_MOTE` links each, never below the default bound), so that
+        a large network does not clear and recompute them over and over."""
+        self._link_max = max(self._link_max, LINKS_PER_MOTE * motes)
+
     def static_shadow_db(self, src: int, dst: int) -> float:
         """The per-link, time-invariant shadowing loss (dB), cached."""
         if src > dst and self.symmetric:
@@ -383,7 +392,7 @@ class RadioModel:
                 self._seed_mix ^ ((DOMAIN_SHADOW << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
             )
             v = sigma * _NORMAL[h >> _SHIFT]
-            if len(self._shadow) >= _LINK_CACHE_MAX:
+            if len(self._shadow) >= self._link_max:
                 self._shadow.clear()  # keyed by remote sender ids: bounded, recomputable
             self._shadow[k] = v
         return v
@@ -397,7 +406,7 @@ class RadioModel:
             h = splitmix64(
                 self._seed_mix ^ ((DOMAIN_FADING << 40) | ((src & 0xFFFF) << 16) | (dst & 0xFFFF))
             )
-            if len(self._fading_link) >= _LINK_CACHE_MAX:
+            if len(self._fading_link) >= self._link_max:
                 self._fading_link.clear()  # keyed by remote sender ids: bounded, recomputable
             self._fading_link[k] = h
         return h

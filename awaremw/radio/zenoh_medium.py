@@ -399,6 +399,7 @@ class ZenohMedium:
         r = Radio(self, sink, mobility, txp, self.model.max_range_m(txp), battery, counters)
         r.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self.radios[nid] = r
+        self.model.expect_motes(len(self.radios))
         self._nb.add(r, self.clock.now())
         if not r.static:
             self._ensure_mobility_tick()

@@ -214,6 +214,7 @@ class VirtualNetwork:
         node.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self._nodes[nid] = node
         self._cores[nid] = core
+        self.model.expect_motes(len(self._nodes))
         self._push(t, _START, node, None)
 
     def kill(self, node_id: int, reason: str = "killed") -> None:
