@@ -370,3 +370,42 @@ def test_experiment_secrets_refuses_seeds_and_missing_files(tmp_path: Path) -> N
     assert p.returncode == 2 and "--secrets applies to one run" in p.stderr
     p = run("--secrets", str(tmp_path / "none"), "--out", str(tmp_path / "o"))
     assert p.returncode == 2 and "Traceback" not in p.stderr and p.stderr.count("\n") == 1
+
+
+def test_the_shipped_city_is_the_generated_one() -> None:
+    """city.toml is city_toml() written out: one home for its shape."""
+    from awaremw.experiments.city import city_toml
+    from awaremw.runtime.deployment import shipped_dir
+
+    assert (shipped_dir() / "city.toml").read_text(encoding="utf-8") == city_toml()
+    sc = load_scenario("city")
+    assert len(sc.sensors) == 10_000 and len(sc.deployment.of_kind("gateway")) == 9
+    assert len(sc.world.fires) == 9 and sc.robot == 40000
+
+
+def test_experiment_city_scores_every_object(tmp_path: Path) -> None:
+    """``awaremw experiment city --virtual`` on a smaller city of the same shape
+    (40 x 40 motes, 2 x 2 districts): each of the four fires and the robot is
+    followed by one group whose records reach one of the four sinks."""
+    import subprocess
+    import sys
+
+    from awaremw.experiments.city import city_toml
+
+    small = tmp_path / "city-small.toml"
+    small.write_text(city_toml(40, 2), encoding="utf-8")
+    p = subprocess.run(
+        [sys.executable, "-m", "awaremw", "experiment", "city", "--virtual", "--deployment",
+         str(small), "--duration", "30", "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["sinks"] == 4 and len(m["objects"]) == 5  # four fires and the robot
+    assert m["objects"][-1] == "robot 40000"
+    assert all(n >= 3 for n in m["records_per_object"]), m["records_per_object"]
+    assert m["ids_per_object"] == [1] * 5 and m["one_id_per_object"] is True
+    assert m["objects_tracked"] == 5 and m["every_object_tracked"] is True
+    assert m["membership_f1"] >= 0.9 and m["distinct_group_ids"] == 4
+    data = (tmp_path / "out" / "city_field.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000

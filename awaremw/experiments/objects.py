@@ -39,8 +39,7 @@ def fires_of(world: World) -> list[TrackedObject]:
 
 def robots_of(d: Deployment) -> list[TrackedObject]:
     return [
-        TrackedObject(f"robot {s.id}", "robot", s.mobility().position)
-        for s in d.of_kind("robot")
+        TrackedObject(f"robot {s.id}", "robot", s.mobility().position) for s in d.of_kind("robot")
     ]
 
 
