@@ -122,10 +122,14 @@ async def test_api_publishes_on_the_contract_and_drops_slow_clients() -> None:
         st = DashboardState(dep.area, "t", 1)
         st.set_field(0.0, deployment_field(dep, 0.0))
         settings = MqttSettings.from_url(broker.url, client_id="web-test")
-        async with Dashboard(st, settings, "127.0.0.1", 0) as dash, aiohttp.ClientSession() as http:
+        async with (
+            Dashboard(st, settings, "127.0.0.1", 0) as dash,
+            aiohttp.ClientSession(headers={"X-Awaremw-Token": dash.token}) as http,
+        ):
             base = dash.url.rstrip("/")
             page = await (await http.get(base + "/")).text()
             assert "channel-form" in page and "/static/dashboard.js" in page
+            assert dash.token in page  # the page receives the server's token
             assert (await http.get(base + "/static/dashboard.js")).status == 200
             assert (await http.get(base + "/static/passwd")).status == 404
 
@@ -138,11 +142,13 @@ async def test_api_publishes_on_the_contract_and_drops_slow_clients() -> None:
             # Invalid requests are refused here; valid ones go out on the contract.
             r = await http.post(base + "/api/def/channel/abc", json={"attr": "light"})
             assert r.status == 400
-            r = await http.post(base + "/api/def/channel/9", data=b"[1, 2]")
+            json_type = {"Content-Type": "application/json"}
+            r = await http.post(base + "/api/def/channel/9", data=b"[1, 2]", headers=json_type)
             assert r.status == 400
             r = await http.post(base + "/api/cmd/bad name!", json={"target": "all"})
             assert r.status == 400
-            r = await http.post(base + "/api/def/channel/9", data=b"x" * (web.MAX_BODY + 1))
+            r = await http.post(base + "/api/def/channel/9", data=b"x" * (web.MAX_BODY + 1),
+                                headers=json_type)  # fmt: skip
             assert r.status == 413
             body = {"attr": "light", "group_type": 1, "group_id": "*", "period_s": 2, "agg": "max"}
             r = await http.post(base + "/api/def/channel/9", json=body)
@@ -168,7 +174,8 @@ async def test_api_publishes_on_the_contract_and_drops_slow_clients() -> None:
                 first = await sse.content.readuntil(b"\n\n")
                 assert first.startswith(b"event: hello")
                 hello = json.loads(first.split(b"data: ", 1)[1])
-                assert len(hello["state"]["motes"]) == len(dep.nodes)
+                assert len(hello["field"]["rows"]) == len(dep.nodes)
+                assert hello["state"]["n_motes"] == len(dep.nodes)
                 async with aiomqtt.Client("127.0.0.1", broker.port, identifier="gw") as gw:
                     await gw.publish("aware/data/4/1/513", json.dumps(
                         {"value": 1.5, "count": 2, "agg": "sum", "epoch": 1, "leader": 3,

@@ -24,6 +24,7 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -79,7 +80,8 @@ def register(sub: Any) -> None:
         "--web",
         default=None,
         metavar="HOST:PORT",
-        help="also serve the web dashboard there (e.g. 127.0.0.1:8080; docs/dashboard.md)",
+        help="also serve the web dashboard there (e.g. 127.0.0.1:8080; beyond loopback the "
+        "password in $AWAREMW_WEB_PASSWORD; docs/dashboard.md)",
     )
     p.add_argument(
         "--summary",
@@ -128,10 +130,11 @@ def main(args: argparse.Namespace) -> int:
                 print(f"awaremw demo: {e}", file=sys.stderr)
                 return 2
     if args.web is not None:
-        from awaremw.view.web import parse_host_port
+        from awaremw.view.guard import check_bind
+        from awaremw.view.web import PASSWORD_ENV, parse_host_port
 
         try:
-            parse_host_port(args.web)
+            check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))
         except ValueError as e:
             print(f"awaremw demo: {e}", file=sys.stderr)
             return 2
@@ -269,6 +272,7 @@ async def run_demo(
     from awaremw.experiments.snapshot import snapshot_of
     from awaremw.gateway.broker import mask_url
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
+    from awaremw.view.snapshot import with_leds
 
     view: View = PlainLog(every=10.0) if plain else LiveView()
     dash = None
@@ -281,12 +285,13 @@ async def run_demo(
         print(f"web dashboard: {dash.url}", flush=True)
 
     def tick(now: float, run: RealtimeRun) -> None:
-        snap = snapshot_of(sc, run.recorder, now, run.live, run.traffic())
+        cores = run.cores()
+        snap = with_leds(snapshot_of(sc, run.recorder, now, run.live, run.traffic()), cores)
         view.update(snap)
         if dash is not None:
             from awaremw.view.web import field_of
 
-            dash.update_field(now, field_of(snap.motes, run.cores()))
+            dash.update_field(now, field_of(snap.motes, cores))
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)

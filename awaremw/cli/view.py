@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import sys
 from typing import Any
 
@@ -31,7 +32,8 @@ def register(sub: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--web", default="127.0.0.1:8080", metavar="HOST:PORT",
-                   help="where to serve the page (default 127.0.0.1:8080)")  # fmt: skip
+                   help="where to serve the page (default 127.0.0.1:8080; any other than "
+                        "loopback needs the password in $AWAREMW_WEB_PASSWORD)")  # fmt: skip
     p.add_argument("--mqtt", required=True, help="broker mqtt[s]://[user:pass@]host:port")
     p.add_argument("--deployment", default="romeo4r", help="deployment name or path (the field)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
@@ -50,11 +52,18 @@ def main(args: argparse.Namespace) -> int:
     from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
     from awaremw.nodes import world_of
     from awaremw.runtime.deployment import DeploymentError, load
-    from awaremw.view.web import DashboardError, dashboard_for, parse_host_port, run_view
+    from awaremw.view.guard import check_bind
+    from awaremw.view.web import (
+        PASSWORD_ENV,
+        DashboardError,
+        dashboard_for,
+        parse_host_port,
+        run_view,
+    )
 
     try:
         dep = load(args.deployment)
-        parse_host_port(args.web)
+        check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))
         MqttSettings.from_url(args.mqtt)
     except (DeploymentError, BadMqttUrl, ValueError) as e:
         print(f"awaremw view: {e}", file=sys.stderr)
