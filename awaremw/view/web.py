@@ -726,7 +726,10 @@ class Dashboard:
         meta = json.dumps(self.state.meta(), separators=(",", ":"))
         series = json.dumps(self.state.series_doc(), separators=(",", ":"))
         defs = json.dumps(self.state.defs, separators=(",", ":"))
-        first = (f'{{"state":{meta},"field":{FieldStream.full(self.state.rows())},'
+        rows = self.state.rows()
+        if not self._clients:  # the first reader: the next delta starts from what it got
+            self._field.sent = dict(rows)
+        first = (f'{{"state":{meta},"field":{FieldStream.full(rows)},'
                  f'"definitions":{defs},"series":{series}}}')  # fmt: skip
         await resp.write(f"event: hello\ndata: {first}\n\n".encode())
         self._clients.add(q)

@@ -49,6 +49,7 @@ function scheduleField() {
 
 function drawField() {
   if (!state) return;
+  const t0 = performance.now();
   const c = $("field");
   const dpr = window.devicePixelRatio || 1;
   const cw = c.clientWidth, ch = c.clientHeight;
@@ -142,6 +143,7 @@ function drawField() {
   drawn.motes = n; drawn.links = links;
   drawn.leaders = leaders.map((m) => m.id).sort((a, b) => a - b);
   drawn.lit = lit.map((m) => m.id).sort((a, b) => a - b);
+  drawn.ms = Math.round((performance.now() - t0) * 10) / 10;  // this draw's duration
   c.dataset.motes = n; c.dataset.leaders = leaders.length; c.dataset.links = links; c.dataset.lit = lit.length;
   $("legend").textContent = (state.members_known
     ? "colour: group in the chosen type; ring: leader; square: robot; triangle: gateway; dots above: lit LEDs"
