@@ -73,6 +73,9 @@ def lit_leds(core: MoteCore | None) -> tuple[str, ...]:
 
 def with_leds(snap: Snapshot, cores: Mapping[int, MoteCore]) -> Snapshot:
     """``snap`` with every mote's lit LEDs read from the cores in this process."""
-    dots = tuple(replace(d, leds=lit_leds(cores.get(d.node))) for d in snap.motes)
+    dots = tuple(
+        d if d.leds == (leds := lit_leds(cores.get(d.node))) else replace(d, leds=leds)
+        for d in snap.motes
+    )
     lit = sum(1 for d in dots if d.leds)
     return replace(snap, motes=dots, stats={**snap.stats, "LEDs lit": lit})
