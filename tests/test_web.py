@@ -106,6 +106,37 @@ def test_state_follows_the_contract_and_stays_bounded() -> None:
     assert st.heard_t == 10.0 + web.SERIES_POINTS + 49
 
 
+def test_every_event_stays_under_the_bound() -> None:
+    """The worst a remote party can feed (every group state, refusal and
+    definition as large as kept) and robots with full trails: the ``state`` and
+    ``definitions`` events stay under :data:`web.EVENT_BOUND`."""
+    from awaremw.view.web import FieldMote
+
+    st = DashboardState((100.0, 100.0), "t", 1)
+    for step in range(web.TRAIL_POINTS + 10):
+        st.set_field(step, [FieldMote(30000 + k, "robot", (step + k) % 100, k % 100)
+                            for k in range(40)])  # fmt: skip
+    assert len(st.trails) == web.MAX_TRAILS
+    huge = "x" * 5000
+    for gid in range(web.MAX_GROUPS + 100):
+        doc = {"leader": gid, "weight": huge, "readings": huge, "t": 1.0, "extra": huge}
+        st.on_message(f"groups/{1 + gid % 7}/{gid}", json.dumps(doc).encode())
+    for i in range(web.MAX_ERRORS + 10):
+        doc = {"topic": huge, "code": huge, "error": huge, "payload": huge, "more": huge}
+        st.on_message("errors", json.dumps(doc).encode())
+    for kind in ("group", "channel"):
+        for i in range(web.MAX_DEFS + 50):
+            pad = "y" * (web.MAX_DEF_BYTES - 30 - len(str(i)))
+            payload = json.dumps({"attr": "light", "pad": pad}, separators=(",", ":")).encode()
+            assert len(payload) <= web.MAX_DEF_BYTES
+            st.on_message(f"def/{kind}/{i + 1}", payload)
+    state = web.bounded_meta(st.meta())
+    defs = json.dumps(st.defs, separators=(",", ":"))
+    assert len(state.encode()) <= web.EVENT_BOUND, len(state)
+    assert len(defs.encode()) <= web.EVENT_BOUND, len(defs)
+    assert len(json.loads(state)["groups"]) > 0
+
+
 def test_units() -> None:
     assert unit_of("temperature") == "°C"
     assert unit_of("light") == "lx"

@@ -67,9 +67,11 @@ MAX_CHANNELS = 64  # channels with a plot; the least recently fed is dropped bey
 MAX_GROUPS = 1024  # group states kept from the MQTT contract
 MAX_ERRORS = 50  # refusals shown
 MAX_DEFS = 128  # definitions of each kind kept
-MAX_DEF_BYTES = 1024  # a definition kept larger than this is shown as its size only
-MAX_ERROR_CHARS = 300  # of each field of a refusal shown
+MAX_DEF_BYTES = 1000  # a definition kept larger than this is shown as its size only
+MAX_ERROR_CHARS = 200  # of each field of a refusal shown
+MAX_ERROR_FIELDS = 4  # fields of a refusal shown (the gateway's: topic, code, error, payload)
 TRAIL_POINTS = 240  # positions kept per mobile mote (the robot's trail)
+MAX_TRAILS = 16  # robots with a trail (the first seen)
 MAX_CLIENTS = 32  # SSE clients at once; beyond, 503
 CLIENT_QUEUE = 64  # events queued per SSE client; a client that falls behind is dropped
 MAX_BODY = 4096  # bytes of a definition or command the page may post
@@ -180,7 +182,7 @@ class DashboardState:
                 v.groups = dict(m.groups)
                 v.parent = m.parent
                 self.tree_known = True
-            if m.kind == "robot" or (m.id in self.trails):
+            if m.id in self.trails or (m.kind == "robot" and len(self.trails) < MAX_TRAILS):
                 tr = self.trails.setdefault(m.id, deque(maxlen=TRAIL_POINTS))
                 if not tr or (abs(tr[-1][0] - m.x) + abs(tr[-1][1] - m.y)) > 0.05:
                     tr.append((round(m.x, 2), round(m.y, 2)))
@@ -227,8 +229,8 @@ class DashboardState:
                     oldest = min(self.group_states, key=lambda k: self.group_states[k]["t"])
                     del self.group_states[oldest]
                 self.group_states[key] = {
-                    "leader": _int(doc.get("leader")), "weight": doc.get("weight"),
-                    "readings": doc.get("readings"), "t": _float(doc.get("t")),
+                    "leader": _int(doc.get("leader")), "weight": _num(doc.get("weight")),
+                    "readings": _num(doc.get("readings")), "t": _float(doc.get("t")),
                 }  # fmt: skip
                 self._clock(_float(doc.get("t")), retained)
         elif len(parts) == 4 and parts[0] == "data" and isinstance(doc, dict):
@@ -416,10 +418,15 @@ def _small(doc: Any) -> dict[str, Any]:
     if not isinstance(doc, dict):
         return {"error": str(doc)[:MAX_ERROR_CHARS]}
     out: dict[str, Any] = {}
-    for k, v in list(doc.items())[:8]:
+    for k, v in list(doc.items())[:MAX_ERROR_FIELDS]:
         out[str(k)[:40]] = v if isinstance(v, int | float | bool) or v is None else (
             str(v)[:MAX_ERROR_CHARS])  # fmt: skip
     return out
+
+
+def _num(v: Any) -> float | None:
+    """A number from a remote document, or None (never a long string)."""
+    return v if isinstance(v, int | float) and not isinstance(v, bool) else None
 
 
 def _int(v: Any) -> int:
@@ -434,6 +441,16 @@ def _float(v: Any) -> float:
         return float(v)
     except (TypeError, ValueError):
         return float("nan")
+
+
+def bounded_meta(meta: dict[str, Any], bound: int = EVENT_BOUND) -> str:
+    """The JSON of a ``state`` event, at most ``bound`` bytes: beyond it (only
+    with hundreds of groups and long refusals) the list of groups is cut."""
+    text = json.dumps(meta, separators=(",", ":"))
+    while len(text.encode()) > bound and meta["groups"]:
+        meta["groups"] = meta["groups"][: len(meta["groups"]) // 2]
+        text = json.dumps(meta, separators=(",", ":"))
+    return text
 
 
 def _row_json(i: int, r: Row) -> str:
@@ -685,7 +702,7 @@ class Dashboard:
                 field_doc, left = self._field.delta(self.state.rows())
                 if field_doc is not None:
                     self._send("field", field_doc)
-                self._broadcast("state", self.state.meta())
+                self._send("state", bounded_meta(self.state.meta()))
                 if self.state.defs_version != self._pushed_defs:
                     self._pushed_defs = self.state.defs_version
                     self._broadcast("defs", self.state.defs)
