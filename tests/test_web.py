@@ -121,7 +121,7 @@ def test_every_event_stays_under_the_bound() -> None:
     for gid in range(web.MAX_GROUPS + 100):
         doc = {"leader": gid, "weight": huge, "readings": huge, "t": 1.0, "extra": huge}
         st.on_message(f"groups/{1 + gid % 7}/{gid}", json.dumps(doc).encode())
-    for i in range(web.MAX_ERRORS + 10):
+    for _ in range(web.MAX_ERRORS + 10):
         doc = {"topic": huge, "code": huge, "error": huge, "payload": huge, "more": huge}
         st.on_message("errors", json.dumps(doc).encode())
     for kind in ("group", "channel"):
@@ -339,7 +339,7 @@ async def test_connections_are_bounded_and_slow_ones_closed() -> None:
     dep = load("romeo4r")
     st = DashboardState(dep.area, "t", 1)
     settings = MqttSettings.from_url("mqtt://127.0.0.1:1", client_id="web-slow")
-    limit, n_slow = 8, 40
+    limit, n_slow = 8, 24
     async with Dashboard(st, settings, "127.0.0.1", 0, max_connections=limit,
                          request_timeout=1.0) as dash:  # fmt: skip
         assert dash.listener is not None
