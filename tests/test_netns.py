@@ -65,14 +65,14 @@ def _netns_usable() -> str | None:
 
 
 class Hosts:
-    """Three hosts (router, a, b) on 10.X.Y.0/24 behind a bridge."""
+    """Hosts (by default: router, a, b; one-letter names) on 10.X.Y.0/24 behind a bridge."""
 
-    def __init__(self) -> None:
+    def __init__(self, hosts: tuple[str, ...] = ("r", "a", "b")) -> None:
         tag = os.getpid() % 10000
         self.net = f"10.{200 + tag // 256 % 50}.{tag % 256}"
-        self.names = {h: f"aw{h}{tag}" for h in ("r", "a", "b")}
+        self.names = {h: f"aw{h}{tag}" for h in hosts}
         self.switch = f"aws{tag}"
-        self.addr = {h: f"{self.net}.{i + 1}" for i, h in enumerate(("r", "a", "b"))}
+        self.addr = {h: f"{self.net}.{i + 1}" for i, h in enumerate(hosts)}
 
     def up(self) -> None:
         _run("ip", "netns", "add", self.switch)
@@ -107,6 +107,7 @@ class Hosts:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
 
     def popen(self, host: str, *args: str, log: Path) -> subprocess.Popen[bytes]:
+        """``python -m awaremw ARGS`` on ``host``, its output in ``log``."""
         out = log.open("wb")
         return subprocess.Popen(
             ["ip", "netns", "exec", self.names[host], sys.executable, "-m", "awaremw", *args],
@@ -132,19 +133,29 @@ class Hosts:
         raise TimeoutError(f"{addr}:{port} not reachable from host {host} in {timeout} s")
 
 
-@pytest.fixture
-def hosts() -> Iterator[Hosts]:
+def _hosts(names: tuple[str, ...]) -> Iterator[Hosts]:
     why = _netns_usable()
     if why is not None:
         if REQUIRED:
             pytest.fail(f"network namespaces required but unusable: {why}")
         pytest.skip(why)
-    h = Hosts()
+    h = Hosts(names)
     try:
         h.up()
         yield h
     finally:
         h.down()
+
+
+@pytest.fixture
+def hosts() -> Iterator[Hosts]:
+    yield from _hosts(("r", "a", "b"))
+
+
+@pytest.fixture
+def sites() -> Iterator[Hosts]:
+    """Three hosts a, b, c: a router and a fleet part on each."""
+    yield from _hosts(("a", "b", "c"))
 
 
 def test_router_and_two_fleets_on_three_hosts(hosts: Hosts, tmp_path: Path) -> None:
@@ -222,3 +233,77 @@ def test_router_and_two_fleets_on_three_hosts(hosts: Hosts, tmp_path: Path) -> N
     boundary = [(s, d) for s in mine["a"] for d in mine["b"] if math.dist(pos[s], pos[d]) <= 16.0]
     heard_b = {(s, d) for s, d, _ in links["b"]}
     assert boundary and all(pair in heard_b for pair in boundary)
+
+
+def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_three_hosts_each_with_a_router_linked_to_the_others_secrets_on(
+    sites: Hosts, tmp_path: Path
+) -> None:
+    """One router per host (docs/hosts.md): every process on its host's router, the
+    routers linked to each other over mutual TLS, the secrets' rules on every router."""
+    from awaremw.security.keys import init_secrets
+
+    secrets = tmp_path / "secrets"
+    init_secrets(secrets)
+    dep_path = tmp_path / "netns.toml"
+    dep_path.write_text(DEPLOYMENT)
+    dep = load_deployment(dep_path)
+    link = {h: f"tls/{sites.addr[h]}:7448" for h in "abc"}
+    dials = {"a": [], "b": ["a"], "c": ["a", "b"]}  # a full mesh
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        for h in "abc":
+            args = ["router", "--secrets", str(secrets), "--listen", "tcp/127.0.0.1:7447"]
+            args += ["--listen", link[h]]
+            for other in dials[h]:
+                args += ["--connect", link[other]]
+            procs.append(sites.popen(h, *args, log=tmp_path / f"router-{h}.log"))
+        for h in "abc":
+            sites.wait_tcp(h, "127.0.0.1", 7447, timeout=20)
+        start_at = time.time() + 4.0
+        fleets = []
+        for k, h in enumerate("abc", 1):
+            fleets.append(
+                sites.popen(
+                    h, "fleet", str(dep_path), "--hello", "--plain", "--part", f"{k}/3",
+                    "--connect", "tcp/127.0.0.1:7447", "--zenoh-mode", "client",
+                    "--secrets", str(secrets), "--start-at", f"{start_at:.3f}",
+                    "--duration", "8", "--links-json", str(tmp_path / f"{h}.json"),
+                    log=tmp_path / f"fleet-{h}.log",
+                )
+            )  # fmt: skip
+        procs += fleets
+        for p, h in zip(fleets, "abc", strict=True):
+            code = p.wait(timeout=90)
+            assert code == 0, (tmp_path / f"fleet-{h}.log").read_text()
+    finally:
+        _stop(procs)
+    for h in "abc":
+        assert "authenticated, access control by role" in (tmp_path / f"router-{h}.log").read_text()
+
+    pos = {n.id: n.position for n in dep.nodes}
+    parts = zip("abc", stripes(dep, 3), strict=True)
+    mine = {h: {n.id for n in dep.nodes if part(n)} for h, part in parts}
+    assert [len(m) for m in mine.values()] == [8, 8, 8]
+    heard = {
+        h: {(src, dst) for src, dst, _ in json.loads((tmp_path / f"{h}.json").read_text())}
+        for h in "abc"
+    }
+    for h in "abc":
+        assert all(dst in mine[h] for _, dst in heard[h]), f"{h} delivered to another host's mote"
+    # Across both stripe boundaries, both ways, every pair 15 m apart heard each other:
+    # the frames went fleet -> its router -> the other router -> the other fleet.
+    for west, east in (("a", "b"), ("b", "c")):
+        pairs = [(s, d) for s in mine[west] for d in mine[east] if math.dist(pos[s], pos[d]) < 16]
+        assert len(pairs) == 2
+        assert all(p in heard[east] for p in pairs), (west, east)
+        assert all((d, s) in heard[west] for s, d in pairs), (east, west)
