@@ -49,10 +49,18 @@ class Router:
     """One ``awaremw router --secrets`` process: clients on tcp/, routers on tls/."""
 
     def __init__(
-        self, secrets: Path, connect: list[str], tmp: Path, name: str, link_ep: str | None = None
+        self,
+        secrets: Path,
+        connect: list[str],
+        tmp: Path,
+        name: str,
+        *,
+        link_ep: str | None = None,
+        client_ep: str | None = None,
     ) -> None:
         self.secrets = secrets
-        self.client_ep = free_tcp_endpoint()
+        self.connect = connect
+        self.client_ep = client_ep or free_tcp_endpoint()
         self.link_ep = link_ep or _tls_endpoint()
         cmd = [*AWAREMW, "router", "--secrets", str(secrets)]
         cmd += ["--listen", self.client_ep, "--listen", self.link_ep]
@@ -70,6 +78,13 @@ class Router:
         conf = zenoh.Config.from_file(str(SecretsDir(self.secrets).role_config(role)))
         conf.insert_json5("connect/endpoints", json.dumps([self.client_ep]))
         return zenoh.open(conf)
+
+    def restart(self, tmp: Path, name: str) -> Router:
+        """Stop this router and start another on the same endpoints."""
+        self.stop()
+        return Router(
+            self.secrets, self.connect, tmp, name, link_ep=self.link_ep, client_ep=self.client_ep
+        )
 
     def stop(self) -> None:
         self.proc.terminate()
@@ -166,6 +181,28 @@ def test_three_linked_routers_carry_every_role_between_their_clients(
     finally:
         for s in (*fleets.values(), gateway_a, app_c):
             s.close()  # type: ignore[no-untyped-call]
+
+
+def test_a_link_comes_back_when_either_end_restarts(
+    secrets: Path, routers: list[Router], tmp_path: Path
+) -> None:
+    a = Router(secrets, [], tmp_path, "a")
+    b = Router(secrets, [a.link_ep], tmp_path, "b")
+    routers += [a, b]
+    behind_a, behind_b = a.open("fleet"), b.open("fleet")
+    try:
+        assert _hears(behind_a, behind_b, "aware/radio/0/0/first")
+        # the router dialled restarts, then the one dialling; the clients stay and
+        # reconnect to their router on their own
+        a = a.restart(tmp_path, "a2")
+        routers.append(a)
+        assert _hears(behind_a, behind_b, "aware/radio/0/0/a-restarted")
+        b = b.restart(tmp_path, "b2")
+        routers.append(b)
+        assert _hears(behind_a, behind_b, "aware/radio/0/0/b-restarted")
+    finally:
+        behind_a.close()  # type: ignore[no-untyped-call]
+        behind_b.close()  # type: ignore[no-untyped-call]
 
 
 def test_a_router_without_the_routers_certificate_links_to_nothing(
