@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from awaremw.runtime.deployment import load_deployment
+from awaremw.runtime.deployment import load, load_deployment
 from awaremw.runtime.fleet import stripes
 
 pytestmark = pytest.mark.slow
@@ -106,13 +108,19 @@ class Hosts:
         for ns in (*self.names.values(), self.switch):
             subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
 
-    def popen(self, host: str, *args: str, log: Path) -> subprocess.Popen[bytes]:
-        """``python -m awaremw ARGS`` on ``host``, its output in ``log``."""
+    def popen(
+        self, host: str, *args: str, log: Path, cwd: Path | None = None
+    ) -> subprocess.Popen[bytes]:
+        """``python -m awaremw ARGS`` on ``host``, its output in ``log``; with ``cwd``,
+        run there, the state a run keeps (XDG_STATE_HOME) under ``cwd/state-HOST``."""
         out = log.open("wb")
+        env = None if cwd is None else {**os.environ, "XDG_STATE_HOME": str(cwd / f"state-{host}")}
         return subprocess.Popen(
             ["ip", "netns", "exec", self.names[host], sys.executable, "-m", "awaremw", *args],
             stdout=out,
             stderr=subprocess.STDOUT,
+            cwd=cwd,
+            env=env,
         )
 
     def wait_tcp(self, host: str, addr: str, port: int, timeout: float) -> None:
@@ -245,55 +253,80 @@ def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
                 p.kill()
 
 
-def test_three_hosts_each_with_a_router_linked_to_the_others_secrets_on(
-    sites: Hosts, tmp_path: Path
-) -> None:
-    """One router per host (docs/hosts.md): every process on its host's router, the
-    routers linked to each other over mutual TLS, the secrets' rules on every router."""
-    from awaremw.security.keys import init_secrets
+HOSTS_DOC = Path(__file__).resolve().parent.parent / "docs" / "hosts.md"
 
-    secrets = tmp_path / "secrets"
-    init_secrets(secrets)
-    dep_path = tmp_path / "netns.toml"
-    dep_path.write_text(DEPLOYMENT)
-    dep = load_deployment(dep_path)
-    link = {h: f"tls/{sites.addr[h]}:7448" for h in "abc"}
-    dials = {"a": [], "b": ["a"], "c": ["a", "b"]}  # a full mesh
+
+def hosts_recipe() -> tuple[list[str], dict[str, list[list[str]]]]:
+    """The ```sh block of docs/hosts.md, "Run it": the lines before the first
+    ``# host X:`` comment, and each host's command lines (``&`` dropped), split."""
+    section = HOSTS_DOC.read_text(encoding="utf-8").split("## Run it", 1)[1]
+    m = re.search(r"```sh\n(.*?)```", section, re.S)
+    assert m is not None, "docs/hosts.md: no sh block under 'Run it'"
+    first: list[list[str]] = []
+    per_host: dict[str, list[list[str]]] = {}
+    host = None
+    for raw in m.group(1).splitlines():
+        line = raw.strip()
+        head = re.match(r"# host (\w):", line)
+        if head:
+            host = head.group(1)
+            per_host[host] = []
+        elif line and not line.startswith("#"):
+            words = shlex.split(line.removesuffix("&"))
+            assert words[0] == "awaremw", line
+            (first if host is None else per_host[host]).append(words[1:])
+    return [" ".join(w) for w in first], per_host
+
+
+def test_the_hosts_recipe_three_routers_linked_secrets_on(sites: Hosts, tmp_path: Path) -> None:
+    """docs/hosts.md as printed, on three namespaces: one router per host linked to the
+    others over mutual TLS, the gateway and a fleet part on each host's own router."""
+    first, recipe = hosts_recipe()
+    assert sorted(recipe) == ["a", "b", "c"] and first == ["keys init secrets/"]
+    keys = subprocess.run(
+        [sys.executable, "-m", "awaremw", *first[0].split()],
+        cwd=tmp_path, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert keys.returncode == 0, keys.stderr
+    fill = {f"HOST_{h.upper()}": sites.addr[h] for h in "abc"}
     procs: list[subprocess.Popen[bytes]] = []
     try:
-        for h in "abc":
-            args = ["router", "--secrets", str(secrets), "--listen", "tcp/127.0.0.1:7447"]
-            args += ["--listen", link[h]]
-            for other in dials[h]:
-                args += ["--connect", link[other]]
-            procs.append(sites.popen(h, *args, log=tmp_path / f"router-{h}.log"))
+        for h, lines in recipe.items():
+            for words in lines:
+                if words[0] == "router":
+                    procs.append(
+                        sites.popen(h, *_fill(words, fill, ""), log=tmp_path / f"router-{h}.log",
+                                    cwd=tmp_path)
+                    )  # fmt: skip
         for h in "abc":
             sites.wait_tcp(h, "127.0.0.1", 7447, timeout=20)
-        start_at = time.time() + 4.0
-        fleets = []
-        for k, h in enumerate("abc", 1):
-            fleets.append(
-                sites.popen(
-                    h, "fleet", str(dep_path), "--hello", "--plain", "--part", f"{k}/3",
-                    "--connect", "tcp/127.0.0.1:7447", "--zenoh-mode", "client",
-                    "--secrets", str(secrets), "--start-at", f"{start_at:.3f}",
-                    "--duration", "8", "--links-json", str(tmp_path / f"{h}.json"),
-                    log=tmp_path / f"fleet-{h}.log",
-                )
-            )  # fmt: skip
-        procs += fleets
-        for p, h in zip(fleets, "abc", strict=True):
-            code = p.wait(timeout=90)
-            assert code == 0, (tmp_path / f"fleet-{h}.log").read_text()
+        start = f"{time.time() + 6.0:.3f}"  # START: the same emulated time zero everywhere
+        runs: dict[str, subprocess.Popen[bytes]] = {}
+        for h, lines in recipe.items():
+            for words in lines:
+                if words[0] == "router":
+                    continue
+                name = f"{words[0]}-{h}"
+                extra = ["--duration", "10"]
+                if words[0] == "fleet":
+                    extra += ["--links-json", str(tmp_path / f"{h}.json")]
+                runs[name] = sites.popen(
+                    h, *_fill(words, fill, start), *extra, log=tmp_path / f"{name}.log",
+                    cwd=tmp_path,
+                )  # fmt: skip
+        procs += runs.values()
+        assert sorted(runs) == ["fleet-a", "fleet-b", "fleet-c", "gateway-a"]
+        for name, p in runs.items():
+            assert p.wait(timeout=120) == 0, (tmp_path / f"{name}.log").read_text()
     finally:
         _stop(procs)
     for h in "abc":
         assert "authenticated, access control by role" in (tmp_path / f"router-{h}.log").read_text()
 
+    dep = load("grid_small")
     pos = {n.id: n.position for n in dep.nodes}
     parts = zip("abc", stripes(dep, 3), strict=True)
-    mine = {h: {n.id for n in dep.nodes if part(n)} for h, part in parts}
-    assert [len(m) for m in mine.values()] == [8, 8, 8]
+    mine = {h: {n.id for n in dep.nodes if part(n) and n.kind != "gateway"} for h, part in parts}
     heard = {
         h: {(src, dst) for src, dst, _ in json.loads((tmp_path / f"{h}.json").read_text())}
         for h in "abc"
@@ -313,3 +346,13 @@ def test_three_hosts_each_with_a_router_linked_to_the_others_secrets_on(
         assert pairs, f"no sure link between {west} and {east}: the test has no teeth"
         assert all(p in heard[east] for p in pairs), (west, east)
         assert all((d, s) in heard[west] for s, d in pairs), (east, west)
+
+
+def _fill(words: list[str], addresses: dict[str, str], start: str) -> list[str]:
+    """A recipe line with the hosts' addresses and START filled in."""
+    out = []
+    for w in words:
+        for placeholder, addr in addresses.items():
+            w = w.replace(placeholder, addr)
+        out.append(start if w == "START" else w)
+    return out
