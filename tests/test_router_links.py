@@ -244,3 +244,21 @@ def test_router_refuses_a_plain_link_with_secrets_in_one_line(secrets: Path) -> 
         "awaremw router: cannot link to tcp/127.0.0.1:7447: with secrets, routers link over "
         "mutual TLS; use tls/HOST:PORT and let that router listen on tls/ too"
     ]
+
+
+def test_router_with_secrets_made_before_router_links_says_so(secrets: Path) -> None:
+    d = SecretsDir(secrets)
+    text = d.router_config.read_text()
+    doc = json.loads(text[text.index("{") :])
+    del doc["transport"]["link"]  # what keys init wrote before routers had a certificate
+    d.router_config.write_text(json.dumps(doc))
+    r = subprocess.run(
+        [*AWAREMW, "router", "--secrets", str(secrets), "--listen", free_tcp_endpoint(),
+         "--connect", "tls/127.0.0.1:7448"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"awaremw router: {d.router_config} has no router certificate (secrets made before "
+        "router links existed): make new ones with `awaremw keys init DIR --force`"
+    ]
