@@ -32,8 +32,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="create every secret in DIR (files 0600, directories 0700)",
         description="Create in DIR: the radio network key, the gateway's Ed25519 key pair, "
         "Zenoh accounts per role with the router's config (authentication, access control) "
-        "and one client config per role, the Mosquitto password and ACL files, a CA and "
-        "the broker's TLS certificate.",
+        "and one client config per role, the routers' certificate for links between routers "
+        "(mutual TLS), the Mosquitto password and ACL files, a CA and the broker's TLS "
+        "certificate.",
     )
     i.add_argument("dir", type=Path, metavar="DIR")
     i.add_argument("--force", action="store_true", help="replace existing secret files")

@@ -7,6 +7,7 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 from types import FrameType
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
@@ -33,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="another router to link to (repeatable)",
+        help="another router to link to (repeatable); with --secrets a tls/ endpoint "
+        "(mutual TLS with the routers' certificate), and the other router listens on tls/",
     )
     add_secrets_option(
         p,
@@ -56,11 +58,14 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, on_signal)
     config_file: str | None = None
     if args.secrets is not None:
-        from awaremw.security.zenoh_acl import router_config_path
+        from awaremw.security.zenoh_acl import check_router_links, router_config_path
 
-        config_file = load_secrets(
-            "awaremw router", args.secrets, lambda d: str(router_config_path(d))
-        )
+        def linkable(d: Path) -> str:
+            path = router_config_path(d)
+            check_router_links(path, args.connect)
+            return str(path)
+
+        config_file = load_secrets("awaremw router", args.secrets, linkable)
         if config_file is None:
             return 2
     try:
