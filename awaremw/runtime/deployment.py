@@ -148,9 +148,10 @@ class Deployment:
 
 
 def shipped_dir() -> FsPath:
-    """The folder of the deployments shipped with the package (package data
-    ``awaremw/deployments/*.toml``, found through :mod:`importlib.resources`)."""
-    return FsPath(str(resources.files("awaremw").joinpath("deployments")))
+    """The folder of the deployments shipped with the package: the top-level
+    ``nodes/*.toml`` of the source tree, installed as the package data of
+    ``awaremw.deployments`` and found through :mod:`importlib.resources`."""
+    return FsPath(str(resources.files("awaremw.deployments")))
 
 
 def shipped_names() -> list[str]:
