@@ -19,9 +19,9 @@ table docs/figures.md embeds between ``<!-- run_all:begin -->`` and
 ``<!-- run_all:end -->``; ``--write-docs`` (also ``--write-readme``) writes it
 there and the README's short table (the rows of :data:`BRIEF`, one headline
 each) between the same markers in README.md; ``tests/test_run_all.py`` checks
-that both are exactly what the script makes of ``results.json``. At ``--repeat 3`` the whole session takes about
-11 minutes on a quiet 2-core machine (budget: 15); progress goes to stderr,
-one line per run.
+that both are exactly what the script makes of ``results.json``. At
+``--repeat 3`` the whole session takes about 11 minutes on a quiet 2-core
+machine (budget: 15); progress goes to stderr, one line per run.
 """
 
 from __future__ import annotations

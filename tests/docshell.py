@@ -143,7 +143,8 @@ class Shell:
             timeout=timeout,
             check=False,
         )
-        assert p.returncode == 0, f"{block}: exit {p.returncode}\n{p.stdout[-1500:]}\n{p.stderr[-3000:]}"
+        why = f"{block}: exit {p.returncode}\n{p.stdout[-1500:]}\n{p.stderr[-3000:]}"
+        assert p.returncode == 0, why
         return p.stdout
 
     def _background(self, code: str) -> None:

@@ -80,8 +80,10 @@ def test_client_verbs_find_the_account_and_unknown_commands_are_refused(
     assert local is not None
 
     async def refused() -> dict[str, object]:
-        async with aiomqtt.Client(local.host, local.port, username=local.username,
-                                  password=local.password, identifier="t-unknown") as c:  # fmt: skip
+        async with aiomqtt.Client(
+            local.host, local.port, username=local.username, password=local.password,
+            identifier="t-unknown",
+        ) as c:  # fmt: skip
             await c.subscribe("aware/errors", qos=1)
             await c.publish("aware/cmd/reboot", b'{"target": "all"}', qos=1)
             async with asyncio.timeout(20):

@@ -33,12 +33,12 @@ DEFAULT_RADIO = "cc2420"
 
 # The keys a deployment file may have (docs/deployments.md lists each; a test
 # holds the two equal): top-level values, raw tables, node and grid entries.
-TOP_KEYS = {
+TOP_KEYS = frozenset({
     "name", "description", "radio", "seed", "tx_power_dbm", "area", "nodes", "grid", "mac",
     "collisions",
-}  # fmt: skip
+})  # fmt: skip
 RAW_TABLES = ("world", "groups", "channels", "middleware")
-NODE_KEYS = {
+NODE_KEYS = frozenset({
     "id",
     "kind",
     "position",
@@ -50,9 +50,9 @@ NODE_KEYS = {
     "tx_power_dbm",
     "battery_mj",
     "boot_s",
-}
+})
 _PATH_ONLY = ("speed_mps", "start_s", "loop", "pause_s")
-GRID_KEYS = {
+GRID_KEYS = frozenset({
     "origin",
     "spacing",
     "cols",
@@ -63,7 +63,7 @@ GRID_KEYS = {
     "tx_power_dbm",
     "battery_mj",
     "boot_s",
-}
+})
 
 
 class DeploymentError(ValueError):
