@@ -50,6 +50,7 @@ class Block:
     lang: str
     line: int
     text: str
+    section: str  # the ``## `` heading it is under ("" before the first)
 
     @property
     def commands(self) -> list[str]:
@@ -66,7 +67,10 @@ def blocks(path: Path, langs: tuple[str, ...] = ("sh", "python")) -> list[Block]
     out = []
     for m in re.finditer(r"^```(\w*)\n(.*?)^```", text, re.S | re.M):
         if m.group(1) in langs:
-            out.append(Block(path, m.group(1), text[: m.start()].count("\n") + 1, m.group(2)))
+            before = text[: m.start()]
+            headings = re.findall(r"^## (.*)$", before, re.M)
+            section = headings[-1] if headings else ""
+            out.append(Block(path, m.group(1), before.count("\n") + 1, m.group(2), section))
     return out
 
 

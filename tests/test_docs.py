@@ -2,8 +2,9 @@
 
 A document's blocks run in order in one shell (tests/docshell.py: a fresh
 directory, this venv first on PATH, a private ``XDG_STATE_HOME``, free ports,
-long runs shortened), so a later block may use what an earlier one started, as
-a reader would. Blocks fenced ``text`` (API outlines, usage synopses) and
+long runs shortened). What a block starts in the background runs until the
+document's next ``##`` section: a later block of the same section may use it,
+as a reader would, and a new section starts from nothing. Blocks fenced ``text`` (API outlines, usage synopses) and
 unlabeled ones (transcripts) are not programs and are not run.
 
 The skip-list names each block that cannot run here, and why.
@@ -79,7 +80,11 @@ def _tshark() -> bool:
 @pytest.mark.parametrize("doc", [d for d in DOCS if blocks(d)], ids=lambda d: d.name)
 def test_doc_blocks_run(doc: Path, shell: Shell) -> None:
     ran = skipped = 0
+    section = None
     for block in blocks(doc):
+        if block.section != section:
+            shell.close()  # a new section starts from nothing
+            section = block.section
         if why_skipped(block) is not None:
             skipped += 1
             continue
