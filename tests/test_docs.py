@@ -4,8 +4,9 @@ A document's blocks run in order in one shell (tests/docshell.py: a fresh
 directory, this venv first on PATH, a private ``XDG_STATE_HOME``, free ports,
 long runs shortened). What a block starts in the background runs until the
 document's next ``##`` section: a later block of the same section may use it,
-as a reader would, and a new section starts from nothing. Blocks fenced ``text`` (API outlines, usage synopses) and
-unlabeled ones (transcripts) are not programs and are not run.
+as a reader would, and a new section starts from nothing. Blocks fenced
+``text`` (API outlines, usage synopses) and unlabeled ones (transcripts) are
+not programs and are not run.
 
 The skip-list names each block that cannot run here, and why.
 """
