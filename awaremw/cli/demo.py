@@ -220,6 +220,14 @@ def no_record_reason(s: dict[str, Any], external: bool) -> str:
         )
     if s["records_produced"]:
         return f"the robot received none of the {s['records_produced']} records produced"
+    if s.get("group_types") == [] or s.get("channels") == []:
+        missing = "group type" if s.get("group_types") == [] else "channel"
+        return (
+            f"no record can come: {s['deployment']} defines no {missing} ([[groups]] and "
+            "[[channels]] in the deployment file, docs/deployments.md), so no group "
+            "sends data, however long it runs; use a deployment with both (romeo4r, fire, "
+            "large) or define them over MQTT while it runs (awaremw define)"
+        )
     return "no record was produced: no group formed in the time run (try a longer --duration)"
 
 
@@ -355,6 +363,9 @@ async def run_demo(
         "frames_per_mote": traffic.frames_tx,
         "energy_mj_per_mote": traffic.energy_mj,
         "errors": list(run.live.errors),
+        # what the robot's client defined: none means no group can form, however long
+        "group_types": sorted(sc.group_json),
+        "channels": sorted(sc.channel_json),
     }
     if gtype is not None and sc.robot is not None and run.live.records:
         first = run.live.records[0]
