@@ -205,7 +205,7 @@ async def test_view_shows_a_system_known_only_through_mqtt(tmp_path: Path) -> No
         log = (tmp_path / "view.log").open("w")
         p = subprocess.Popen(
             [sys.executable, "-m", "awaremw", "view", "--web", f"127.0.0.1:{port}",
-             "--mqtt", broker.url, "--deployment", "romeo4r", "--duration", "60"],
+             "--mqtt", broker.url, "--deployment", "romeo4r", "--timeout", "60"],
             stdout=log, stderr=subprocess.STDOUT,
         )  # fmt: skip
         try:
@@ -238,7 +238,7 @@ def test_busy_or_bad_address_is_a_one_line_error() -> None:
         port = s.getsockname()[1]
         r = subprocess.run(
             [sys.executable, "-m", "awaremw", "view", "--web", f"127.0.0.1:{port}",
-             "--mqtt", "mqtt://127.0.0.1:1", "--duration", "5"],
+             "--mqtt", "mqtt://127.0.0.1:1", "--timeout", "5"],
             capture_output=True, text=True, timeout=60, check=False,
         )  # fmt: skip
     assert r.returncode == 2
