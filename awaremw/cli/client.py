@@ -393,7 +393,7 @@ def _run(fn: Any, args: argparse.Namespace) -> int:
     except aiomqtt.MqttError as e:
         url = args.mqtt or DEFAULT_URL
         hint = ""
-        if "authorized" in str(e).lower() and args.mqtt is None:
+        if "authorized" in str(e).lower() and (args.mqtt is None or "@" not in args.mqtt):
             hint = (
                 f"; no embedded broker account found under {state_base()} (is a gateway "
                 "running here?): give --mqtt mqtt://USER:PASS@HOST:PORT"
