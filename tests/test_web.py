@@ -323,7 +323,7 @@ async def test_password_beyond_loopback(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k != web.PASSWORD_ENV}
     r2 = subprocess.run(
         [sys.executable, "-m", "awaremw", "view", "--web", f"0.0.0.0:{_free_port()}",
-         "--mqtt", "mqtt://127.0.0.1:1", "--duration", "5"],
+         "--mqtt", "mqtt://127.0.0.1:1", "--timeout", "5"],
         capture_output=True, text=True, timeout=60, check=False, env=env,
     )  # fmt: skip
     assert r2.returncode == 2, r2.stderr
@@ -470,7 +470,7 @@ async def test_view_shows_a_system_known_only_through_mqtt(tmp_path: Path) -> No
         log = (tmp_path / "view.log").open("w")
         p = subprocess.Popen(
             [sys.executable, "-m", "awaremw", "view", "--web", f"127.0.0.1:{port}",
-             "--mqtt", broker.url, "--deployment", "romeo4r", "--duration", "60"],
+             "--mqtt", broker.url, "--deployment", "romeo4r", "--timeout", "60"],
             stdout=log, stderr=subprocess.STDOUT,
         )  # fmt: skip
         try:
@@ -503,7 +503,7 @@ def test_busy_or_bad_address_is_a_one_line_error() -> None:
         port = s.getsockname()[1]
         r = subprocess.run(
             [sys.executable, "-m", "awaremw", "view", "--web", f"127.0.0.1:{port}",
-             "--mqtt", "mqtt://127.0.0.1:1", "--duration", "5"],
+             "--mqtt", "mqtt://127.0.0.1:1", "--timeout", "5"],
             capture_output=True, text=True, timeout=60, check=False,
         )  # fmt: skip
     assert r.returncode == 2
@@ -681,7 +681,7 @@ def test_dashboard_draws_a_10000_mote_field(tmp_path: Path, mosquitto: Any) -> N
     view = subprocess.Popen(
         [sys.executable, "-m", "awaremw", "view", "--web", f"127.0.0.1:{port}",
          "--mqtt", mosquitto.url("operator"), "--deployment", str(dep_file),
-         "--group-type", "1", "--duration", "300"],
+         "--group-type", "1", "--timeout", "300"],
         stdout=log, stderr=subprocess.STDOUT,
     )  # fmt: skip
     figures: dict[str, Any] = {}

@@ -11,17 +11,23 @@ from pathlib import Path
 from types import FrameType
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.helptext import add_verb
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
 
 CLOSE_TIMEOUT_S = 5.0
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = subparsers.add_parser(
+    p = add_verb(
+        subparsers,
         "router",
-        help="run an embedded Zenoh router (for multi-process or multi-host fleets)",
-        description="Run a Zenoh session in router mode until interrupted (Ctrl-C or SIGTERM). "
+        "run a Zenoh router (multi-process or multi-host fleets)",
+        "Run a Zenoh session in router mode until interrupted (Ctrl-C or SIGTERM).\n"
         "Fleets and gateways join it with --connect ENDPOINT.",
+        [
+            "awaremw router --listen tcp/127.0.0.1:7447",
+            "awaremw router --listen tcp/0.0.0.0:7447 --secrets secrets/",
+        ],
     )
     p.add_argument(
         "--listen",
@@ -40,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     add_secrets_option(
         p,
         "authenticate every session and apply the access rules of DIR/zenoh/router.json5 "
-        "(from `awaremw keys init DIR`)",
+        "(from awaremw keys init DIR)",
     )
     p.set_defaults(func=run)
 
