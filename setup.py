@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 import sys
 
-from setuptools import setup
+from setuptools import find_packages, setup
 
 # The protocol core, the virtual-clock driver, the radio's link layer and
 # propagation model and the world's fields: where a run spends its time. Pure
@@ -63,4 +63,8 @@ def _ext_modules() -> list[object]:
     return list(mypycify(COMPILED, opt_level="3", group_name="awaremw_compiled"))
 
 
-setup(ext_modules=_ext_modules())
+# awaremw's packages, and the shipped deployments: the top-level nodes/ folder
+# installed as awaremw.deployments (pyproject.toml maps the directory).
+PACKAGES = [*find_packages(include=["awaremw", "awaremw.*"]), "awaremw.deployments"]
+
+setup(packages=PACKAGES, ext_modules=_ext_modules())

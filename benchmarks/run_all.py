@@ -1,11 +1,11 @@
-"""Every figure of the README's figures table, in one session, from the commands it names.
+"""Every figure of the figures table (docs/figures.md), in one session, from the commands it names.
 
     python benchmarks/run_all.py [--repeat 3] [--only KEY,...] [--out benchmarks/results.json]
-    python benchmarks/run_all.py --markdown [--results FILE]  # the README table from results
-    python benchmarks/run_all.py --write-readme [--results FILE]  # ... written between the markers
+    python benchmarks/run_all.py --markdown [--results FILE]  # the full table from results
+    python benchmarks/run_all.py --write-docs [--results FILE]  # docs/figures.md and the README
     python benchmarks/run_all.py --quick --out /tmp/r.json     # tiny sizes: checks the structure
 
-Each row of :data:`ROWS` is one line of the README's table and names its
+Each row of :data:`ROWS` is one line of docs/figures.md's table and names its
 command. Every command runs as its own process, one after the other (they do
 not compete for the cores), ``--repeat`` times; the row reports the *median
 run as a whole*: the runs are ordered by the row's headline metric and the
@@ -15,11 +15,13 @@ deterministic: the same numbers every run) run once (``repeat = 1`` in the
 row, said in the table). ``results.json`` keeps every run, the chosen one,
 the headline values of all runs, and the machine (cores, CPU model, Python,
 package versions, load average before and after). ``--markdown`` prints the
-table the README embeds between ``<!-- run_all:begin -->`` and
-``<!-- run_all:end -->``; ``tests/test_readme.py`` checks that the README's
-rows are exactly these rows. At ``--repeat 3`` the whole session takes about
-11 minutes on a quiet 2-core machine (budget: 15); progress goes to stderr,
-one line per run.
+table docs/figures.md embeds between ``<!-- run_all:begin -->`` and
+``<!-- run_all:end -->``; ``--write-docs`` (also ``--write-readme``) writes it
+there and the README's short table (the rows of :data:`BRIEF`, one headline
+each) between the same markers in README.md; ``tests/test_run_all.py`` checks
+that both are exactly what the script makes of ``results.json``. At
+``--repeat 3`` the whole session takes about 11 minutes on a quiet 2-core
+machine (budget: 15); progress goes to stderr, one line per run.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from typing import Any
 
 HERE = Path(__file__).resolve().parent
 README = HERE.parent / "README.md"
+FIGURES = HERE.parent / "docs" / "figures.md"
 BEGIN, END = "<!-- run_all:begin -->", "<!-- run_all:end -->"
 RUN_TIMEOUT_S = 900.0
 PACKAGES = ("awaremw", "eclipse-zenoh", "msgpack", "aiomqtt", "amqtt", "msgspec", "matplotlib",
@@ -70,7 +73,7 @@ def _ratio(a: Any, b: Any) -> str:
 
 @dataclass(frozen=True)
 class Row:
-    """One line of the README's figures table and how to make it."""
+    """One line of the figures table (docs/figures.md) and how to make it."""
 
     key: str
     label: str
@@ -241,7 +244,7 @@ ROWS: tuple[Row, ...] = (
          "--processes", "2", "--json"),
         ("bench", "scale", "--workload", "aware", "--motes", "30", "--duration", "24",
          "--speed", "4", "--processes", "1", "--json"),
-        "timer_lag_p99_ms", _scale_aware_cell, "issue 14: p99 < 50 ms, >= 0.99"),
+        "timer_lag_p99_ms", _scale_aware_cell, "p99 < 50 ms, >= 0.99"),
     Row("virtual-hello", "virtual clock, hello beacons",
         ("bench", "virtual", "--motes", "1000", "--duration", "120", "--json"),
         ("bench", "virtual", "--motes", "50", "--duration", "5", "--json"),
@@ -250,28 +253,28 @@ ROWS: tuple[Row, ...] = (
         ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "120",
          "--json"),
         ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12", "--json"),
-        "speedup", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99"),
-    Row("virtual-aware-60", "virtual clock, whole middleware, 60 s (issue 14's command)",
+        "speedup", _virtual_cell, "20x per CPU s, >= 0.99"),
+    Row("virtual-aware-60", "virtual clock, whole middleware, 60 s",
         ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "60",
          "--json"),
         ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12", "--json"),
-        "cpu_seconds", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99"),
+        "cpu_seconds", _virtual_cell, "20x per CPU s, >= 0.99"),
     Row("virtual-aware-60-compiled",
         "virtual clock, whole middleware, 60 s, compiled build (`AWAREMW_USE_MYPYC=1`)",
         ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "60",
          "--json"),
         ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12", "--json"),
-        "cpu_seconds", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99", build="mypyc"),
+        "cpu_seconds", _virtual_cell, "20x per CPU s, >= 0.99", build="mypyc"),
     Row("virtual-aware-no-collisions", "virtual clock, whole middleware, no collisions",
         ("bench", "virtual", "--workload", "aware", "--motes", "1000", "--duration", "120",
          "--collisions", "none", "--json"),
         ("bench", "virtual", "--workload", "aware", "--motes", "50", "--duration", "12",
          "--collisions", "none", "--json"),
-        "speedup", _virtual_cell, "issue 14: 20x per CPU s, >= 0.99"),
+        "speedup", _virtual_cell, "20x per CPU s, >= 0.99"),
     Row("experiment-large", "tracking at scale (`large.toml`)",
         ("experiment", "large", "--virtual", "--duration", "120"),
         ("experiment", "large", "--virtual", "--duration", "3"),
-        "speedup", _large_cell, "issue 14: >= 15x wall", kind="experiment"),
+        "speedup", _large_cell, ">= 15x wall", kind="experiment"),
     Row("aggregation", "aggregation",
         ("bench", "aggregation", "--json"),
         ("bench", "aggregation", "--side", "6", "--radius", "12", "--warmup", "30", "--epochs",
@@ -312,6 +315,44 @@ ROWS: tuple[Row, ...] = (
          "50", "--json"),
         "bridge_p99_ms", _bridge_cell, ">= 1,000 samples"),
 )  # fmt: skip
+
+# The README's short table: these rows, one headline each, in ROWS order.
+BRIEF: dict[str, Callable[[Result], str]] = {
+    "scale-hello": lambda r: (
+        f"{_n(r.get('motes'))} motes in real time over Zenoh ({_n(r.get('processes'))} processes):"
+        f" timer lag p99 **{_n(r.get('timer_lag_p99_ms'))} ms**, delivery "
+        f"**{_n(r.get('delivery_ratio'), 3)}**"
+    ),
+    "scale-aware": lambda r: (
+        f"{_n(r.get('motes'))} full motes in real time: timer lag p99 "
+        f"**{_n(r.get('timer_lag_p99_ms', r.get('lag_p99_ms')))} ms**, record delivery "
+        f"**{_n(r.get('record_delivery'), 3)}**"
+    ),
+    "virtual-aware": lambda r: (
+        f"{_n(r.get('motes'))} full motes on the virtual clock: **{_n(r.get('speedup'), 1)}x** "
+        f"real time, {_n(r.get('records_delivered'))} of {_n(r.get('records_produced'))} records"
+    ),
+    "virtual-aware-60-compiled": lambda r: (
+        f"the same, 60 s, compiled build: **{_ratio(r.get('sim_seconds'), r.get('cpu_seconds'))}x"
+        f"** per CPU second"
+    ),
+    "experiment-large": lambda r: (
+        f"{_n(r.get('motes_scored'))} motes track the robot: **{_n(r.get('speedup'), 1)}x** real "
+        f"time, F1 {_n(r.get('membership_f1'), 3)}"
+    ),
+    "aggregation": lambda r: (
+        f"in-network aggregation: `lower_bound_ratio` **{_n(r.get('lower_bound_ratio'))}**, "
+        f"`no_aggregation_ratio` **{_n(r.get('no_aggregation_ratio'), 1)}**"
+    ),
+    "dissemination": lambda r: (
+        f"Drip over Trickle: **{_n(r.get('seconds_per_hop'))} s per hop**, "
+        f"{_n(r.get('tx_per_mote_per_hour'), 1)} transmissions per mote per hour"
+    ),
+    "bridge": lambda r: (
+        f"gateway to MQTT subscriber: p99 **{_n(r.get('bridge_p99_ms'))} ms**, "
+        f"{_n(r.get('records_per_s'), 0)} records/s"
+    ),
+}
 
 
 # --------------------------------------------------------------------------- running
@@ -529,12 +570,37 @@ def markdown(report: dict[str, Any], rows: Sequence[Row] = ROWS) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_readme(table: str, readme: Path = README) -> None:
-    text = readme.read_text(encoding="utf-8")
+def brief_markdown(report: dict[str, Any], rows: Sequence[Row] = ROWS) -> str:
+    """The README's short table: one headline per row of :data:`BRIEF`."""
+    lines = ["| benchmark | figures (the median run) | target |", "|---|---|---|"]
+    for row in rows:
+        brief = BRIEF.get(row.key)
+        if brief is None:
+            continue
+        e = report.get("rows", {}).get(row.key)
+        cell = brief(e["median"]) if e is not None and "median" in e else "not run"
+        lines.append(f"| {row.label} | {cell.replace('|', '/')} | {row.target} |")
+    m = report.get("machine", {})
+    lines.append("")
+    lines.append(
+        f"Measured {m.get('started_utc', '?')} on {m.get('cores', '?')} cores; every row, its "
+        "command and the machine: [docs/figures.md](docs/figures.md)."
+    )
+    return "\n".join(lines) + "\n"
+
+
+def write_between_markers(table: str, path: Path) -> None:
+    text = path.read_text(encoding="utf-8")
     a, b = text.find(BEGIN), text.find(END)
     if a < 0 or b < a:
-        raise SystemExit(f"{readme}: markers {BEGIN} ... {END} not found")
-    readme.write_text(text[: a + len(BEGIN)] + "\n" + table + text[b:], encoding="utf-8")
+        raise SystemExit(f"{path}: markers {BEGIN} ... {END} not found")
+    path.write_text(text[: a + len(BEGIN)] + "\n" + table + text[b:], encoding="utf-8")
+
+
+def write_docs(report: dict[str, Any], figures: Path = FIGURES, readme: Path = README) -> None:
+    """The full table into docs/figures.md, the short one into the README."""
+    write_between_markers(markdown(report), figures)
+    write_between_markers(brief_markdown(report), readme)
 
 
 COMPILED_HELP = (
@@ -551,17 +617,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="results file (default benchmarks/results.json)")
     ap.add_argument("--quick", action="store_true", help="tiny sizes, one run: the structure only")
     ap.add_argument("--markdown", action="store_true", help="print the table from --results")
-    ap.add_argument("--write-readme", action="store_true", help="put the table into README.md")
+    ap.add_argument("--write-docs", "--write-readme", action="store_true",
+                    help="write the table into docs/figures.md and the short one into README.md")
     ap.add_argument("--results", default=str(HERE / "results.json"), help="for --markdown")
     ap.add_argument("--compiled", default=None, metavar="DIR", help=COMPILED_HELP)
     a = ap.parse_args(argv)
-    if a.markdown or a.write_readme:
+    if a.markdown or a.write_docs:
         report = json.loads(Path(a.results).read_text(encoding="utf-8"))
-        table = markdown(report)
-        if a.write_readme:
-            write_readme(table)
+        if a.write_docs:
+            write_docs(report)
         else:
-            print(table, end="")
+            print(markdown(report), end="")
         return 0
     repeat = a.repeat if a.repeat is not None else 1 if a.quick else 3
     if repeat < 1:

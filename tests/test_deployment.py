@@ -262,7 +262,10 @@ def test_unreadable_files(tmp_path: Path) -> None:
 
 def test_find_deployment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     shipped = shipped_dir() / "grid_small.toml"
-    assert shipped.parent.parent.name == "awaremw"  # package data, not the checkout's root
+    # the package data of awaremw.deployments (the checkout's nodes/ when editable)
+    import awaremw.deployments
+
+    assert shipped.parent == Path(awaremw.deployments.__file__).parent
     monkeypatch.chdir(tmp_path)
     assert find_deployment("grid_small") == shipped
     assert find_deployment("grid_small.toml") == shipped

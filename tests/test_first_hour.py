@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from mosquitto import Mosquitto, free_port, mosquitto_fixture  # noqa: F401
@@ -81,6 +82,10 @@ def test_no_record_reasons_and_summary_file_text() -> None:
     assert "--robot-mqtt the operator's" in no_record_reason(s, external=True)
     assert "none of the 7" in no_record_reason(s, external=False)
     assert "no group formed" in no_record_reason({**s, "records_produced": 0}, external=False)
+    # A deployment without group types: no longer --duration helps, and it says so.
+    none = {**s, "records_produced": 0, "group_types": [], "channels": []}
+    why = no_record_reason(none, external=False)
+    assert "romeo4r defines no group type" in why and "--duration" not in why
     text = summary_text(s)
     assert "records received (MQTT): 0\n" in text and "***" in text
     assert "group ids lasting >= 4 s: 5\n" in text
@@ -149,3 +154,15 @@ def test_define_and_delete_say_what_is_not_defined(mosquitto: Mosquitto) -> None
     p = _cli("define", "channel", "9", "--attr", "temperature", "--group-type", "5",
              "--period", "2", "--mqtt", url)  # fmt: skip
     assert p.returncode == 0 and "waits_for_group_type" not in p.stderr, p
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_demo_on_a_deployment_without_group_types_says_so(tmp_path: Path) -> None:
+    p = _cli("demo", "--deployment", "grid_small", "--duration", "10", "--speed", "5",
+             "--plain", "--insecure", "--mqtt-port", "0",
+             "--summary", str(tmp_path / "summary.txt"))  # fmt: skip
+    assert p.returncode == 1, p.stderr[-2000:]
+    last = p.stderr.strip().splitlines()[-1]
+    assert "grid_small defines no group type" in last and "--duration" not in last, last
+    assert "no group type defined by this deployment" in p.stdout

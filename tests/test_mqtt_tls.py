@@ -161,7 +161,7 @@ def test_client_verbs_over_mqtts_verify_the_broker(tls_broker: TlsBroker) -> Non
     r = cli("define", "group", "7", "x > 3", "--mqtt", b.url("operator", "localhost"),
             "--ca-file", b.ca)  # fmt: skip
     assert r.returncode == 0, r.stderr
-    r = cli("watch", "aware/def/group/#", "--count", "1", "--duration", "15",
+    r = cli("watch", "aware/def/group/#", "--count", "1", "--timeout", "15",
             "--mqtt", b.url("operator"), "--ca-file", b.ca)  # fmt: skip
     assert r.returncode == 0, r.stderr
     topic, payload = r.stdout.strip().split(" ", 1)

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from awaremw.runtime.deployment import load_deployment
+from awaremw.runtime.deployment import load, load_deployment
 from awaremw.runtime.fleet import stripes
 
 pytestmark = pytest.mark.slow
@@ -65,14 +67,14 @@ def _netns_usable() -> str | None:
 
 
 class Hosts:
-    """Three hosts (router, a, b) on 10.X.Y.0/24 behind a bridge."""
+    """Hosts (by default: router, a, b; one-letter names) on 10.X.Y.0/24 behind a bridge."""
 
-    def __init__(self) -> None:
+    def __init__(self, hosts: tuple[str, ...] = ("r", "a", "b")) -> None:
         tag = os.getpid() % 10000
         self.net = f"10.{200 + tag // 256 % 50}.{tag % 256}"
-        self.names = {h: f"aw{h}{tag}" for h in ("r", "a", "b")}
+        self.names = {h: f"aw{h}{tag}" for h in hosts}
         self.switch = f"aws{tag}"
-        self.addr = {h: f"{self.net}.{i + 1}" for i, h in enumerate(("r", "a", "b"))}
+        self.addr = {h: f"{self.net}.{i + 1}" for i, h in enumerate(hosts)}
 
     def up(self) -> None:
         _run("ip", "netns", "add", self.switch)
@@ -106,12 +108,19 @@ class Hosts:
         for ns in (*self.names.values(), self.switch):
             subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
 
-    def popen(self, host: str, *args: str, log: Path) -> subprocess.Popen[bytes]:
+    def popen(
+        self, host: str, *args: str, log: Path, cwd: Path | None = None
+    ) -> subprocess.Popen[bytes]:
+        """``python -m awaremw ARGS`` on ``host``, its output in ``log``; with ``cwd``,
+        run there, the state a run keeps (XDG_STATE_HOME) under ``cwd/state-HOST``."""
         out = log.open("wb")
+        env = None if cwd is None else {**os.environ, "XDG_STATE_HOME": str(cwd / f"state-{host}")}
         return subprocess.Popen(
             ["ip", "netns", "exec", self.names[host], sys.executable, "-m", "awaremw", *args],
             stdout=out,
             stderr=subprocess.STDOUT,
+            cwd=cwd,
+            env=env,
         )
 
     def wait_tcp(self, host: str, addr: str, port: int, timeout: float) -> None:
@@ -132,19 +141,29 @@ class Hosts:
         raise TimeoutError(f"{addr}:{port} not reachable from host {host} in {timeout} s")
 
 
-@pytest.fixture
-def hosts() -> Iterator[Hosts]:
+def _hosts(names: tuple[str, ...]) -> Iterator[Hosts]:
     why = _netns_usable()
     if why is not None:
         if REQUIRED:
             pytest.fail(f"network namespaces required but unusable: {why}")
         pytest.skip(why)
-    h = Hosts()
+    h = Hosts(names)
     try:
         h.up()
         yield h
     finally:
         h.down()
+
+
+@pytest.fixture
+def hosts() -> Iterator[Hosts]:
+    yield from _hosts(("r", "a", "b"))
+
+
+@pytest.fixture
+def sites() -> Iterator[Hosts]:
+    """Three hosts a, b, c: a router and a fleet part on each."""
+    yield from _hosts(("a", "b", "c"))
 
 
 def test_router_and_two_fleets_on_three_hosts(hosts: Hosts, tmp_path: Path) -> None:
@@ -222,3 +241,118 @@ def test_router_and_two_fleets_on_three_hosts(hosts: Hosts, tmp_path: Path) -> N
     boundary = [(s, d) for s in mine["a"] for d in mine["b"] if math.dist(pos[s], pos[d]) <= 16.0]
     heard_b = {(s, d) for s, d, _ in links["b"]}
     assert boundary and all(pair in heard_b for pair in boundary)
+
+
+def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+HOSTS_DOC = Path(__file__).resolve().parent.parent / "docs" / "hosts.md"
+
+
+def hosts_recipe() -> tuple[list[str], dict[str, list[list[str]]]]:
+    """The ```sh block of docs/hosts.md, "Run it": the lines before the first
+    ``# host X:`` comment, and each host's command lines (``&`` dropped), split."""
+    section = HOSTS_DOC.read_text(encoding="utf-8").split("## Run it", 1)[1]
+    m = re.search(r"```sh\n(.*?)```", section, re.S)
+    assert m is not None, "docs/hosts.md: no sh block under 'Run it'"
+    first: list[list[str]] = []
+    per_host: dict[str, list[list[str]]] = {}
+    host = None
+    for raw in m.group(1).splitlines():
+        line = raw.strip()
+        head = re.match(r"# host (\w):", line)
+        if head:
+            host = head.group(1)
+            per_host[host] = []
+        elif line and not line.startswith("#"):
+            words = shlex.split(line.removesuffix("&"))
+            assert words[0] == "awaremw", line
+            (first if host is None else per_host[host]).append(words[1:])
+    return [" ".join(w) for w in first], per_host
+
+
+def test_the_hosts_recipe_three_routers_linked_secrets_on(sites: Hosts, tmp_path: Path) -> None:
+    """docs/hosts.md as printed, on three namespaces: one router per host linked to the
+    others over mutual TLS, the gateway and a fleet part on each host's own router."""
+    first, recipe = hosts_recipe()
+    assert sorted(recipe) == ["a", "b", "c"] and first == ["keys init secrets/"]
+    keys = subprocess.run(
+        [sys.executable, "-m", "awaremw", *first[0].split()],
+        cwd=tmp_path, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert keys.returncode == 0, keys.stderr
+    fill = {f"HOST_{h.upper()}": sites.addr[h] for h in "abc"}
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        for h, lines in recipe.items():
+            for words in lines:
+                if words[0] == "router":
+                    procs.append(
+                        sites.popen(h, *_fill(words, fill, ""), log=tmp_path / f"router-{h}.log",
+                                    cwd=tmp_path)
+                    )  # fmt: skip
+        for h in "abc":
+            sites.wait_tcp(h, "127.0.0.1", 7447, timeout=20)
+        start = f"{time.time() + 6.0:.3f}"  # START: the same emulated time zero everywhere
+        runs: dict[str, subprocess.Popen[bytes]] = {}
+        for h, lines in recipe.items():
+            for words in lines:
+                if words[0] == "router":
+                    continue
+                name = f"{words[0]}-{h}"
+                extra = ["--duration", "10"]
+                if words[0] == "fleet":
+                    extra += ["--links-json", str(tmp_path / f"{h}.json")]
+                runs[name] = sites.popen(
+                    h, *_fill(words, fill, start), *extra, log=tmp_path / f"{name}.log",
+                    cwd=tmp_path,
+                )  # fmt: skip
+        procs += runs.values()
+        assert sorted(runs) == ["fleet-a", "fleet-b", "fleet-c", "gateway-a"]
+        for name, p in runs.items():
+            assert p.wait(timeout=120) == 0, (tmp_path / f"{name}.log").read_text()
+    finally:
+        _stop(procs)
+    for h in "abc":
+        assert "authenticated, access control by role" in (tmp_path / f"router-{h}.log").read_text()
+
+    dep = load("grid_small")
+    pos = {n.id: n.position for n in dep.nodes}
+    parts = zip("abc", stripes(dep, 3), strict=True)
+    mine = {h: {n.id for n in dep.nodes if part(n) and n.kind != "gateway"} for h, part in parts}
+    heard = {
+        h: {(src, dst) for src, dst, _ in json.loads((tmp_path / f"{h}.json").read_text())}
+        for h in "abc"
+    }
+    for h in "abc":
+        assert all(dst in mine[h] for _, dst in heard[h]), f"{h} delivered to another host's mote"
+    # Across both stripe boundaries, both ways, every pair the radio model makes a sure
+    # link heard each other: fleet -> its router -> the other router -> the other fleet.
+    model = dep.radio_model()
+
+    def sure(src: int, dst: int) -> bool:
+        rssi = model.mean_rssi(src, dst, math.dist(pos[src], pos[dst]), dep.tx_power_dbm)
+        return model.prr(rssi, 40) > 0.99
+
+    for west, east in (("a", "b"), ("b", "c")):
+        pairs = [(s, d) for s in mine[west] for d in mine[east] if sure(s, d) and sure(d, s)]
+        assert pairs, f"no sure link between {west} and {east}: the test has no teeth"
+        assert all(p in heard[east] for p in pairs), (west, east)
+        assert all((d, s) in heard[west] for s, d in pairs), (east, west)
+
+
+def _fill(words: list[str], addresses: dict[str, str], start: str) -> list[str]:
+    """A recipe line with the hosts' addresses and START filled in."""
+    out = []
+    for w in words:
+        for placeholder, addr in addresses.items():
+            w = w.replace(placeholder, addr)
+        out.append(start if w == "START" else w)
+    return out

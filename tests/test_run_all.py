@@ -1,5 +1,6 @@
-"""benchmarks/run_all.py: the README's figures table is its rows; the median run is
-one whole run; a --quick session has the structure the lead's full session has."""
+"""benchmarks/run_all.py: docs/figures.md's table is its rows and the README's short
+table its brief rows, both made from benchmarks/results.json; the median run is one
+whole run; a --quick session has the structure the lead's full session has."""
 
 from __future__ import annotations
 
@@ -35,22 +36,39 @@ def _table_rows(text: str) -> list[list[str]]:
     return rows
 
 
-def _readme_table() -> str:
+def _table_in(path: str) -> str:
     ra = _run_all()
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    text = (ROOT / path).read_text(encoding="utf-8")
     assert text.count(ra.BEGIN) == 1 and text.count(ra.END) == 1
     return text.split(ra.BEGIN, 1)[1].split(ra.END, 1)[0]
 
 
-def test_readme_figures_rows_are_exactly_run_all_rows() -> None:
-    """Every row of the README's figures table is made by run_all, with its command,
+def test_figures_rows_are_exactly_run_all_rows() -> None:
+    """Every row of docs/figures.md's table is made by run_all, with its command,
     in its order; no row that the script does not make."""
     ra = _run_all()
-    rows = _table_rows(_readme_table())
+    rows = _table_rows(_table_in("docs/figures.md"))
     assert [(r[0], r[1]) for r in rows] == [(row.label, f"`{row.command}`") for row in ra.ROWS]
     # Each row names a command a user can type.
     assert all(row.command.startswith("awaremw ") for row in ra.ROWS)
     assert len({row.key for row in ra.ROWS}) == len(ra.ROWS)
+
+
+def test_readme_short_table_is_the_brief_rows_linking_to_figures() -> None:
+    ra = _run_all()
+    assert set(ra.BRIEF) <= {row.key for row in ra.ROWS}
+    text = _table_in("README.md")
+    rows = _table_rows(text)
+    assert [r[0] for r in rows] == [row.label for row in ra.ROWS if row.key in ra.BRIEF]
+    assert "[docs/figures.md](docs/figures.md)" in text
+
+
+def test_both_tables_are_what_run_all_makes_of_the_results_file() -> None:
+    """`run_all.py --write-docs` wrote them from benchmarks/results.json, unedited."""
+    ra = _run_all()
+    report = json.loads((ROOT / "benchmarks/results.json").read_text(encoding="utf-8"))
+    assert _table_in("docs/figures.md") == "\n" + ra.markdown(report)
+    assert _table_in("README.md") == "\n" + ra.brief_markdown(report)
 
 
 def test_markdown_from_a_report_has_every_row_and_the_machine() -> None:

@@ -40,7 +40,7 @@ def test_keys_init_makes_private_files_and_never_overwrites(tmp_path: Path) -> N
     assert cli_main(["keys", "init", str(root)]) == 0
     d = SecretsDir(root.resolve())
     files = [p for p in root.rglob("*") if p.is_file()]
-    assert len(files) == 17
+    assert len(files) == 20
     for p in files:
         assert stat.S_IMODE(p.stat().st_mode) == 0o600, p
     for p in [root, *(p for p in root.rglob("*") if p.is_dir())]:
@@ -51,7 +51,8 @@ def test_keys_init_makes_private_files_and_never_overwrites(tmp_path: Path) -> N
     assert isinstance(pub, Ed25519PublicKey)
     pub.verify(d.read_signing_key().sign(b"item"), b"item")
     users = dict(ln.split(":", 1) for ln in d.zenoh_users.read_text().splitlines())
-    assert sorted(users) == sorted(ROLES) and len(set(users.values())) == 4
+    # one account per role, and the one routers log in with when they link to each other
+    assert sorted(users) == sorted([*ROLES, "router"]) and len(set(users.values())) == 5
     for role in ROLES:
         zenoh.Config.from_file(str(d.role_config(role)))  # the Python package accepts each
     zenoh.Config.from_file(str(d.router_config))

@@ -1,4 +1,4 @@
-"""Every deployment shipped in awaremw/deployments/ loads, validates, builds and runs.
+"""Every deployment shipped in nodes/ loads, validates, builds and runs.
 
 Each one is run briefly on the virtual clock with the cores the fleet uses
 (:func:`awaremw.nodes.build_core`), its definitions injected at the gateway

@@ -34,9 +34,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="awaremw",
         description="AWARE data-centric WSN middleware, emulated over Eclipse Zenoh.",
+        epilog="awaremw VERB --help: what a verb does, its options and examples.",
+        # one line per verb: room for the longest summary beside the verb's name
+        formatter_class=lambda prog: argparse.HelpFormatter(prog, max_help_position=16, width=80),
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
-    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    parser.add_argument("--version", action="version", version=f"awaremw {version()}")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB", title="verbs")
     for name in VERB_MODULES:
         try:
             mod = importlib.import_module(f"awaremw.cli.{name}")
@@ -46,6 +50,17 @@ def build_parser() -> argparse.ArgumentParser:
             raise
         mod.register(sub)
     return parser
+
+
+def version() -> str:
+    """The installed distribution's version (the source tree's when not installed)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("awaremw")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -14,15 +14,24 @@ import math
 import sys
 from typing import Any
 
+from awaremw.cli.helptext import add_verb, plain_summary
+
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from awaremw.bench import BENCHMARKS
 
-    p = subparsers.add_parser(
+    p = add_verb(
+        subparsers,
         "bench",
-        help="run a benchmark (" + ", ".join(BENCHMARKS) + ")",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "run a benchmark (figures as text or JSON)",
+        "Benchmarks: " + ", ".join(BENCHMARKS) + ".\n\n"
+        "Run a benchmark and print its figures: key: value lines, or one JSON object\n"
+        "with --json. awaremw bench NAME --help lists a benchmark's own options.",
+        [
+            "awaremw bench virtual --motes 1000 --duration 60 --json",
+            "awaremw bench scale --motes 2000 --processes 2 --json",
+            "awaremw bench mac --help",
+        ],
         add_help=False,  # "bench NAME --help" is the benchmark's own help
     )
     p.add_argument("-h", "--help", action="store_true", help="this help, or NAME's")
@@ -63,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
     inner = argparse.ArgumentParser(
         prog=f"awaremw bench {args.name}",
-        description=(mod.__doc__ or "").strip() or None,
+        description=plain_summary(mod.__doc__ or "") or None,
+        epilog=f"examples:\n  awaremw bench {args.name} --json",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     inner.add_argument("--json", action="store_true", help="print one JSON object")

@@ -26,22 +26,31 @@ import time
 from pathlib import Path
 from types import FrameType
 
+from awaremw.cli.helptext import add_verb
+
 READY_TIMEOUT_S = 10.0
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = subparsers.add_parser(
+    p = add_verb(
+        subparsers,
         "broker",
-        help="run Mosquitto with broker_cfg/ (accounts, ACL) on this machine",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "run Mosquitto with broker_cfg/ (accounts, ACL) here",
+        """\
+Mosquitto with broker_cfg/, outside Docker: the password file and the ACL are
+copied into a work directory, the configuration rewritten to those local paths
+and the chosen listener, and mosquitto runs in the foreground until Ctrl-C.
+Accounts of broker_cfg/passwd: operator (definitions and commands), gateway
+(data, groups, status, errors), viewer (reads); the committed file holds the
+test passwords <name>-pw (broker_cfg/make_passwd.sh makes real ones).""",
+        ["awaremw broker --mosquitto --port 1884"],
     )
     p.add_argument(
         "--mosquitto",
         action="store_true",
         required=True,
         help="run the mosquitto binary (the only broker this verb runs; the embedded one "
-        "comes with `awaremw gateway` and `awaremw demo`)",
+        "comes with awaremw gateway and awaremw demo)",
     )
     p.add_argument("--port", type=int, default=1883, help="listener port (default 1883)")
     p.add_argument("--host", default="127.0.0.1", help="listener address (default 127.0.0.1)")

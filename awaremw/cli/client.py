@@ -1,18 +1,13 @@
 """Client verbs: ``define``, ``delete``, ``command``, ``watch`` (an IP device over MQTT).
 
-::
-
-    awaremw define group 1 "temperature > 45" --hysteresis 1
-    awaremw define group 2 "rssi:100 > -89" "x < 20"
-    awaremw define channel 1 --attr temperature --group-type 1 --group-id '*' --period 2 --agg avg
-    awaremw delete channel 1
-    awaremw command led --target node:7 --arg on=true
-    awaremw watch 'aware/data/#' --count 10
-
 Payloads are validated locally with the gateway's own schema before they are
 sent (so most mistakes are reported at once); the gateway validates again and
 reports refusals on ``<prefix>/errors`` -- ``--wait S`` listens there for S
 seconds after publishing and exits 1 if the gateway refused.
+
+Without ``--mqtt`` the verbs talk to the embedded broker of a gateway on this
+machine, with the account it keeps (:mod:`awaremw.gateway.local_broker`); a
+loopback URL without an account gets that account too.
 """
 
 from __future__ import annotations
@@ -25,14 +20,20 @@ import re
 import secrets
 import sys
 import time
+from dataclasses import replace
 from typing import Any
 
 import aiomqtt
 
+from awaremw.cli.helptext import add_verb, add_wall_timeout
 from awaremw.gateway import schema
+from awaremw.gateway.local_broker import LOOPBACK, find_local_broker, state_base
 from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
+from awaremw.nodes.kinds import COMMANDS
 
 DEFAULT_URL = "mqtt://127.0.0.1:1883"
+# The gateway's own checks, with the commands motes accept.
+LIMITS = schema.Limits(commands=frozenset(COMMANDS))
 # How long `delete` waits for the retained definition it removes (brokers send
 # retained messages right after the subscription is acknowledged).
 RETAINED_WAIT_S = 1.0
@@ -50,9 +51,10 @@ class UsageError(ValueError):
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--mqtt",
-        default=DEFAULT_URL,
+        default=None,
         metavar="URL",
-        help=f"broker, mqtt[s]://[user:pass@]host:port (default {DEFAULT_URL})",
+        help="broker, mqtt[s]://[user:pass@]host:port (default: the embedded broker of a "
+        f"gateway on this machine, with its account; else {DEFAULT_URL})",
     )
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     p.add_argument("--client-id", default=None, help="MQTT client id (default: random)")
@@ -69,10 +71,42 @@ def _wait_opt(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _commands_text() -> str:
+    width = max(len(n) for n in COMMANDS)
+    return "\n".join(f"  {n:<{width}}  {doc}" for n, doc in sorted(COMMANDS.items()))
+
+
+_BROKER_NOTE = (
+    "Without --mqtt: the embedded broker of a gateway on this machine, with the account\n"
+    "it keeps under ~/.local/state/awaremw; else --mqtt mqtt://USER:PASS@HOST:PORT."
+)
+
+
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    d = sub.add_parser("define", help="define a group type or a channel (retained MQTT message)")
+    d = add_verb(
+        sub,
+        "define",
+        "define a group type or a channel (retained MQTT message)",
+        "Publish a definition on the MQTT contract (<prefix>/def/...), checked first\n"
+        "with the gateway's own rules.\n\n" + _BROKER_NOTE,
+        [
+            'awaremw define group 1 "temperature > 45" --hysteresis 1',
+            'awaremw define group 2 "rssi:100 > -89"',
+            "awaremw define channel 1 --attr temperature --group-type 1 --period 2 --agg avg",
+        ],
+    )
     dsub = d.add_subparsers(dest="what", metavar="group|channel", required=True)
-    g = dsub.add_parser("group", help='define a group type: TYPE "attr op value"...')
+    g = add_verb(
+        dsub,
+        "group",
+        'define a group type: TYPE "attr op value"...',
+        "A group type: motes whose readings meet every condition form groups of this\n"
+        "type (retained on <prefix>/def/group/TYPE).\n\n" + _BROKER_NOTE,
+        [
+            'awaremw define group 1 "temperature > 45" --hysteresis 1',
+            'awaremw define group 2 "rssi:100 > -89" "x < 20"',
+        ],
+    )
     g.add_argument("type", metavar="TYPE", help="group type id (0..254)")
     g.add_argument(
         "conditions",
@@ -85,7 +119,17 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     _wait_opt(g)
     g.set_defaults(func=cmd_define_group)
 
-    c = dsub.add_parser("channel", help="define a channel")
+    c = add_verb(
+        dsub,
+        "channel",
+        "define a channel",
+        "A channel: an attribute sampled by the members of groups, aggregated in the\n"
+        "network and published on <prefix>/data/ID/TYPE/GROUP.\n\n" + _BROKER_NOTE,
+        [
+            "awaremw define channel 1 --attr temperature --group-type 1 --period 2 --agg avg",
+            "awaremw define channel 2 --attr light --period 5 --agg max",
+        ],
+    )
     c.add_argument("id", metavar="ID", help="channel id (0..255)")
     c.add_argument("--attr", required=True, help="attribute, e.g. temperature, rssi:100")
     c.add_argument("--group-type", default="*", help='group type or "*" (default *)')
@@ -96,15 +140,36 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     _wait_opt(c)
     c.set_defaults(func=cmd_define_channel)
 
-    x = sub.add_parser("delete", help="delete a group type or a channel")
+    x = add_verb(
+        sub,
+        "delete",
+        "delete a group type or a channel",
+        "Clear a retained definition; the gateway spreads the deletion to the motes.\n\n"
+        + _BROKER_NOTE,
+        ["awaremw delete channel 1", "awaremw delete group 1"],
+    )
     x.add_argument("what", choices=("group", "channel"))
     x.add_argument("id", metavar="ID")
     _common(x)
     _wait_opt(x)
     x.set_defaults(func=cmd_delete)
 
-    m = sub.add_parser("command", help="send a command to motes")
-    m.add_argument("name", metavar="NAME")
+    m = add_verb(
+        sub,
+        "command",
+        "send a command to motes",
+        "Send a command on <prefix>/cmd/NAME; the motes it targets run it.\n\n"
+        "Commands motes accept (any other name is refused):\n"
+        + _commands_text()
+        + "\n\n"
+        + _BROKER_NOTE,
+        [
+            "awaremw command led --target all --arg state=on",
+            "awaremw command set_rate --target group:1/* --arg period_s=5",
+            "awaremw command beep --target node:7 --arg duration_ms=200 --wait 5",
+        ],
+    )
+    m.add_argument("name", metavar="NAME", help=f"one of: {', '.join(sorted(COMMANDS))}")
     m.add_argument(
         "--target", default="all", help="all | node:ID | group:TYPE/ID (ID may be *) (default all)"
     )
@@ -119,10 +184,20 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     _wait_opt(m)
     m.set_defaults(func=cmd_command)
 
-    w = sub.add_parser("watch", help="print what arrives on a topic (default <prefix>/#)")
+    w = add_verb(
+        sub,
+        "watch",
+        "print what arrives on a topic (default <prefix>/#)",
+        "Subscribe and print one line per message: topic and payload (or JSON).\n\n"
+        + _BROKER_NOTE,
+        [
+            "awaremw watch 'aware/data/#' --count 3",
+            "awaremw watch aware/errors --json --timeout 60",
+        ],
+    )
     w.add_argument("topic", nargs="?", default=None, metavar="TOPIC")
     w.add_argument("--count", type=int, default=0, help="exit after N messages")
-    w.add_argument("--duration", type=float, default=0.0, metavar="S", help="exit after S s")
+    add_wall_timeout(w, "exit")
     w.add_argument("--json", action="store_true", help="one JSON object per line")
     _common(w)
     w.set_defaults(func=cmd_watch)
@@ -190,7 +265,18 @@ def parse_arg(text: str) -> tuple[str, Any]:
 
 
 def _settings(args: argparse.Namespace) -> MqttSettings:
-    return MqttSettings.from_url(args.mqtt, prefix=args.prefix, ca_file=args.ca_file)
+    """The broker of ``--mqtt``; on this machine without an account, the embedded
+    broker's own (found in its state directory)."""
+    if args.mqtt is None:
+        local = find_local_broker()
+        url = DEFAULT_URL if local is None else local.url
+        return MqttSettings.from_url(url, prefix=args.prefix, ca_file=args.ca_file)
+    s = MqttSettings.from_url(args.mqtt, prefix=args.prefix, ca_file=args.ca_file)
+    if s.username is None and not s.tls and s.host in LOOPBACK:
+        local = find_local_broker(s.port)
+        if local is not None:
+            s = replace(s, username=local.username, password=local.password)
+    return s
 
 
 def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
@@ -305,7 +391,14 @@ def _run(fn: Any, args: argparse.Namespace) -> int:
         print(f"awaremw: {e}", file=sys.stderr)
         return 2
     except aiomqtt.MqttError as e:
-        print(f"awaremw: MQTT {args.mqtt}: {e}", file=sys.stderr)
+        url = args.mqtt or DEFAULT_URL
+        hint = ""
+        if "authorized" in str(e).lower() and (args.mqtt is None or "@" not in args.mqtt):
+            hint = (
+                f"; no embedded broker account found under {state_base()} (is a gateway "
+                "running here?): give --mqtt mqtt://USER:PASS@HOST:PORT"
+            )
+        print(f"awaremw: MQTT {url}: {e}{hint}", file=sys.stderr)
         return 1
 
 
@@ -316,7 +409,7 @@ def cmd_define_group(args: argparse.Namespace) -> int:
     def go(args: argparse.Namespace) -> int:
         doc = {"conditions": parse_conditions(args.conditions), "hysteresis": args.hysteresis}
         payload = json.dumps(doc).encode()
-        schema.parse_group_type(args.type, payload, schema.Limits())  # refuse early
+        schema.parse_group_type(args.type, payload, LIMITS)  # refuse early
         return _send(args, f"def/group/{args.type}", payload, retain=True)
 
     return _run(go, args)
@@ -332,7 +425,7 @@ def cmd_define_channel(args: argparse.Namespace) -> int:
             "agg": args.agg,
         }
         payload = json.dumps(doc).encode()
-        schema.parse_channel(args.id, payload, schema.Limits())
+        schema.parse_channel(args.id, payload, LIMITS)
         gt = doc["group_type"]
         needs = None if gt == "*" else f"def/group/{gt}"
         return _send(args, f"def/channel/{args.id}", payload, retain=True, needs=needs)
@@ -342,7 +435,7 @@ def cmd_define_channel(args: argparse.Namespace) -> int:
 
 def cmd_delete(args: argparse.Namespace) -> int:
     def go(args: argparse.Namespace) -> int:
-        lim = schema.Limits()
+        lim = LIMITS
         if args.what == "group":
             schema.group_type_id(args.id, lim)
         else:
@@ -356,7 +449,7 @@ def cmd_command(args: argparse.Namespace) -> int:
     def go(args: argparse.Namespace) -> int:
         doc = {"target": parse_target(args.target), "args": dict(parse_arg(a) for a in args.arg)}
         payload = json.dumps(doc).encode()
-        schema.parse_command(args.name, payload, schema.Limits())
+        schema.parse_command(args.name, payload, LIMITS)
         return _send(args, f"cmd/{args.name}", payload, retain=False)
 
     return _run(go, args)
@@ -367,7 +460,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
         s = _settings(args)
         topic = args.topic or s.topic("#")
         with contextlib.suppress(KeyboardInterrupt):
-            asyncio.run(watch(s, topic, args.count, args.duration, args.json, args.client_id))
+            asyncio.run(watch(s, topic, args.count, args.timeout or 0.0, args.json, args.client_id))
         return 0
 
     return _run(go, args)

@@ -24,6 +24,7 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -33,14 +34,31 @@ from rich.console import Console
 from rich.table import Table
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.helptext import add_verb
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_verb(
+        sub,
         "demo",
-        help="the whole system on this machine: fleet, gateway, MQTT, robot client, live map",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "the whole system here: fleet, gateway, MQTT, robot, live map",
+        """\
+Everything on one machine with nothing else installed: the fleet of motes over
+Zenoh on loopback, the gateway with an embedded MQTT broker (unless --mqtt),
+and the robot's client, which defines the tracking group and a channel over
+MQTT and prints the data it receives, with a live map (--plain: log lines).
+The run ends after the scenario's duration (or --duration emulated seconds)
+with a summary, also written to --summary FILE. Exit status 1 when the broker
+cannot be reached or the robot received no record.
+
+Secure by default: throw-away secrets, Zenoh access control by role,
+authenticated radio frames, signed definitions; --insecure runs it all open.""",
+        [
+            "awaremw demo",
+            "awaremw demo --deployment fire --speed 5",
+            "awaremw demo --duration 60 --plain",
+            "awaremw demo --web 127.0.0.1:8080",
+        ],
     )
     p.add_argument("--deployment", default="romeo4r", help="deployment name or path")
     p.add_argument("--duration", type=float, default=None, help="emulated seconds to run")
@@ -53,7 +71,7 @@ def register(sub: Any) -> None:
         help="the robot client's own broker account (default: the --mqtt URL)",
     )
     add_secrets_option(
-        p, "use these secrets (DIR from `awaremw keys init`; default: throw-away ones)"
+        p, "use these secrets (DIR from awaremw keys init; default: throw-away ones)"
     )
     p.add_argument(
         "--insecure",
@@ -79,7 +97,8 @@ def register(sub: Any) -> None:
         "--web",
         default=None,
         metavar="HOST:PORT",
-        help="also serve the web dashboard there (e.g. 127.0.0.1:8080; docs/dashboard.md)",
+        help="also serve the web dashboard there (e.g. 127.0.0.1:8080; beyond loopback the "
+        "password in $AWAREMW_WEB_PASSWORD; docs/dashboard.md)",
     )
     p.add_argument(
         "--summary",
@@ -128,10 +147,11 @@ def main(args: argparse.Namespace) -> int:
                 print(f"awaremw demo: {e}", file=sys.stderr)
                 return 2
     if args.web is not None:
-        from awaremw.view.web import parse_host_port
+        from awaremw.view.guard import check_bind
+        from awaremw.view.web import PASSWORD_ENV, parse_host_port
 
         try:
-            parse_host_port(args.web)
+            check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))
         except ValueError as e:
             print(f"awaremw demo: {e}", file=sys.stderr)
             return 2
@@ -203,6 +223,14 @@ def no_record_reason(s: dict[str, Any], external: bool) -> str:
         )
     if s["records_produced"]:
         return f"the robot received none of the {s['records_produced']} records produced"
+    if s.get("group_types") == [] or s.get("channels") == []:
+        missing = "group type" if s.get("group_types") == [] else "channel"
+        return (
+            f"no record can come: {s['deployment']} defines no {missing} ([[groups]] and "
+            "[[channels]] in the deployment file, docs/deployments.md), so no group "
+            "sends data, however long it runs; use a deployment with both (romeo4r, fire, "
+            "large) or define them over MQTT while it runs (awaremw define)"
+        )
     return "no record was produced: no group formed in the time run (try a longer --duration)"
 
 
@@ -269,6 +297,7 @@ async def run_demo(
     from awaremw.experiments.snapshot import snapshot_of
     from awaremw.gateway.broker import mask_url
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
+    from awaremw.view.snapshot import with_leds
 
     view: View = PlainLog(every=10.0) if plain else LiveView()
     dash = None
@@ -281,12 +310,13 @@ async def run_demo(
         print(f"web dashboard: {dash.url}", flush=True)
 
     def tick(now: float, run: RealtimeRun) -> None:
-        snap = snapshot_of(sc, run.recorder, now, run.live, run.traffic())
+        cores = run.cores()
+        snap = with_leds(snapshot_of(sc, run.recorder, now, run.live, run.traffic()), cores)
         view.update(snap)
         if dash is not None:
             from awaremw.view.web import field_of
 
-            dash.update_field(now, field_of(snap.motes, run.cores()))
+            dash.update_field(now, field_of(snap.motes, cores))
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)
@@ -338,6 +368,9 @@ async def run_demo(
         "frames_per_mote": traffic.frames_tx,
         "energy_mj_per_mote": traffic.energy_mj,
         "errors": list(run.live.errors),
+        # what the robot's client defined: none means no group can form, however long
+        "group_types": sorted(sc.group_json),
+        "channels": sorted(sc.channel_json),
     }
     if gtype is not None and sc.robot is not None and run.live.records:
         first = run.live.records[0]

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.helptext import add_verb
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
 from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
 
@@ -25,11 +26,24 @@ REALTIME = ("romeo4r", "fire", "large")  # experiments that also run in real tim
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_verb(
+        sub,
         "experiment",
-        help="run an experiment (romeo4r, fire, failover, large, city) with figures and metrics",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "run an experiment of the paper, with figures and metrics",
+        "Experiments: " + ", ".join(sorted(EXPERIMENTS)) + ".\n\n"
+        """\
+The paper's section V, with figures and metrics against ground truth
+(docs/experiments.md). Without --virtual the scenario runs in real time: the
+fleet over Zenoh, the gateway with the embedded MQTT broker, records taken
+from an MQTT subscriber (--speed scales emulated time). --virtual runs the
+same motes on the virtual clock, as fast as the CPU allows; --seeds A-B runs
+several seeds and reports their distribution.""",
+        [
+            "awaremw experiment romeo4r --out out/romeo4r",
+            "awaremw experiment fire --speed 5",
+            "awaremw experiment romeo4r --virtual --seeds 1-40 --jobs 2",
+            "awaremw experiment city --virtual --seeds 1-10 --jobs 2",
+        ],
     )
     p.add_argument("name", choices=sorted(EXPERIMENTS), help="which experiment")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: out/NAME)")
@@ -48,7 +62,7 @@ def register(sub: Any) -> None:
     )
     add_secrets_option(
         p,
-        "authenticated radio frames and signed items (DIR from `awaremw keys init`); in "
+        "authenticated radio frames and signed items (DIR from awaremw keys init); in "
         "real time also Zenoh with authentication and access control by role",
     )
     p.add_argument("--plain", action="store_true", help="log lines instead of a live view")

@@ -27,14 +27,22 @@ import sys
 from typing import Any
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, zenoh_message
+from awaremw.cli.helptext import add_verb
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = subparsers.add_parser(
+    p = add_verb(
+        subparsers,
         "fleet",
-        help="run a deployment's motes (one process or many)",
-        description="Run the motes of DEPLOYMENT on the Zenoh radio medium.",
+        "run a deployment's motes (one process or many)",
+        "Run the motes of DEPLOYMENT (a shipped name or a .toml path) on the Zenoh\n"
+        "radio medium until --duration emulated seconds or Ctrl-C.",
+        [
+            "awaremw fleet grid_small --plain",
+            "awaremw fleet romeo4r --connect tcp/127.0.0.1:7447 --without-kind gateway --plain",
+            "awaremw fleet large --processes 2 --duration 60",
+        ],
     )
     p.add_argument(
         "deployment",
@@ -104,15 +112,21 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     add_secrets_option(
         p,
-        "connect with role fleet (DIR from `awaremw keys init`): to the router at "
+        "connect with role fleet (DIR from awaremw keys init): to the router at "
         "--connect, else to an embedded router started here with DIR's access rules",
     )
     p.set_defaults(func=run_fleet)
 
-    c = subparsers.add_parser(
+    c = add_verb(
+        subparsers,
         "fleet-ctl",
-        help="add, kill or list motes of running fleets",
-        description="Talk to running fleets through <prefix>/ctl/fleet/* on Zenoh.",
+        "add, kill or list motes of running fleets",
+        "Talk to running fleets through <prefix>/ctl/fleet/* on Zenoh.",
+        [
+            "awaremw fleet-ctl --connect tcp/127.0.0.1:7447 list",
+            "awaremw fleet-ctl --connect tcp/127.0.0.1:7447 kill 7",
+            "awaremw fleet-ctl add 99 --kind tmote --position 20 30",
+        ],
     )
     c.add_argument(
         "--connect",
@@ -123,7 +137,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     c.add_argument("--prefix", default="aware", help="Zenoh key prefix (default aware)")
     c.add_argument("--timeout", type=float, default=3.0, metavar="S", help="wait for answers")
-    add_secrets_option(c, "connect to the router with role operator (DIR from `awaremw keys init`)")
+    add_secrets_option(c, "connect to the router with role operator (DIR from awaremw keys init)")
     csub = c.add_subparsers(dest="op", metavar="OP", required=True)
     a = csub.add_parser("add", help="add a mote (validated like a [[nodes]] entry)")
     a.add_argument("id", type=int)

@@ -32,17 +32,23 @@ import time
 from pathlib import Path
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.helptext import add_verb
 from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
 log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser(
+    p = add_verb(
+        sub,
         "gateway",
-        help="run the gateway motes and the MQTT / Zenoh bridge",
-        description="Run the deployment's gateway motes and bridge them to MQTT (an "
-        "embedded broker when --mqtt is not given) and to the Zenoh HBN API.",
+        "run the gateway motes and the MQTT / Zenoh bridge",
+        "Run the deployment's gateway motes and bridge them to MQTT (an embedded\n"
+        "broker with an account when --mqtt is not given) and to the Zenoh HBN API.",
+        [
+            "awaremw gateway romeo4r --connect tcp/127.0.0.1:7447",
+            "awaremw gateway romeo4r --mqtt mqtt://gateway:PW@127.0.0.1:1884",
+        ],
     )
     p.add_argument("deployment", metavar="DEPLOYMENT", help="deployment name or .toml path")
     p.add_argument(
@@ -96,7 +102,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_secrets_option(
         p,
         "connect to the router at --connect (default tcp/127.0.0.1:7447) with role "
-        "gateway (DIR from `awaremw keys init`)",
+        "gateway (DIR from awaremw keys init)",
     )
     p.add_argument(
         "--state-dir",

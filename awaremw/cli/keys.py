@@ -15,25 +15,34 @@ import argparse
 import sys
 from pathlib import Path
 
+from awaremw.cli.helptext import add_verb
 from awaremw.security.zenoh_acl import DEFAULT_PREFIX
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser(
+    p = add_verb(
+        sub,
         "keys",
-        help="create the secrets: radio key, gateway signing key, Zenoh and MQTT accounts, "
-        "MQTT TLS certificates",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "create the secrets (radio key, signing key, accounts, TLS)",
+        "The secrets of a deployment (docs/security.md): give the directory to every\n"
+        "process with --secrets DIR.",
+        [
+            "awaremw keys init secrets/",
+            "awaremw router --secrets secrets/",
+            "awaremw gateway romeo4r --connect tcp/127.0.0.1:7447 --secrets secrets/",
+        ],
     )
     ksub = p.add_subparsers(dest="keys_op", metavar="OP", required=True)
-    i = ksub.add_parser(
+    i = add_verb(
+        ksub,
         "init",
-        help="create every secret in DIR (files 0600, directories 0700)",
-        description="Create in DIR: the radio network key, the gateway's Ed25519 key pair, "
-        "Zenoh accounts per role with the router's config (authentication, access control) "
-        "and one client config per role, the Mosquitto password and ACL files, a CA and "
-        "the broker's TLS certificate.",
+        "create every secret in DIR (files 0600, directories 0700)",
+        "Create in DIR: the radio network key, the gateway's Ed25519 key pair, Zenoh\n"
+        "accounts per role with the router's config (authentication, access control)\n"
+        "and one client config per role, the routers' certificate for links between\n"
+        "routers (mutual TLS), the Mosquitto password and ACL files, a CA and the\n"
+        "broker's TLS certificate.",
+        ["awaremw keys init secrets/", "awaremw keys init secrets/ --force"],
     )
     i.add_argument("dir", type=Path, metavar="DIR")
     i.add_argument("--force", action="store_true", help="replace existing secret files")

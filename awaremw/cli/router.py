@@ -7,20 +7,27 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 from types import FrameType
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.helptext import add_verb
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
 
 CLOSE_TIMEOUT_S = 5.0
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = subparsers.add_parser(
+    p = add_verb(
+        subparsers,
         "router",
-        help="run an embedded Zenoh router (for multi-process or multi-host fleets)",
-        description="Run a Zenoh session in router mode until interrupted (Ctrl-C or SIGTERM). "
+        "run a Zenoh router (multi-process or multi-host fleets)",
+        "Run a Zenoh session in router mode until interrupted (Ctrl-C or SIGTERM).\n"
         "Fleets and gateways join it with --connect ENDPOINT.",
+        [
+            "awaremw router --listen tcp/127.0.0.1:7447",
+            "awaremw router --listen tcp/0.0.0.0:7447 --secrets secrets/",
+        ],
     )
     p.add_argument(
         "--listen",
@@ -33,12 +40,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="another router to link to (repeatable)",
+        help="another router to link to (repeatable); with --secrets a tls/ endpoint "
+        "(mutual TLS with the routers' certificate), and the other router listens on tls/",
     )
     add_secrets_option(
         p,
         "authenticate every session and apply the access rules of DIR/zenoh/router.json5 "
-        "(from `awaremw keys init DIR`)",
+        "(from awaremw keys init DIR)",
     )
     p.set_defaults(func=run)
 
@@ -56,11 +64,14 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, on_signal)
     config_file: str | None = None
     if args.secrets is not None:
-        from awaremw.security.zenoh_acl import router_config_path
+        from awaremw.security.zenoh_acl import check_router_links, router_config_path
 
-        config_file = load_secrets(
-            "awaremw router", args.secrets, lambda d: str(router_config_path(d))
-        )
+        def linkable(d: Path) -> str:
+            path = router_config_path(d)
+            check_router_links(path, args.connect)
+            return str(path)
+
+        config_file = load_secrets("awaremw router", args.secrets, linkable)
         if config_file is None:
             return 2
     try:

@@ -2,7 +2,7 @@
 
 Subscribes to the radio's key expressions (``<prefix>/radio/**``) like a mote
 would and writes every frame on the air to FILE as pcapng with link type IEEE
-802.15.4 (no FCS), until Ctrl-C / SIGTERM (or ``--duration`` wall seconds);
+802.15.4 (no FCS), until Ctrl-C / SIGTERM (or ``--timeout`` wall seconds);
 the file is flushed every second and on exit. With ``--secrets DIR`` it joins
 through the router with the fleet role, checks every frame's MIC with the
 network key and writes the payload without counter and MIC. ``--dissector``
@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.helptext import add_verb, add_wall_timeout
 
 DISSECTOR = Path(__file__).resolve().parent.parent / "wireshark" / "awaremw.lua"
 
@@ -35,11 +36,20 @@ def dissector_path() -> Path:
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_verb(
+        sub,
         "sniff",
-        help="capture the emulated radio live to a pcapng file Wireshark reads",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "capture the emulated radio live to a pcapng file",
+        """\
+Subscribe to the radio's key expressions (<prefix>/radio/**) like a mote and
+write every frame on the air to FILE as pcapng (IEEE 802.15.4, no FCS), until
+Ctrl-C / SIGTERM or --timeout S. With --secrets DIR it checks every frame's MIC
+with the network key. --dissector prints the path of the shipped Wireshark Lua
+dissector. See docs/capture.md.""",
+        [
+            "awaremw sniff --connect tcp/127.0.0.1:7447 --pcap radio.pcapng",
+            "tshark -X lua_script:$(awaremw sniff --dissector) -r radio.pcapng",
+        ],
     )
     p.add_argument(
         "--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint"
@@ -47,9 +57,7 @@ def register(sub: Any) -> None:
     p.add_argument("--pcap", default=None, metavar="FILE", help="capture file (pcapng)")
     p.add_argument("--prefix", default="aware", help="Zenoh key prefix of the radio")
     add_secrets_option(p, "verify and strip the MIC (keys init DIR)")
-    p.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="stop after S wall seconds"
-    )
+    add_wall_timeout(p, "stop")
     p.add_argument(
         "--dissector", action="store_true", help="print the Wireshark dissector's path and exit"
     )
@@ -63,8 +71,8 @@ def main(args: argparse.Namespace) -> int:
     if args.pcap is None or not args.connect:
         print("awaremw sniff: --connect ENDPOINT and --pcap FILE are needed", file=sys.stderr)
         return 2
-    if args.duration is not None and args.duration <= 0:
-        print("awaremw sniff: --duration must be > 0", file=sys.stderr)
+    if args.timeout is not None and args.timeout <= 0:
+        print("awaremw sniff: --timeout must be > 0", file=sys.stderr)
         return 2
     from awaremw.runtime.zenoh_session import SessionSettings
 
@@ -113,7 +121,7 @@ async def _sniff(args: argparse.Namespace, settings: Any, security: Any) -> int:
             flush=True,
         )
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(stop.wait(), args.duration)
+            await asyncio.wait_for(stop.wait(), args.timeout)
     finally:
         sniffer.close()
         await asyncio.to_thread(close_quietly, session)

@@ -17,21 +17,35 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import sys
 from typing import Any
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.helptext import add_verb, add_wall_timeout
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_verb(
+        sub,
         "view",
-        help="web dashboard of a running system (MQTT contract, optional Zenoh fleet positions)",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        "web dashboard of a running system (MQTT, optional Zenoh)",
+        """\
+The web dashboard of a system started elsewhere (awaremw fleet and awaremw
+gateway, containers, other hosts). It reads the public MQTT contract and
+publishes the page's definitions and commands with the account of --mqtt (use
+one with the operator's rights). Mote positions come from the deployment, or,
+with --connect, from the fleets themselves. The contract names each group's
+leader but not its members: this view marks leaders; awaremw demo --web shows
+every member. Details: docs/dashboard.md.""",
+        [
+            "awaremw view --web 127.0.0.1:8080 --mqtt mqtt://operator:PW@127.0.0.1:1883 "
+            "--deployment romeo4r",
+        ],
     )
     p.add_argument("--web", default="127.0.0.1:8080", metavar="HOST:PORT",
-                   help="where to serve the page (default 127.0.0.1:8080)")  # fmt: skip
+                   help="where to serve the page (default 127.0.0.1:8080; any other than "
+                        "loopback needs the password in $AWAREMW_WEB_PASSWORD)")  # fmt: skip
     p.add_argument("--mqtt", required=True, help="broker mqtt[s]://[user:pass@]host:port")
     p.add_argument("--deployment", default="romeo4r", help="deployment name or path (the field)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
@@ -42,7 +56,7 @@ def register(sub: Any) -> None:
                    help="the fleet's speed factor (moves mobile motes)")  # fmt: skip
     p.add_argument("--group-type", type=int, default=None,
                    help="the group type the map colours (default: the lowest seen)")  # fmt: skip
-    p.add_argument("--duration", type=float, default=None, help="wall seconds to serve")
+    add_wall_timeout(p, "stop serving")
     p.set_defaults(func=main)
 
 
@@ -50,11 +64,18 @@ def main(args: argparse.Namespace) -> int:
     from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
     from awaremw.nodes import world_of
     from awaremw.runtime.deployment import DeploymentError, load
-    from awaremw.view.web import DashboardError, dashboard_for, parse_host_port, run_view
+    from awaremw.view.guard import check_bind
+    from awaremw.view.web import (
+        PASSWORD_ENV,
+        DashboardError,
+        dashboard_for,
+        parse_host_port,
+        run_view,
+    )
 
     try:
         dep = load(args.deployment)
-        parse_host_port(args.web)
+        check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))
         MqttSettings.from_url(args.mqtt)
     except (DeploymentError, BadMqttUrl, ValueError) as e:
         print(f"awaremw view: {e}", file=sys.stderr)
@@ -75,7 +96,7 @@ def main(args: argparse.Namespace) -> int:
                          prefix=args.prefix)  # fmt: skip
 
     async def serve() -> None:
-        await run_view(dash, dep, speed=args.speed, duration=args.duration,
+        await run_view(dash, dep, speed=args.speed, duration=args.timeout,
                        connect=args.connect or None, prefix=args.prefix,
                        config_file=config_file, announce=True)  # fmt: skip
 

@@ -1,6 +1,6 @@
 """Fires that merge and split: the group id rules of the paper's section II-A.
 
-Runs ``awaremw/deployments/fire.toml`` and checks, against the ground truth (the connected
+Runs ``nodes/fire.toml`` and checks, against the ground truth (the connected
 regions of motes whose noise-free temperature is over the threshold):
 
 * while there are two fires, each is one group with its own id;

@@ -1,6 +1,6 @@
 """Tracking at scale: a group follows a robot across 1,024 motes.
 
-Runs ``awaremw/deployments/large.toml``: a 32 x 32 grid of tmote sky motes
+Runs ``nodes/large.toml``: a 32 x 32 grid of tmote sky motes
 (CC2420, 12 m apart), the gateway's mote in the middle, a robot driving a loop
 through the field while its mote beacons; group type 1 is "hears the robot
 above -90 dBm", with an AVG temperature channel (2 s) and a COUNT channel

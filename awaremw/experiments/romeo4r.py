@@ -1,6 +1,6 @@
 """Section V of the paper: a group tracks the Romeo 4R robot.
 
-Runs ``awaremw/deployments/romeo4r.toml`` (virtual clock, or the real-time fleet over Zenoh
+Runs ``nodes/romeo4r.toml`` (virtual clock, or the real-time fleet over Zenoh
 with the gateway and an MQTT subscriber), then scores the tracking group
 against the ground truth and draws the paper's figures:
 

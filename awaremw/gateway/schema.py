@@ -38,6 +38,7 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+from awaremw.nodes.kinds import COMMANDS
 from awaremw.protocol.attributes import UnknownAttribute, attribute_id, attribute_name
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.frames import (
@@ -154,6 +155,10 @@ class BadCommand(SchemaError):
     code = "bad_command"
 
 
+class UnknownCommand(SchemaError):
+    code = "unknown_command"
+
+
 class TooManyDefinitions(SchemaError):
     code = "too_many_definitions"
 
@@ -184,6 +189,8 @@ class Limits:
     max_period_s: float = 86400.0
     gateway_node: int = 0  # source address used for the MTU check
     known_nodes: frozenset[int] | None = None  # command node targets, None = any valid id
+    # Command names motes accept (awaremw.nodes.kinds.COMMANDS), None = any valid name.
+    commands: frozenset[str] | None = None
 
     @classmethod
     def from_config(
@@ -192,6 +199,7 @@ class Limits:
         *,
         known_nodes: Collection[int] | None = None,
         gateway_node: int = 0,
+        commands: Collection[str] | None = tuple(COMMANDS),
         **overrides: Any,
     ) -> Limits:
         return cls(
@@ -201,6 +209,7 @@ class Limits:
             min_period_s=config.min_period_s,
             gateway_node=gateway_node,
             known_nodes=None if known_nodes is None else frozenset(known_nodes),
+            commands=None if commands is None else frozenset(commands),
             **overrides,
         )
 
@@ -503,6 +512,10 @@ def parse_command(
         raise BadCommand(
             f"command name {name!r} must be 1..{MAX_COMMAND_NAME} characters of "
             "letters, digits, '_', '-', '.'"
+        )
+    if limits.commands is not None and name not in limits.commands:
+        raise UnknownCommand(
+            f"unknown command {name!r}; motes accept: {', '.join(sorted(limits.commands))}"
         )
     doc = {} if is_empty(payload, limits) else decode_payload(payload, limits)
     obj = _object(doc, "command", ("target", "args"), ())

@@ -55,7 +55,8 @@ __all__ = [
     "world_of",
 ]
 
-_NODE_EXTRA = {"middleware", "noise"}
+# Keys a node or grid entry may add to the deployment keys (docs/deployments.md).
+NODE_EXTRA_KEYS = frozenset({"middleware", "noise"})
 
 
 def kind_names() -> list[str]:
@@ -114,11 +115,11 @@ def build_app(spec: NodeSpec, deployment: Deployment, world: World | None = None
         info = kind_info(spec.kind)
     except KeyError as e:
         raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {e.args[0]}") from None
-    unknown = sorted(set(spec.extra) - _NODE_EXTRA)
+    unknown = sorted(set(spec.extra) - NODE_EXTRA_KEYS)
     if unknown:
         raise DeploymentError(
             f"{_file(deployment)}: node {spec.id}: unknown key(s) {', '.join(unknown)} "
-            f"(node entries may add: {', '.join(sorted(_NODE_EXTRA))})"
+            f"(node entries may add: {', '.join(sorted(NODE_EXTRA_KEYS))})"
         )
     noise: dict[str, SensorNoise] = {}
     for sensor, sigma in _table(spec, "noise", deployment).items():

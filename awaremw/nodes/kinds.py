@@ -39,6 +39,15 @@ from awaremw.world.fields import GAUSS_BOUND, Source, World
 Position = Callable[[float], tuple[float, float]]
 EnergyProbe = Callable[[], float]  # joules spent so far by this mote
 
+# The commands motes accept (every kind has these handlers; a kind without the
+# hardware refuses on the mote): name -> arguments and what it does. The gateway
+# and ``awaremw command`` refuse any other name with this list.
+COMMANDS: Mapping[str, str] = {
+    "led": "color=red|green|blue|all state=on|off|toggle (default all, toggle): set LEDs",
+    "set_rate": "period_s=S (0..86400): hold each sensor reading for S seconds",
+    "beep": "duration_ms=MS (1..10000): sound the sounder (mica2 only)",
+}
+
 # --------------------------------------------------------------------------- raw <-> SI
 
 

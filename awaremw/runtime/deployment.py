@@ -31,12 +31,14 @@ Point = tuple[float, float]
 
 DEFAULT_RADIO = "cc2420"
 
-_TOP_VALUES = {
+# The keys a deployment file may have (docs/deployments.md lists each; a test
+# holds the two equal): top-level values, raw tables, node and grid entries.
+TOP_KEYS = frozenset({
     "name", "description", "radio", "seed", "tx_power_dbm", "area", "nodes", "grid", "mac",
     "collisions",
-}  # fmt: skip
-_RAW_TABLES = ("world", "groups", "channels", "middleware")
-_NODE_KEYS = {
+})  # fmt: skip
+RAW_TABLES = ("world", "groups", "channels", "middleware")
+NODE_KEYS = frozenset({
     "id",
     "kind",
     "position",
@@ -48,9 +50,9 @@ _NODE_KEYS = {
     "tx_power_dbm",
     "battery_mj",
     "boot_s",
-}
+})
 _PATH_ONLY = ("speed_mps", "start_s", "loop", "pause_s")
-_GRID_KEYS = {
+GRID_KEYS = frozenset({
     "origin",
     "spacing",
     "cols",
@@ -61,7 +63,7 @@ _GRID_KEYS = {
     "tx_power_dbm",
     "battery_mj",
     "boot_s",
-}
+})
 
 
 class DeploymentError(ValueError):
@@ -148,9 +150,10 @@ class Deployment:
 
 
 def shipped_dir() -> FsPath:
-    """The folder of the deployments shipped with the package (package data
-    ``awaremw/deployments/*.toml``, found through :mod:`importlib.resources`)."""
-    return FsPath(str(resources.files("awaremw").joinpath("deployments")))
+    """The folder of the deployments shipped with the package: the top-level
+    ``nodes/*.toml`` of the source tree, installed as the package data of
+    ``awaremw.deployments`` and found through :mod:`importlib.resources`."""
+    return FsPath(str(resources.files("awaremw.deployments")))
 
 
 def shipped_names() -> list[str]:
@@ -327,7 +330,7 @@ class _Parser:
         d = self.data
         extra: dict[str, Any] = {}
         for k, v in d.items():
-            if k in _TOP_VALUES or k in _RAW_TABLES:
+            if k in TOP_KEYS or k in RAW_TABLES:
                 continue
             if isinstance(v, dict):
                 extra[k] = v
@@ -361,7 +364,7 @@ class _Parser:
         self.seed = seed
 
         raw: dict[str, Any] = {}
-        for key in _RAW_TABLES:
+        for key in RAW_TABLES:
             v = d.get(key)
             if v is not None and not isinstance(v, dict | list):
                 raise self._fail("", f"{key!r} must be a table or an array of tables")
@@ -448,7 +451,7 @@ class _Parser:
         self._check_power(where, tx_power)
         battery = self._opt_number(where, t, "battery_mj")
         self._check_battery(where, battery)
-        extra = {k: v for k, v in t.items() if k not in _NODE_KEYS}
+        extra = {k: v for k, v in t.items() if k not in NODE_KEYS}
         spec = NodeSpec(
             id=node_id,
             kind=kind,
@@ -498,7 +501,7 @@ class _Parser:
         self._check_battery(where, battery)
         boot_s = self._number(where, t, "boot_s", 0.0)
         self._check_nonneg(where, "boot_s", boot_s)
-        extra = {k: v for k, v in t.items() if k not in _GRID_KEYS}
+        extra = {k: v for k, v in t.items() if k not in GRID_KEYS}
         # Jitter from the deployment's seed and the grid's index: the same
         # positions in every process that loads the file.
         rng = random.Random(self.seed * 1_000_003 + i)

@@ -19,7 +19,6 @@ from awaremw.runtime.zenoh_session import (
     DEFAULT_ROUTER_ENDPOINT,
     SessionSettings,
     close_quietly,
-    open_session,
 )
 
 log = logging.getLogger(__name__)
@@ -53,14 +52,17 @@ class EmbeddedRouter:
 
     def start(self) -> EmbeddedRouter:
         if self._session is None:
-            self._session = open_session(
-                SessionSettings(
-                    mode="router",
-                    listen=self.listen,
-                    connect=self.connect,
-                    config_file=self.config_file,
-                )
-            )
+            config = SessionSettings(
+                mode="router",
+                listen=self.listen,
+                connect=self.connect,
+                config_file=self.config_file,
+            ).config()
+            if self.connect:
+                # Linked routers start in any order and restart on their own: a router
+                # keeps dialling the others in the background instead of giving up.
+                config.insert_json5("connect/exit_on_failure", "false")
+            self._session = zenoh.open(config)
             log.info("Zenoh router %s listening on %s", self._session.zid(), ", ".join(self.listen))
         return self
 

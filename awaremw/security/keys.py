@@ -7,7 +7,10 @@ Layout (directories 0700, files 0600; see docs/security.md)::
     DIR/signing/gateway.key     the gateway's Ed25519 private key (PKCS#8 PEM)
     DIR/signing/gateway.pub     its public key (SubjectPublicKeyInfo PEM), for the motes
     DIR/zenoh/users.txt         Zenoh accounts, ``user:password`` (the router's dictionary)
-    DIR/zenoh/router.json5      the router's config: usrpwd auth + access control by role
+    DIR/zenoh/router.json5      the router's config: usrpwd auth + access control by role,
+                                mutual TLS for links to other routers
+    DIR/zenoh/router.crt, .key  the routers' certificate (CN awaremw-router) and key
+    DIR/zenoh/router-ca.crt     the CA that signed it (its key is not kept)
     DIR/zenoh/<role>.json5      a client config per role (fleet, gateway, app, operator)
     DIR/mqtt/passwd             Mosquitto password file (PBKDF2-SHA512, mosquitto's $7$)
     DIR/mqtt/acl                Mosquitto ACL of the accounts operator, gateway, viewer
@@ -43,7 +46,10 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from awaremw.security.zenoh_acl import (
     DEFAULT_PREFIX,
     ROLES,
+    ROUTER_ACCOUNT,
+    ROUTER_CN,
     Role,
+    RouterLinkFiles,
     access_control,
     client_config,
     router_config,
@@ -144,6 +150,19 @@ class SecretsDir:
     def router_config(self) -> Path:
         return self.root / "zenoh" / "router.json5"
 
+    @property
+    def router_ca(self) -> Path:
+        """The CA that signed the routers' certificate (its key is not kept)."""
+        return self.root / "zenoh" / "router-ca.crt"
+
+    @property
+    def router_cert(self) -> Path:
+        return self.root / "zenoh" / "router.crt"
+
+    @property
+    def router_key(self) -> Path:
+        return self.root / "zenoh" / "router.key"
+
     def role_config(self, role: Role) -> Path:
         return self.root / "zenoh" / f"{role}.json5"
 
@@ -208,6 +227,93 @@ def _pem_key(key: ec.EllipticCurvePrivateKey) -> bytes:
     )
 
 
+def _key_usage(*, cert_sign: bool) -> x509.KeyUsage:
+    return x509.KeyUsage(
+        digital_signature=not cert_sign,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=False,
+        key_cert_sign=cert_sign,
+        crl_sign=cert_sign,
+        encipher_only=False,
+        decipher_only=False,
+    )
+
+
+def _make_ca(
+    common_name: str, start: datetime.datetime
+) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """A small CA (ECDSA P-256, :data:`CA_DAYS`) named ``common_name`` and a random tag."""
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name(
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "awaremw"),
+            x509.NameAttribute(NameOID.COMMON_NAME, f"{common_name} {secrets.token_hex(4)}"),
+        ]
+    )
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(ca_name)
+        .issuer_name(ca_name)
+        .public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(start + datetime.timedelta(days=CA_DAYS))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(_key_usage(cert_sign=True), critical=True)
+        .add_extension(
+            x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False
+        )
+        .sign(ca_key, hashes.SHA256())
+    )
+    return ca_key, ca
+
+
+def _make_leaf(
+    ca_key: ec.EllipticCurvePrivateKey,
+    ca: x509.Certificate,
+    common_name: str,
+    sans: list[x509.GeneralName],
+    usages: list[x509.ObjectIdentifier],
+    start: datetime.datetime,
+) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """A key and a certificate signed by ``ca`` (:data:`SERVER_CERT_DAYS`)."""
+    key = ec.generate_private_key(ec.SECP256R1())
+    ca_ski = ca.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(
+            x509.Name(
+                [
+                    x509.NameAttribute(NameOID.ORGANIZATION_NAME, "awaremw"),
+                    x509.NameAttribute(NameOID.COMMON_NAME, common_name),
+                ]
+            )
+        )
+        .issuer_name(ca.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(start + datetime.timedelta(days=SERVER_CERT_DAYS))
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(_key_usage(cert_sign=False), critical=True)
+        .add_extension(x509.ExtendedKeyUsage(usages), critical=False)
+        .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ca_ski),
+            critical=False,
+        )
+        .sign(ca_key, hashes.SHA256())
+    )
+    return key, cert
+
+
+def _start(now: datetime.datetime | None) -> datetime.datetime:
+    return (now or datetime.datetime.now(datetime.UTC)) - datetime.timedelta(minutes=5)
+
+
 def make_broker_tls(
     hosts: Iterable[str] = (), *, now: datetime.datetime | None = None
 ) -> dict[str, bytes]:
@@ -219,87 +325,35 @@ def make_broker_tls(
     """
     names = list(dict.fromkeys([*BROKER_TLS_HOSTS, *hosts]))
     sans = [_san(h) for h in names]
-    start = (now or datetime.datetime.now(datetime.UTC)) - datetime.timedelta(minutes=5)
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_name = x509.Name(
-        [
-            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "awaremw"),
-            x509.NameAttribute(NameOID.COMMON_NAME, f"awaremw CA {secrets.token_hex(4)}"),
-        ]
-    )
-    ca_ski = x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key())
-    ca = (
-        x509.CertificateBuilder()
-        .subject_name(ca_name)
-        .issuer_name(ca_name)
-        .public_key(ca_key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(start)
-        .not_valid_after(start + datetime.timedelta(days=CA_DAYS))
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-        .add_extension(
-            x509.KeyUsage(
-                digital_signature=False,
-                content_commitment=False,
-                key_encipherment=False,
-                data_encipherment=False,
-                key_agreement=False,
-                key_cert_sign=True,
-                crl_sign=True,
-                encipher_only=False,
-                decipher_only=False,
-            ),
-            critical=True,
-        )
-        .add_extension(ca_ski, critical=False)
-        .sign(ca_key, hashes.SHA256())
-    )
-    key = ec.generate_private_key(ec.SECP256R1())
-    server = (
-        x509.CertificateBuilder()
-        .subject_name(
-            x509.Name(
-                [
-                    x509.NameAttribute(NameOID.ORGANIZATION_NAME, "awaremw"),
-                    x509.NameAttribute(NameOID.COMMON_NAME, names[0]),
-                ]
-            )
-        )
-        .issuer_name(ca_name)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(start)
-        .not_valid_after(start + datetime.timedelta(days=SERVER_CERT_DAYS))
-        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-        .add_extension(
-            x509.KeyUsage(
-                digital_signature=True,
-                content_commitment=False,
-                key_encipherment=False,
-                data_encipherment=False,
-                key_agreement=False,
-                key_cert_sign=False,
-                crl_sign=False,
-                encipher_only=False,
-                decipher_only=False,
-            ),
-            critical=True,
-        )
-        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), critical=False)
-        .add_extension(x509.SubjectAlternativeName(sans), critical=False)
-        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-        .add_extension(
-            x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ca_ski),
-            critical=False,
-        )
-        .sign(ca_key, hashes.SHA256())
-    )
+    start = _start(now)
+    ca_key, ca = _make_ca("awaremw CA", start)
+    key, server = _make_leaf(ca_key, ca, names[0], sans, [ExtendedKeyUsageOID.SERVER_AUTH], start)
     pem = serialization.Encoding.PEM
     return {
         "ca.crt": ca.public_bytes(pem),
         "ca.key": _pem_key(ca_key),
         "server.crt": server.public_bytes(pem),
         "server.key": _pem_key(key),
+    }
+
+
+def make_router_tls(*, now: datetime.datetime | None = None) -> dict[str, bytes]:
+    """The routers' certificate for mutual TLS between routers (one for every router).
+
+    Common name :data:`~awaremw.security.zenoh_acl.ROUTER_CN` (the access rules'
+    router subject), usable as server and as client. The CA that signs it is
+    thrown away: nothing else can ever carry a router's rights. Returns the PEM
+    bytes under ``ca.crt``, ``router.crt``, ``router.key``.
+    """
+    start = _start(now)
+    ca_key, ca = _make_ca("awaremw router CA", start)
+    usages = [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+    key, cert = _make_leaf(ca_key, ca, ROUTER_CN, [x509.DNSName(ROUTER_CN)], usages, start)
+    pem = serialization.Encoding.PEM
+    return {
+        "ca.crt": ca.public_bytes(pem),
+        "router.crt": cert.public_bytes(pem),
+        "router.key": _pem_key(key),
     }
 
 
@@ -336,9 +390,17 @@ def make_secrets(
         serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
     )
     zpw = {role: _password() for role in ROLES}
-    files[d.zenoh_users] = "".join(f"{r}:{pw}\n" for r, pw in zpw.items()).encode()
+    router_pw = _password()
+    users = [*zpw.items(), (ROUTER_ACCOUNT, router_pw)]
+    files[d.zenoh_users] = "".join(f"{r}:{pw}\n" for r, pw in users).encode()
+    rtls = make_router_tls()
+    files[d.router_ca] = rtls["ca.crt"]
+    files[d.router_cert] = rtls["router.crt"]
+    files[d.router_key] = rtls["router.key"]
+    links = RouterLinkFiles(router_pw, d.router_ca, d.router_cert, d.router_key)
     files[d.router_config] = _json5(
-        router_config(d.zenoh_users, prefix), "Zenoh router: accounts and access control by role"
+        router_config(d.zenoh_users, links, prefix),
+        "Zenoh router: accounts, access control by role, mutual TLS between routers",
     )
     for role in ROLES:
         files[d.role_config(role)] = _json5(
@@ -360,6 +422,7 @@ def make_secrets(
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "network_key_bytes": network_key_bytes,
         "zenoh_roles": list(ROLES),
+        "zenoh_router_links": "mutual TLS, certificate CN " + ROUTER_CN,
         "mqtt_accounts": list(MQTT_ACCOUNTS),
         "mqtt_tls_hosts": tls_hosts,
     }

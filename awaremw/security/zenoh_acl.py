@@ -27,19 +27,38 @@ gateways have and apps lack, and "only fleets hear the radio" is the
 Only sessions that go through the router are checked: with ``--secrets`` every
 awaremw process connects in client mode (never peer-to-peer, which would
 bypass the router) with its role's credentials.
+
+Routers linked to each other (one per host, ``awaremw router --connect``) carry
+every role's traffic between their clients, so their links get a subject of
+their own, ``router``: a link authenticated on *both* ends by mutual TLS with
+the routers' certificate (common name :data:`ROUTER_CN`), allowed every message
+kind on the radio, fleet-control and HBN key spaces. A role's rules are applied
+once, where its session enters its own router. Zenoh's ``usrpwd`` check alone
+cannot name such a link: only the accepting router learns the user name, and
+the router that opened the link would see an anonymous peer (default deny).
+The opening router still logs in with the ``router`` account, because the
+accepting router demands an account from every session.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final, Literal
+
+import zenoh
 
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 Role = Literal["fleet", "gateway", "app", "operator"]
 ROLES: Final[tuple[Role, ...]] = ("fleet", "gateway", "app", "operator")
 DEFAULT_PREFIX = "aware"
+# The account a router logs in with when it links to another router; its rights
+# come from the certificate (ROUTER_CN), never from this account alone.
+ROUTER_ACCOUNT: Final = "router"
+# Common name of the routers' certificate: the ACL subject of router-to-router links.
+ROUTER_CN: Final = "awaremw-router"
 
 # (messages, flows, key expressions relative to the prefix)
 _Grant = tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]
@@ -87,6 +106,16 @@ GRANTS: Final[dict[Role, tuple[_Grant, ...]]] = {
     "operator": _CTL_ASK,
 }
 
+# A router-to-router link: everything any role may send, both ways, on the key
+# spaces awaremw uses (each role was checked where it entered the mesh).
+_ROUTER_LINK: Final[tuple[_Grant, ...]] = (
+    (
+        ("put", "delete", "declare_subscriber", "declare_queryable", "query", "reply"),
+        _BOTH,
+        ("radio/**", "ctl/fleet/**", "hbn/**"),
+    ),
+)
+
 
 def access_control(prefix: str = DEFAULT_PREFIX) -> dict[str, Any]:
     """The router's ``access_control`` block for key prefix ``prefix``."""
@@ -99,9 +128,10 @@ def access_control(prefix: str = DEFAULT_PREFIX) -> dict[str, Any]:
         raise ValueError(f"bad key prefix {prefix!r}: expected e.g. 'aware' or 'site1/aware'")
     rules: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
-    for role in ROLES:
+    granted: list[tuple[str, tuple[_Grant, ...]]] = [(role, GRANTS[role]) for role in ROLES]
+    for role, grants in [*granted, (ROUTER_ACCOUNT, _ROUTER_LINK)]:
         ids = []
-        for k, (messages, flows, keys) in enumerate(GRANTS[role]):
+        for k, (messages, flows, keys) in enumerate(grants):
             rid = f"{role}-{k}"
             ids.append(rid)
             rules.append(
@@ -118,13 +148,32 @@ def access_control(prefix: str = DEFAULT_PREFIX) -> dict[str, Any]:
         "enabled": True,
         "default_permission": "deny",
         "rules": rules,
-        "subjects": [{"id": role, "usernames": [role]} for role in ROLES],
+        "subjects": [
+            *({"id": role, "usernames": [role]} for role in ROLES),
+            # the certificate, not the account: both ends of a link see it (mutual TLS)
+            {"id": ROUTER_ACCOUNT, "cert_common_names": [ROUTER_CN]},
+        ],
         "policies": policies,
     }
 
 
-def router_config(dictionary_file: Path, prefix: str = DEFAULT_PREFIX) -> dict[str, Any]:
-    """The router's Zenoh config: accounts from ``dictionary_file``, ACL by role.
+@dataclass(frozen=True, slots=True)
+class RouterLinkFiles:
+    """What a router needs to link to other routers: the ``router`` account's password
+    and the routers' certificate, its key and the CA that signed it (PEM files)."""
+
+    password: str
+    ca_cert: Path
+    cert: Path
+    key: Path
+
+
+def router_config(
+    dictionary_file: Path, links: RouterLinkFiles, prefix: str = DEFAULT_PREFIX
+) -> dict[str, Any]:
+    """The router's Zenoh config: accounts from ``dictionary_file``, ACL by role, and
+    mutual TLS with the routers' certificate for links to other routers (``tls/``
+    endpoints; clients keep using ``tcp/`` with their accounts).
 
     Endpoints: ``awaremw router`` sets its ``--listen``; ``zenohd -c`` uses the
     default one below.
@@ -133,7 +182,28 @@ def router_config(dictionary_file: Path, prefix: str = DEFAULT_PREFIX) -> dict[s
         "mode": "router",
         "listen": {"endpoints": [DEFAULT_ROUTER_ENDPOINT]},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"auth": {"usrpwd": {"dictionary_file": str(dictionary_file)}}},
+        "transport": {
+            "auth": {
+                "usrpwd": {
+                    "dictionary_file": str(dictionary_file),
+                    "user": ROUTER_ACCOUNT,
+                    "password": links.password,
+                }
+            },
+            "link": {
+                "tls": {
+                    "root_ca_certificate": str(links.ca_cert),
+                    "listen_certificate": str(links.cert),
+                    "listen_private_key": str(links.key),
+                    "connect_certificate": str(links.cert),
+                    "connect_private_key": str(links.key),
+                    "enable_mtls": True,
+                    # routers dial each other by any name or address; the CA signs
+                    # nothing but the routers' certificate, so the name is not checked
+                    "verify_name_on_connect": False,
+                }
+            },
+        },
         "access_control": access_control(prefix),
     }
 
@@ -190,3 +260,25 @@ def role_settings(
         connect_timeout_s,
         config_file=str(role_config_path(secrets, role)),
     )
+
+
+def check_router_links(config_file: Path | str, connect: Sequence[str]) -> None:
+    """Refuse links to other routers that the access rules would silently deny.
+
+    With the secrets' rules a link is a ``router`` subject only when both ends see the
+    routers' certificate, so every ``connect`` endpoint must be ``tls/`` and the config
+    must hold that certificate (secrets made before router links existed do not).
+    """
+    plain = [ep for ep in connect if not ep.startswith("tls/")]
+    if plain:
+        raise SecretsError(
+            f"cannot link to {', '.join(plain)}: with secrets, routers link over mutual TLS; "
+            "use tls/HOST:PORT and let that router listen on tls/ too"
+        )
+    if connect:
+        conf = zenoh.Config.from_file(str(config_file))
+        if conf.get_json("transport/link/tls/enable_mtls") != "true":
+            raise SecretsError(
+                f"{config_file} has no router certificate (secrets made before router "
+                "links existed): make new ones with `awaremw keys init DIR --force`"
+            )

@@ -17,6 +17,9 @@ PALETTE = (
 )  # fmt: skip
 
 
+LED_STYLES = {"red": "red", "green": "green", "blue": "blue", "yellow": "yellow"}
+
+
 class GroupStyles:
     """A stable colour per group id (first come, first served)."""
 
@@ -60,8 +63,11 @@ def map_text(snap: Snapshot, width: int, height: int, styles: GroupStyles) -> Te
         ch, style = _glyph(m, styles)
         put(col, row, ch, style, force=True)
         label = str(m.node)
+        lstyle = "grey50" if m.group is None else styles(m.group)
+        if m.leds:  # the led command's effect: the id on the first lit LED's colour
+            lstyle = f"bold black on {LED_STYLES.get(m.leds[0], 'white')}"
         for i, c in enumerate(label):
-            put(col + 1 + i, row, c, "grey50" if m.group is None else styles(m.group))
+            put(col + 1 + i, row, c, lstyle, force=bool(m.leds))
     text = Text()
     for r, line in enumerate(cells):
         for ch, style in line:
@@ -79,7 +85,7 @@ def render(snap: Snapshot, width: int = 64, height: int = 22) -> RenderableType:
     legend = Text.assemble(
         ("★", "bold"), " leader  ", ("●", ""), " member  ", ("·", "grey62"), " idle  ",
         ("▲", "bold red"), " robot  ", ("■", "bold white"), " gateway  ", ("x", "grey35"),
-        " down",
+        " down  ", ("id", "bold black on green"), " LED lit",
     )  # fmt: skip
     the_map = Panel(
         Group(map_text(snap, width, height, styles), legend),

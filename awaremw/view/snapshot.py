@@ -8,7 +8,12 @@ built by :func:`awaremw.experiments.snapshot.snapshot_of`) and rendered by
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+
+from awaremw.nodes.kinds import NodeApp
+from awaremw.protocol.core import MoteCore
+from awaremw.protocol.mote import AwareMote
 
 
 @dataclass(frozen=True, slots=True)
@@ -20,6 +25,7 @@ class MoteDot:
     group: int | None = None  # group id in the displayed group type
     leader: bool = False
     alive: bool = True
+    leds: tuple[str, ...] = ()  # lit LEDs by colour (where the motes' cores are known)
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,3 +61,21 @@ class Snapshot:
     stats: dict[str, float | int | str] = field(default_factory=dict)
     title: str = "awaremw"
     group_type: int | None = None  # the group type the map colours
+
+
+def lit_leds(core: MoteCore | None) -> tuple[str, ...]:
+    """The colours of the LEDs lit on a mote (the ``led`` command's effect)."""
+    app = core.ctx.app if isinstance(core, AwareMote) else None
+    if not isinstance(app, NodeApp):
+        return ()
+    return tuple(c for c in app.LEDS if app.leds.get(c))
+
+
+def with_leds(snap: Snapshot, cores: Mapping[int, MoteCore]) -> Snapshot:
+    """``snap`` with every mote's lit LEDs read from the cores in this process."""
+    dots = tuple(
+        d if d.leds == (leds := lit_leds(cores.get(d.node))) else replace(d, leds=leds)
+        for d in snap.motes
+    )
+    lit = sum(1 for d in dots if d.leds)
+    return replace(snap, motes=dots, stats={**snap.stats, "LEDs lit": lit})

@@ -231,6 +231,15 @@ mqtt_sub() { # USER TOPIC COUNT TIMEOUT_S: prints "topic payload" lines
     mosquitto_sub $(_mqtt_args "$1") -P "$(mqtt_password "$1")" -q 1 -v \
         -t "$2" -C "$3" -W "$4" 2>/dev/null || true
 }
+# Subscribes until killed, one "unix-time topic payload" line per message (run it
+# in the background: it execs mosquitto_sub, so $! is the subscriber itself).
+mqtt_listen() { # USER TOPIC...
+    local user="$1" args=() t
+    shift
+    for t in "$@"; do args+=(-t "$t"); done
+    exec mosquitto_sub $(_mqtt_args "$user") -P "$(mqtt_password "$user")" -q 1 \
+        -F '%U %t %p' "${args[@]}" 2>/dev/null
+}
 # Waits until the gateway's retained status is VALUE (online/offline).
 wait_status() { # VALUE TIMEOUT_S
     local end=$((SECONDS + $2)) got pw
