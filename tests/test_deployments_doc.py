@@ -76,7 +76,7 @@ BAD = {
     '[[nodes]]\nid = 4\nkind = "tmote"\nposition = [2, 2]\n',
     "is outside the area": '[[grid]]\nfirst_id = 1\nkind = "tmote"\nspacing = 12.0\n'
     "cols = 5\nrows = 6\n",
-    "is outside 0..": '[[nodes]]\nid = 40000\nkind = "tmote"\nposition = [1, 1]\n',
+    "is outside 0..": '[[nodes]]\nid = 70000\nkind = "tmote"\nposition = [1, 1]\n',
     "unknown radio preset": 'radio = "nrf24"\n',
     "unknown mac": 'mac = "tdma"\n',
     "unknown collisions": 'collisions = "maybe"\n',
