@@ -368,3 +368,20 @@ def test_more_motes_than_short_addresses_is_one_line() -> None:
         parse_sizes("1k")
     with pytest.raises(ValueError, match="at most 65534"):
         parse_sizes("1000,70000")
+
+
+def test_a_network_beyond_the_address_space_is_refused_in_one_line() -> None:
+    import subprocess
+    import sys
+
+    for bench in ("virtual", "scale"):
+        p = subprocess.run(
+            [sys.executable, "-m", "awaremw", "bench", bench, "--workload", "aware",
+             "--motes", "70000", "--duration", "20"],
+            capture_output=True, text=True, timeout=120, check=False,
+        )  # fmt: skip
+        assert p.returncode == 2 and p.stdout == ""
+        assert p.stderr == (
+            f"awaremw bench {bench}: --motes 70000: one network holds at most 65534 motes "
+            "(16-bit short addresses 0..65533; 0xFFFE and 0xFFFF are reserved by IEEE 802.15.4)\n"
+        )

@@ -83,7 +83,15 @@ def run(args: argparse.Namespace) -> int:
         rest.append("--help")
     ns = inner.parse_args(rest)
     as_json = bool(ns.json or args.json)
-    result: dict[str, Any] = mod.run(ns)
+    try:
+        result: dict[str, Any] = mod.run(ns)
+    except ValueError as e:
+        # The benchmarks refuse what they cannot run (a size beyond the address
+        # space, a duration too short for its workload) with a ValueError: one line.
+        if getattr(args, "verbose", False):
+            raise
+        print(f"awaremw bench {args.name}: {e}", file=sys.stderr)
+        return 2
     if as_json:
         print(json.dumps(result, default=_jsonable))
     else:
