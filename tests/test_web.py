@@ -639,38 +639,20 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
         shutil.copy(shot, REPO / "docs" / "img" / "dashboard.png")
 
 
-def _city(path: Path, side: int = 100, spacing: float = 10.0, robots: int = 10) -> int:
-    """A ``side`` x ``side`` grid deployment (10,000 motes by default) with a
-    gateway and ``robots`` robots on loops; returns the number of motes."""
-    area = side * spacing
-    lines = [
-        'name = "city_test"', 'radio = "cc2420"', "seed = 3", f"area = [{area}, {area}]",
-        "[[nodes]]", "id = 0", 'kind = "gateway"', f"position = [{area / 2}, {area / 2}]",
-    ]  # fmt: skip
-    for k in range(robots):
-        y = spacing * (5 + k * (side - 10) / max(robots - 1, 1))
-        lines += ["[[nodes]]", f"id = {20001 + k}", 'kind = "robot"',
-                  f"path = [[{spacing}, {y:.1f}], [{area - spacing}, {y:.1f}]]",
-                  "speed_mps = 2.0", "loop = true"]  # fmt: skip
-    half = spacing / 2
-    lines += ["[[grid]]", "first_id = 1", 'kind = "tmote"', f"origin = [{half}, {half}]",
-              f"spacing = {spacing}", f"cols = {side}", f"rows = {side}"]  # fmt: skip
-    path.write_text("\n".join(lines) + "\n")
-    return side * side + 1 + robots
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_dashboard_draws_a_10000_mote_field(tmp_path: Path, mosquitto: Any) -> None:
-    """``awaremw view`` of a 10,000-mote deployment in headless Chromium: every
+    """``awaremw view`` of the shipped 10,000-mote city in headless Chromium: every
     group's leader (from the retained group states of a real broker) is drawn
     on the canvas, a new leader reaches the page within 2 s, and no event of
     the stream after ``hello`` exceeds the documented bound."""
     from mosquitto import pub
 
     sync_playwright = _browser()
-    dep_file = tmp_path / "city_test.toml"
-    n_motes = _city(dep_file)
+    from awaremw.runtime.deployment import load, shipped_dir
+
+    n_motes = len(load(shipped_dir() / "city.toml").nodes)  # the shipped 10,010-mote city
+    assert n_motes > 10_000
     leaders = {600 + k: 1 + 499 * k for k in range(20)}  # gid -> leader, spread over the grid
     assert pub(mosquitto, "gateway", "aware/gateway/status", "online").returncode == 0
     for gid, lead in leaders.items():
@@ -680,7 +662,7 @@ def test_dashboard_draws_a_10000_mote_field(tmp_path: Path, mosquitto: Any) -> N
     log = (tmp_path / "view.log").open("w")
     view = subprocess.Popen(
         [sys.executable, "-m", "awaremw", "view", "--web", f"127.0.0.1:{port}",
-         "--mqtt", mosquitto.url("operator"), "--deployment", str(dep_file),
+         "--mqtt", mosquitto.url("operator"), "--deployment", "city",
          "--group-type", "1", "--timeout", "300"],
         stdout=log, stderr=subprocess.STDOUT,
     )  # fmt: skip
