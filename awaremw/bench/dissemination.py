@@ -218,6 +218,67 @@ def mesh_connected(net: VirtualNetwork, ids: Iterable[int], root: int, min_rssi:
     return set(hop_distances(net, ids, root, min_rssi))
 
 
+def parent_death_repair(
+    seed: int,
+    side: int = 10,
+    spacing: float = 15.0,
+    period: float = 5.0,
+    settle: float = 600.0,
+    horizon: float = 30.0,
+) -> dict[str, Any]:
+    """Route repair after a parent dies in a steady-state network.
+
+    A ``side`` x ``side`` grid (root in a corner) where every mote submits one
+    record every ``period`` s is left ``settle`` s to quiet down; then the
+    non-root mote with the most children in the tree dies. Each of its
+    children has a new route when it takes a parent other than the dead mote
+    (ParentChanged); the victim is chosen among the parents whose death cuts
+    none of their children off the root. ``repair_s`` lists those delays (None: none within
+    ``horizon``), ``routes_ok`` says whether every child's parent chain ends
+    at the root ``horizon`` s after the death.
+    """
+    net, motes, events = build_grid(side, spacing, (0,), seed, period=period)
+    net.run_until(settle)
+    kids: dict[int, list[int]] = {}
+    for i, m in motes.items():
+        p = m.collection.parent
+        if p is not None and p != 0:
+            kids.setdefault(p, []).append(i)
+    # The parent with the most children whose death leaves them a way to the
+    # root (links of mean RSSI >= -94 dBm, PRR about 0.8): no partition.
+    victim, children = -1, []
+    for v in sorted(kids, key=lambda v: (-len(kids[v]), v)):
+        reach = mesh_connected(net, [i for i in motes if i != v], 0, -94.0)
+        if all(c in reach for c in kids[v]):
+            victim, children = v, sorted(kids[v])
+            break
+    if victim < 0:
+        raise ValueError(f"seed {seed}: every parent's death cuts a child off the root")
+    n_before = len(events)
+    t_kill = net.now
+    net.kill(victim)
+    net.run_until(t_kill + horizon)
+    repaired: dict[int, float] = {}
+    for node, e, t in events[n_before:]:
+        if (
+            isinstance(e, ParentChanged)
+            and node in children
+            and e.new is not None
+            and e.new != victim
+        ):
+            repaired.setdefault(node, round(t - t_kill, 3))
+    delays = [repaired.get(c) for c in children]
+    got = [d for d in delays if d is not None]
+    return {
+        "seed": seed,
+        "victim": victim,
+        "children": len(children),
+        "repair_s": delays,
+        "repair_max_s": max(got) if len(got) == len(children) else None,
+        "routes_ok": all(route_of(motes, c)[-1] == 0 for c in children),
+    }
+
+
 def _slope(xs: list[float], ys: list[float]) -> float:
     n = len(xs)
     mx, my = sum(xs) / n, sum(ys) / n

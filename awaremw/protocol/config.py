@@ -33,7 +33,8 @@ class MiddlewareConfig:
 
     # Collection tree (CTP-like)
     ctp_tau_l: float = 0.5
-    ctp_tau_h: float = 300.0
+    # CTP beacons: 0.5 s .. 1 h, reset only on route trouble (docs/energy.md)
+    ctp_tau_h: float = 3600.0
     ctp_queue: int = 16
     ctp_max_thl: int = 32
     ctp_parent_switch_threshold: int = 15  # ETX x 10 improvement needed to switch parent
