@@ -60,6 +60,9 @@ class MiddlewareConfig:
     tentative_periods: float = 1.0  # a new group's id is announced this long before it is taken
     unmerge_window_periods: float = 15.0  # a part losing a merged group this soon takes its id back
     forward_jitter: float = 0.05  # max random delay before re-broadcasting a leader beacon
+    # A member skips re-broadcasting a leader beacon when it heard this many copies
+    # from members at least as far from the leader during its jitter (0: always).
+    beacon_forward_cover: int = 1
     report_every_beacons: int = 5  # leader's GroupReport to the gateway, in beacon periods
     max_group_types: int = 8
     # Hops; TAG slots per epoch are planned for this depth (docs/protocol-groups.md,

@@ -179,6 +179,7 @@ class GroupStats:
 
     beacons_sent: int = 0
     beacons_forwarded: int = 0
+    beacons_suppressed: int = 0  # forwards skipped: enough members around had sent it
     beacons_rebutted: int = 0  # current beacon re-sent to a lighter contending group
     failovers: int = 0  # leader claims after the leader was lost (same id)
     tentative_sent: int = 0  # would-be groups announced (tentative beacons)
@@ -235,6 +236,11 @@ class _TypeState:
     nearby: dict[int, _Heard] = field(default_factory=dict)
     parent_rssi: float = -math.inf  # link RSSI (EWMA) of the parent when it was chosen
     forwarded: bool = True  # the current seq was re-broadcast (our hop count is public)
+    # Copies of the current seq heard from members at least as far from the leader
+    # as we are, before our own forward (counter-based suppression); -1: forward
+    # whatever we hear (the beacon we joined on announces the group).
+    covered: int = 0
+    child_at: float = -math.inf  # last partial a child sent us (a member with children)
     upstream: dict[int, _Up] = field(default_factory=dict)
     failed: dict[int, float] = field(default_factory=dict)  # neighbour -> last failed unicast
     # Member neighbours of a leader: handover candidates. n -> (t, readings, link RSSI)
@@ -395,8 +401,12 @@ class Groups(Component):
         st.readings = n
 
     def note_child(self, group_type: int, node: int, now: float, count: int = 0) -> None:
-        """Channel data (``count`` readings) came from ``node``: a handover candidate."""
+        """Channel data (``count`` readings) came from ``node``: a handover candidate
+        of a leader; for a member, proof that it is a parent in the group tree."""
         st = self._types.get(group_type)
+        if st is not None and st.role is Role.MEMBER:
+            st.child_at = now
+            return
         if st is None or st.role is not Role.LEADER:
             return
         st.children[node] = (now, count, self._link_rssi(node, -math.inf))
@@ -522,7 +532,15 @@ class Groups(Component):
         if kind == "beacon" and st.role is Role.LEADER:
             self._beacon(st, now)
         elif kind == "fwd" and st.role is Role.MEMBER:
-            self._forward(st)
+            k = self.ctx.config.beacon_forward_cover
+            if k > 0 and st.covered >= k and now - st.child_at > self.ctx.config.beacon_period:
+                # A leaf (no child sent us a partial since the last beacon), and
+                # members at least as far out as we are already carried this seq
+                # to our neighbourhood: skip ours (counter-based flooding). Parents
+                # always forward, so that the tree and its hop counts stay put.
+                self.stats.beacons_suppressed += 1
+            else:
+                self._forward(st)
         elif kind == "lost" and st.role is Role.MEMBER:
             self._leader_lost(st, now)
         elif kind == "claim" and st.role is Role.MEMBER:
@@ -705,6 +723,7 @@ class Groups(Component):
         now rather than creating a contender before the leader's next beacon."""
         self._become_member(st, gid, h.leader, h.weight, h.seq, h.hops, h.src, h.t, h.rssi, now)
         st.forwarded = False
+        st.covered = -1
         self._schedule_forward(st, now)
         self._answer_tentatives(st, now)
 
@@ -714,6 +733,7 @@ class Groups(Component):
             st, f.group_id, f.leader, f.weight, f.seq, f.hops, f.src, now, rssi, now
         )
         st.forwarded = False
+        st.covered = 0
         self._schedule_forward(st, now)
         self._answer_tentatives(st, now)
 
@@ -1042,10 +1062,13 @@ class Groups(Component):
             st.hops = hops
             st.parent, st.parent_rssi = f.src, lr
             st.forwarded = False
+            st.covered = 0
             st.last_beacon = now
             self.timers.set(("lost", st.gtype), now + self._timeout())
             self._schedule_forward(st, now)
         elif f.seq == st.seq and f.src != st.parent:
+            if not st.forwarded and st.covered >= 0 and f.hops >= st.hops:
+                st.covered += 1
             # ... a later copy replaces it if better by _link_key (good links
             # first, then fewest hops); once our hop count is on the air it may
             # only stay or shrink (loop freedom, docs/protocol-groups.md).
