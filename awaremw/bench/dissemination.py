@@ -31,7 +31,13 @@ JSON keys:
   ``bytes_tx_per_mote_per_hour`` (radio bytes in the window, overhead included);
 * ``mac``, ``collisions_model`` (``--mac csma|aloha``, ``--collisions
   sinr|none``), ``window_collisions``, ``window_cca_busy``,
-  ``window_mac_drops`` (MAC counters of every mote over the window).
+  ``window_mac_drops`` (MAC counters of every mote over the window);
+* ``energy_by_role``: the window's radio energy and frames per hour by role,
+  with the lifetime on two AA cells (radio/energy.py, docs/energy.md; in this
+  idle network every mote is ``idle``);
+* with ``--parent-death``, ``parent_death``: :func:`parent_death_repair` for
+  the seed (``victim``, ``children``, ``repair_s`` per child, ``repair_max_s``,
+  ``routes_ok``).
 
 The scenario helpers (grid of motes with optional periodic traffic, route and
 connectivity checks) are shared with the tests.
@@ -65,6 +71,7 @@ from awaremw.protocol.frames import (
 )
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.signing import ItemSigner
+from awaremw.radio.energy import MoteEnergy, role_of, role_table
 from awaremw.radio.model import RadioModel, preset
 from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.virtual import VirtualNetwork
@@ -347,14 +354,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     window = float(args.window)
     bytes0 = sum(c.bytes_tx for c in net.counters.values())
     mac0 = mac_totals(net.counters.values())
+    c = net.counters
+    per0 = {i: (net.energy_mj(i), c[i].frames_tx, c[i].acks_tx) for i in motes}
     net.run_until(net.now + window)
+    energy = [
+        MoteEnergy(
+            i,
+            role_of(False, False, net.counters[i].acks_tx - per0[i][2]),
+            net.energy_mj(i) - per0[i][0],
+            net.counters[i].frames_tx - per0[i][1],
+        )
+        for i in motes
+    ]
     counting[0] = False
     bytes_tx = sum(c.bytes_tx for c in net.counters.values()) - bytes0
     mac_window = {k: v - mac0[k] for k, v in mac_totals(net.counters.values()).items()}
     n = len(motes)
     per_hour = 3600.0 / window / n
     parent_changes = sum(1 for _, e, _ in events if isinstance(e, ParentChanged))
-    return {
+    out: dict[str, Any] = {
         "motes": n,
         "grid": f"{side}x{side}",
         "spacing_m": float(args.spacing),
@@ -384,8 +402,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "window_collisions": mac_window["collisions"],
         "window_cca_busy": mac_window["cca_busy"],
         "window_mac_drops": mac_window["mac_drops"],
+        "energy_by_role": role_table(energy, window, net.preset),
         "wall_seconds": round(time.perf_counter() - t_wall, 2),
     }
+    if getattr(args, "parent_death", False):
+        out["parent_death"] = parent_death_repair(seed)
+    return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -408,5 +430,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--secure",
         action="store_true",
         help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
+    )
+    parser.add_argument(
+        "--parent-death",
+        action="store_true",
+        help="also kill a parent in a 10 x 10 grid with traffic and time the repair",
     )
     add_medium_arguments(parser)
