@@ -266,7 +266,7 @@ async def run_demo(
     from awaremw.experiments.client import Received
     from awaremw.experiments.realtime import RealtimeRun, RealtimeSettings, RunHooks
     from awaremw.experiments.snapshot import record_line as to_line
-    from awaremw.experiments.snapshot import snapshot_of
+    from awaremw.experiments.snapshot import role_energy, snapshot_of
     from awaremw.gateway.broker import mask_url
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
 
@@ -281,12 +281,14 @@ async def run_demo(
         print(f"web dashboard: {dash.url}", flush=True)
 
     def tick(now: float, run: RealtimeRun) -> None:
-        snap = snapshot_of(sc, run.recorder, now, run.live, run.traffic())
+        traffic, fwd = run.traffic(), run.forwarders()
+        snap = snapshot_of(sc, run.recorder, now, run.live, traffic, forwarders=fwd)
         view.update(snap)
         if dash is not None:
             from awaremw.view.web import field_of
 
-            dash.update_field(now, field_of(snap.motes, run.cores()))
+            energy = role_energy(sc, run.recorder, now, traffic, fwd)
+            dash.update_field(now, field_of(snap.motes, run.cores()), energy)
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)

@@ -138,6 +138,8 @@ class DashboardState:
         self.mqtt_connected = False
         self.records = 0
         self.dropped_clients = 0
+        # Role -> {motes, mj_per_hour, frames_per_hour} (experiments.snapshot.role_energy)
+        self.energy: dict[str, dict[str, float]] = {}
         self.version = 0  # bumped on every change
 
     # ------------------------------------------------------------------ field
@@ -317,6 +319,7 @@ class DashboardState:
             "gateway": self.gateway_status,
             "mqtt": self.mqtt_connected,
             "records": self.records,
+            "energy": self.energy,
         }
 
     def series_doc(self) -> dict[str, Any]:
@@ -468,8 +471,15 @@ class Dashboard:
 
     # ------------------------------------------------------------------ feeding
 
-    def update_field(self, now: float, motes: Iterable[FieldMote]) -> None:
+    def update_field(
+        self,
+        now: float,
+        motes: Iterable[FieldMote],
+        energy: dict[str, dict[str, float]] | None = None,
+    ) -> None:
         self.state.set_field(now, motes)
+        if energy is not None:
+            self.state.energy = energy
         self._wake.set()
 
     def _on_mqtt(self, rel: str, payload: bytes) -> None:
