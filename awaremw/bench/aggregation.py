@@ -45,15 +45,21 @@ most spending mote, traffic only / with a 1 % low-power-listening floor);
 ``window_s``; with ``--per-mote``, ``energy_per_mote``: node id ->
 ``[role, mJ per hour, frames per hour]``.
 
-How beacons are paced to meet the targets: a leader beacon costs one frame per
-member (the leader's, and one re-broadcast per member), so beacons add
-``members * channel_period / beacon_period`` frames per epoch. With the
-default ``--beacon-factor 4`` (beacon period = 4 channel periods) that is a
-quarter of the lower bound's member term; the collection tree's and Drip's
-Trickle timers are at tens of seconds by the end of the warm-up, and reports
-(one per ``report_every_beacons`` beacons) are rarer still. The price is a
-slower reaction to a dead leader: members wait ``leader_timeout_periods``
-beacon periods (3.5 x 8 s = 28 s here instead of 7 s).
+How beacons are paced to meet the targets: a leader beacon costs the leader's
+frame and one re-broadcast per member that is a parent in the group tree or
+hears no member as far out re-broadcast it (leaves skip theirs), so beacons
+add a fraction of ``members * channel_period / beacon_period`` frames per
+epoch. The default ``--beacon-factor 4`` makes the beacon period 4 channel
+periods (8 s), and ``--settled-factor 4`` lets a settled leader (its records
+flow, no new member) double its interval up to 4 beacon periods (32 s; the
+middleware's default is 2). The collection tree's and Drip's Trickle timers
+are at one to two minutes by the end of the warm-up. The price is a slower
+reaction when the group changes without a sign on the data path: members
+wait ``leader_timeout_periods`` of the intervals they see (3.5 x 32 s here,
+instead of 3.5 x 2 s with the deployments' defaults) before they take a
+leader lost by a split; a dead leader is still found by its children's
+unacknowledged partials within two epochs (docs/protocol-groups.md).
+``beacon_period_s`` and ``beacon_settled_factor`` say which pacing ran.
 """
 
 from __future__ import annotations
@@ -123,6 +129,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--beacon-factor", type=float, default=4.0, help="leader beacon period / channel period"
     )
+    parser.add_argument(
+        "--settled-factor",
+        type=float,
+        default=4.0,
+        help="a settled leader's longest beacon interval, in beacon periods",
+    )
     parser.add_argument("--warmup", type=float, default=150.0, help="s before measuring")
     parser.add_argument("--epochs", type=int, default=40, help="epochs measured")
     parser.add_argument("--radio", default="cc2420", help="radio preset")
@@ -143,7 +155,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     side, spacing = int(args.side), float(args.spacing)
     period = float(args.period)
-    cfg = MiddlewareConfig(beacon_period=period * float(args.beacon_factor))
+    cfg = MiddlewareConfig(
+        beacon_period=period * float(args.beacon_factor),
+        beacon_settled_factor=float(args.settled_factor),
+    )
     radio = preset(args.radio)
     seed = int(args.seed)
     secure = bool(getattr(args, "secure", False))
@@ -260,6 +275,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "completeness": (sum(counts) / len(counts) / n_members) if counts and n_members else 0.0,
         "groups_seen": len({r.group_id for r in records}),
         "beacon_period_s": cfg.beacon_period,
+        "beacon_settled_factor": cfg.beacon_settled_factor,
         "channel_period_s": period,
         "motes": len(motes),
         "seed": seed,

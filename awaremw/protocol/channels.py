@@ -234,11 +234,21 @@ class Channels(Component):
             self.timers.set(("send", key), self._send_time(cid, e, m.hops))
 
     def _send_time(self, cid: int, epoch: int, hops: int) -> float:
-        """A member's send time: its slot, plus a uniform offset in the slot's jitter."""
+        """A member's send time: its slot, plus a uniform offset in the slot's jitter.
+
+        Members deeper than ``max_group_depth`` share the first slot with the
+        members at that depth: they send in its first half, those at the depth
+        in its second half, so that a partial from one hop deeper still merges.
+        """
         cfg = self.ctx.config
-        slot = self.period(cid) / (max(1, cfg.max_group_depth) + 1)
-        jitter = slot * min(max(cfg.slot_jitter, 0.0), 1.0)
-        return self.slot_time(cid, epoch, hops) + self.ctx.rng.uniform(0, jitter)
+        d = max(1, cfg.max_group_depth)
+        slot = self.period(cid) / (d + 1)
+        frac = min(max(cfg.slot_jitter, 0.0), 1.0)
+        t = self.slot_time(cid, epoch, hops)
+        if hops >= d:
+            half = slot / 2
+            return t + (0.0 if hops > d else half) + self.ctx.rng.uniform(0, half * frac)
+        return t + self.ctx.rng.uniform(0, slot * frac)
 
     def _claim(self, key: _Key) -> tuple[_Pending, Membership] | None:
         """The epoch's unsent partial and the membership it is still for, or None.

@@ -65,7 +65,7 @@ class MiddlewareConfig:
     beacon_forward_cover: int = 1
     # A leader whose channel records flow and whose group is unchanged doubles its
     # beacon interval at each beacon, up to this many beacon periods (1: never).
-    beacon_settled_factor: float = 4.0
+    beacon_settled_factor: float = 2.0
     report_every_beacons: int = 5  # leader's GroupReport to the gateway, in beacon periods
     max_group_types: int = 8
     # Hops; TAG slots per epoch are planned for this depth (docs/protocol-groups.md,

@@ -511,6 +511,11 @@ class Groups(Component):
         that evidence gets stale, unless new evidence arrives meanwhile."""
         if st.suspect_at is None:
             st.suspect_at = now
+            if st.gap > self.ctx.config.beacon_period:
+                # A settled leader beacons rarely: our ACKs are most of the signs
+                # of life we get, and one partial lost to a collision is no death.
+                # Claim on the next failure unless an ACK or a beacon comes first.
+                return
         at = max(now, st.leader_ok + self._claim_after())
         self._schedule_claim(st, at)
 
