@@ -146,6 +146,13 @@ def test_aggregation_bench_smoke() -> None:
     assert cs["samples"] == out["members"] * out["records"]
     assert cs["records"] == out["records"] and cs["partials_received"] <= cs["partials_sent"]
     assert 0.9 <= out["completeness"] <= 1.0
+    # Energy by role over the window: every mote in one role, one leader, the
+    # members as counted, and a leader that spends more than an idle mote.
+    roles = out["energy_by_role"]
+    assert sum(r["motes"] for r in roles.values()) == 64
+    assert roles["leader"]["motes"] == 1 and roles["member"]["motes"] == out["members"] - 1
+    assert roles["leader"]["mj_per_hour"] > roles["idle"]["mj_per_hour"] > 0
+    assert roles["member"]["frames_per_hour"] >= 3600.0 / 2.0 * 0.9  # a partial per epoch
     assert out["meets_targets"] is (
         out["lower_bound_ratio"] <= 1.5 and out["no_aggregation_ratio"] >= 5
     )

@@ -7,7 +7,12 @@ import random
 
 import pytest
 
-from awaremw.bench.dissemination import build_grid, mesh_connected, route_of
+from awaremw.bench.dissemination import (
+    build_grid,
+    mesh_connected,
+    parent_death_repair,
+    route_of,
+)
 from awaremw.protocol.collection import (
     Collection,
     DataDropped,
@@ -196,6 +201,60 @@ def test_after_holddown_a_costlier_parent_is_accepted() -> None:
     assert u.c.parent == 2 and u.c.cost == 70
 
 
+def test_an_idle_mote_beacons_about_once_an_hour() -> None:
+    u = Unit()
+    u.beacon(0, 0, BROADCAST)
+    u.advance(2 * 3600.0)
+    u.sent()
+    for k in range(6):  # the parent beacons now and then (RSSI wanders a little)
+        u.now = 2 * 3600.0 + 600.0 * k
+        u.beacon(0, 0, BROADCAST, rssi=GOOD - k)
+    u.advance(3 * 3600.0)
+    assert len([f for f in u.sent() if isinstance(f, CtpBeacon)]) <= 2
+    assert u.c.beacon_trickle.interval == u.ctx.config.ctp_tau_h == 3600.0
+
+
+def test_a_parent_switch_or_a_cost_change_keeps_the_trickle_slow() -> None:
+    u = Unit(ctp_parent_switch_threshold=15)
+    u.beacon(1, 30, 0)
+    u.advance(1000.0)
+    u.sent()
+    t = u.c.beacon_trickle
+    slow = t.interval
+    assert slow is not None and slow >= 256
+    u.beacon(1, 60, 0)  # the parent's cost rises by 30
+    assert u.c.cost == 70 and t.interval == slow
+    u.beacon(2, 10, 0)  # a better parent: switched, not announced
+    assert u.c.parent == 2 and u.c.cost == 20 and t.interval == slow
+    assert not u.sent()
+
+
+def test_what_ctp_resets_on_still_resets_the_trickle() -> None:
+    tau_l = MiddlewareConfig().ctp_tau_l
+    # A parent that loses its route (poison): announced within tau_l.
+    u = Unit()
+    u.beacon(1, 20, 0)
+    u.advance(1000.0)
+    u.sent()
+    u.beacon(1, NO_ROUTE, BROADCAST)
+    assert u.c.parent is None and u.c.beacon_trickle.interval == tau_l
+    u.advance(1000.0 + tau_l)
+    (b,) = u.sent()
+    assert b.pull and b.cost == NO_ROUTE  # type: ignore[union-attr]
+    # A loop on the data path: our own parent sends us data.
+    u = Unit()
+    u.beacon(1, 20, 0)
+    u.advance(1000.0)
+    u.data(1, 30, 1, 2, 25)
+    assert u.c.stats.loops == 1 and u.c.beacon_trickle.interval == tau_l
+    # Datapath validation: a child whose cost is not above ours.
+    u = Unit()
+    u.beacon(1, 20, 0)
+    u.advance(1000.0)
+    u.data(7, 30, 1, 0, 25)  # cost 25 <= ours (30)
+    assert u.c.stats.inconsistencies == 1 and u.c.beacon_trickle.interval == tau_l
+
+
 # --------------------------------------------------------------------------- unit: data path
 
 
@@ -359,6 +418,20 @@ def test_repair_after_30_percent_of_motes_die(seed: int) -> None:
     assert not late, f"motes not delivering within {REPAIR_BOUND_S} s of the kill: {late}"
     for i in connected:
         assert route_of(motes, i)[-1] == 0
+
+
+PARENT_DEATH_BOUND_S = 10.0  # docs/energy.md
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_children_of_a_dead_parent_have_a_new_route_within_10_s(seed: int) -> None:
+    """A steady-state network (600 s: beacons minutes apart) with data every 5 s:
+    the parent with the most children dies; every child takes another parent
+    within the bound (data-path eviction, pull, neighbours answer within tau_l)."""
+    r = parent_death_repair(seed)
+    assert r["children"] >= 3
+    assert r["repair_max_s"] is not None and r["repair_max_s"] <= PARENT_DEATH_BOUND_S, r
+    assert r["routes_ok"], r
 
 
 # --------------------------------------------------------------------------- cached parent choice

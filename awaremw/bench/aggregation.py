@@ -35,17 +35,31 @@ definitions signed by the gateway), ``security_overhead_bytes`` (per frame),
 overhead included) and ``energy_mj_per_epoch`` (radio energy of every mote,
 ACKs included); ``mac`` and ``collisions_model`` (``--mac csma|aloha``,
 ``--collisions sinr|none``), ``collisions_per_epoch``, ``cca_busy_per_epoch``,
-``mac_drops_per_epoch`` (the MAC counters of every mote over the window).
+``mac_drops_per_epoch`` (the MAC counters of every mote over the window);
+``energy_by_role`` (radio/energy.py, docs/energy.md): for each role found in
+the window (``leader``, ``member``, ``forwarder``: in no group but data went
+through it, ``idle``) ``motes``, ``mj_per_hour`` (mean) and
+``mj_per_hour_max``, ``frames_per_hour`` and ``frames_per_hour_max``,
+``lifetime_days_traffic`` and ``lifetime_days_lpl`` (two AA cells, the role's
+most spending mote, traffic only / with a 1 % low-power-listening floor);
+``window_s``; with ``--per-mote``, ``energy_per_mote``: node id ->
+``[role, mJ per hour, frames per hour]``.
 
-How beacons are paced to meet the targets: a leader beacon costs one frame per
-member (the leader's, and one re-broadcast per member), so beacons add
-``members * channel_period / beacon_period`` frames per epoch. With the
-default ``--beacon-factor 4`` (beacon period = 4 channel periods) that is a
-quarter of the lower bound's member term; the collection tree's and Drip's
-Trickle timers are at tens of seconds by the end of the warm-up, and reports
-(one per ``report_every_beacons`` beacons) are rarer still. The price is a
-slower reaction to a dead leader: members wait ``leader_timeout_periods``
-beacon periods (3.5 x 8 s = 28 s here instead of 7 s).
+How beacons are paced to meet the targets: a leader beacon costs the leader's
+frame and one re-broadcast per member that is a parent in the group tree or
+hears no member as far out re-broadcast it (leaves skip theirs), so beacons
+add a fraction of ``members * channel_period / beacon_period`` frames per
+epoch. The default ``--beacon-factor 4`` makes the beacon period 4 channel
+periods (8 s), and ``--settled-factor 4`` lets a settled leader (its records
+flow, no new member) double its interval up to 4 beacon periods (32 s; the
+middleware's default is 2). The collection tree's and Drip's Trickle timers
+are at one to two minutes by the end of the warm-up. The price is a slower
+reaction when the group changes without a sign on the data path: members
+wait ``leader_timeout_periods`` of the intervals they see (3.5 x 32 s here,
+instead of 3.5 x 2 s with the deployments' defaults) before they take a
+leader lost by a split; a dead leader is still found by its children's
+unacknowledged partials within two epochs (docs/protocol-groups.md).
+``beacon_period_s`` and ``beacon_settled_factor`` say which pacing ran.
 """
 
 from __future__ import annotations
@@ -78,6 +92,7 @@ from awaremw.protocol.frames import (
 )
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.signing import ItemSigner
+from awaremw.radio.energy import MoteEnergy, role_of, role_table
 from awaremw.radio.model import RadioModel, preset
 from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.virtual import VirtualNetwork
@@ -114,6 +129,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--beacon-factor", type=float, default=4.0, help="leader beacon period / channel period"
     )
+    parser.add_argument(
+        "--settled-factor",
+        type=float,
+        default=4.0,
+        help="a settled leader's longest beacon interval, in beacon periods",
+    )
     parser.add_argument("--warmup", type=float, default=150.0, help="s before measuring")
     parser.add_argument("--epochs", type=int, default=40, help="epochs measured")
     parser.add_argument("--radio", default="cc2420", help="radio preset")
@@ -123,13 +144,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
     )
+    parser.add_argument(
+        "--per-mote",
+        action="store_true",
+        help="also give every mote's role, mJ per hour and frames per hour",
+    )
     add_medium_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     side, spacing = int(args.side), float(args.spacing)
     period = float(args.period)
-    cfg = MiddlewareConfig(beacon_period=period * float(args.beacon_factor))
+    cfg = MiddlewareConfig(
+        beacon_period=period * float(args.beacon_factor),
+        beacon_settled_factor=float(args.settled_factor),
+    )
     radio = preset(args.radio)
     seed = int(args.seed)
     secure = bool(getattr(args, "secure", False))
@@ -191,6 +220,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     start = (math.floor(warmup / period) + 1) * period
     end = start + int(args.epochs) * period
     net.run_until(start)
+    per0 = _per_mote(net)
     acks0 = _acks(net)
     mac0 = mac_totals(net.counters.values())
     energy0 = _energy(net)
@@ -198,6 +228,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     window[0], window[1] = start, end
     net.run_until(end)
     acks = _acks(net) - acks0
+    per1 = _per_mote(net)
     mac_window = {k: v - mac0[k] for k, v in mac_totals(net.counters.values()).items()}
     energy = _energy(net) - energy0
     stats = _channel_stats(motes) - stats0
@@ -213,6 +244,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     no_agg = sum(hops.values())
     measured = sum(by_type.values()) / epochs
     counts = [r.count for r in records]
+    window_s = end - start
+    motes_energy = []
+    for n, m in motes.items():
+        mj1, fr1, ack1 = per1[n]
+        mj0, fr0, ack0 = per0[n]
+        ms = m.groups.membership(GROUP_TYPE)
+        role = role_of(ms is not None and ms.is_leader, ms is not None, ack1 - ack0)
+        motes_energy.append(MoteEnergy(n, role, mj1 - mj0, fr1 - fr0))
     out: dict[str, Any] = {
         "lower_bound_ratio": measured / lower if lower else math.inf,
         "no_aggregation_ratio": no_agg / measured if measured else math.inf,
@@ -236,6 +275,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "completeness": (sum(counts) / len(counts) / n_members) if counts and n_members else 0.0,
         "groups_seen": len({r.group_id for r in records}),
         "beacon_period_s": cfg.beacon_period,
+        "beacon_settled_factor": cfg.beacon_settled_factor,
         "channel_period_s": period,
         "motes": len(motes),
         "seed": seed,
@@ -248,7 +288,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "payload_mtu": net.payload_mtu,
         "bytes_per_epoch": nbytes[0] / epochs,
         "energy_mj_per_epoch": energy / epochs,
+        "energy_by_role": role_table(motes_energy, window_s, radio),
+        "window_s": window_s,
     }
+    if getattr(args, "per_mote", False):
+        per_hour = 3600.0 / window_s
+        out["energy_per_mote"] = {
+            str(e.node): [e.role.value, round(e.mj * per_hour, 2), round(e.frames * per_hour, 1)]
+            for e in motes_energy
+        }
     out["meets_targets"] = out["lower_bound_ratio"] <= 1.5 and out["no_aggregation_ratio"] >= 5
     return out
 
@@ -259,6 +307,12 @@ def _fields(cfg: MiddlewareConfig) -> dict[str, Any]:
 
 def _energy(net: VirtualNetwork) -> float:
     return sum(net.energy_mj(n) for n in net.cores)
+
+
+def _per_mote(net: VirtualNetwork) -> dict[int, tuple[float, int, int]]:
+    """Each mote's radio energy (mJ), frames sent and ACKs sent so far."""
+    c = net.counters
+    return {n: (net.energy_mj(n), c[n].frames_tx, c[n].acks_tx) for n in net.cores}
 
 
 def _acks(net: VirtualNetwork) -> int:

@@ -31,7 +31,13 @@ JSON keys:
   ``bytes_tx_per_mote_per_hour`` (radio bytes in the window, overhead included);
 * ``mac``, ``collisions_model`` (``--mac csma|aloha``, ``--collisions
   sinr|none``), ``window_collisions``, ``window_cca_busy``,
-  ``window_mac_drops`` (MAC counters of every mote over the window).
+  ``window_mac_drops`` (MAC counters of every mote over the window);
+* ``energy_by_role``: the window's radio energy and frames per hour by role,
+  with the lifetime on two AA cells (radio/energy.py, docs/energy.md; in this
+  idle network every mote is ``idle``);
+* with ``--parent-death``, ``parent_death``: :func:`parent_death_repair` for
+  the seed (``victim``, ``children``, ``repair_s`` per child, ``repair_max_s``,
+  ``routes_ok``).
 
 The scenario helpers (grid of motes with optional periodic traffic, route and
 connectivity checks) are shared with the tests.
@@ -65,6 +71,7 @@ from awaremw.protocol.frames import (
 )
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.signing import ItemSigner
+from awaremw.radio.energy import MoteEnergy, role_of, role_table
 from awaremw.radio.model import RadioModel, preset
 from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.virtual import VirtualNetwork
@@ -218,6 +225,67 @@ def mesh_connected(net: VirtualNetwork, ids: Iterable[int], root: int, min_rssi:
     return set(hop_distances(net, ids, root, min_rssi))
 
 
+def parent_death_repair(
+    seed: int,
+    side: int = 10,
+    spacing: float = 15.0,
+    period: float = 5.0,
+    settle: float = 600.0,
+    horizon: float = 30.0,
+) -> dict[str, Any]:
+    """Route repair after a parent dies in a steady-state network.
+
+    A ``side`` x ``side`` grid (root in a corner) where every mote submits one
+    record every ``period`` s is left ``settle`` s to quiet down; then the
+    non-root mote with the most children in the tree dies. Each of its
+    children has a new route when it takes a parent other than the dead mote
+    (ParentChanged); the victim is chosen among the parents whose death cuts
+    none of their children off the root. ``repair_s`` lists those delays (None: none within
+    ``horizon``), ``routes_ok`` says whether every child's parent chain ends
+    at the root ``horizon`` s after the death.
+    """
+    net, motes, events = build_grid(side, spacing, (0,), seed, period=period)
+    net.run_until(settle)
+    kids: dict[int, list[int]] = {}
+    for i, m in motes.items():
+        p = m.collection.parent
+        if p is not None and p != 0:
+            kids.setdefault(p, []).append(i)
+    # The parent with the most children whose death leaves them a way to the
+    # root (links of mean RSSI >= -94 dBm, PRR about 0.8): no partition.
+    victim, children = -1, []
+    for v in sorted(kids, key=lambda v: (-len(kids[v]), v)):
+        reach = mesh_connected(net, [i for i in motes if i != v], 0, -94.0)
+        if all(c in reach for c in kids[v]):
+            victim, children = v, sorted(kids[v])
+            break
+    if victim < 0:
+        raise ValueError(f"seed {seed}: every parent's death cuts a child off the root")
+    n_before = len(events)
+    t_kill = net.now
+    net.kill(victim)
+    net.run_until(t_kill + horizon)
+    repaired: dict[int, float] = {}
+    for node, e, t in events[n_before:]:
+        if (
+            isinstance(e, ParentChanged)
+            and node in children
+            and e.new is not None
+            and e.new != victim
+        ):
+            repaired.setdefault(node, round(t - t_kill, 3))
+    delays = [repaired.get(c) for c in children]
+    got = [d for d in delays if d is not None]
+    return {
+        "seed": seed,
+        "victim": victim,
+        "children": len(children),
+        "repair_s": delays,
+        "repair_max_s": max(got) if len(got) == len(children) else None,
+        "routes_ok": all(route_of(motes, c)[-1] == 0 for c in children),
+    }
+
+
 def _slope(xs: list[float], ys: list[float]) -> float:
     n = len(xs)
     mx, my = sum(xs) / n, sum(ys) / n
@@ -286,14 +354,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     window = float(args.window)
     bytes0 = sum(c.bytes_tx for c in net.counters.values())
     mac0 = mac_totals(net.counters.values())
+    c = net.counters
+    per0 = {i: (net.energy_mj(i), c[i].frames_tx, c[i].acks_tx) for i in motes}
     net.run_until(net.now + window)
+    energy = [
+        MoteEnergy(
+            i,
+            role_of(False, False, net.counters[i].acks_tx - per0[i][2]),
+            net.energy_mj(i) - per0[i][0],
+            net.counters[i].frames_tx - per0[i][1],
+        )
+        for i in motes
+    ]
     counting[0] = False
     bytes_tx = sum(c.bytes_tx for c in net.counters.values()) - bytes0
     mac_window = {k: v - mac0[k] for k, v in mac_totals(net.counters.values()).items()}
     n = len(motes)
     per_hour = 3600.0 / window / n
     parent_changes = sum(1 for _, e, _ in events if isinstance(e, ParentChanged))
-    return {
+    out: dict[str, Any] = {
         "motes": n,
         "grid": f"{side}x{side}",
         "spacing_m": float(args.spacing),
@@ -323,8 +402,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "window_collisions": mac_window["collisions"],
         "window_cca_busy": mac_window["cca_busy"],
         "window_mac_drops": mac_window["mac_drops"],
+        "energy_by_role": role_table(energy, window, net.preset),
         "wall_seconds": round(time.perf_counter() - t_wall, 2),
     }
+    if getattr(args, "parent_death", False):
+        out["parent_death"] = parent_death_repair(seed)
+    return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -347,5 +430,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--secure",
         action="store_true",
         help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
+    )
+    parser.add_argument(
+        "--parent-death",
+        action="store_true",
+        help="also kill a parent in a 10 x 10 grid with traffic and time the repair",
     )
     add_medium_arguments(parser)

@@ -294,7 +294,7 @@ async def run_demo(
     from awaremw.experiments.client import Received
     from awaremw.experiments.realtime import RealtimeRun, RealtimeSettings, RunHooks
     from awaremw.experiments.snapshot import record_line as to_line
-    from awaremw.experiments.snapshot import snapshot_of
+    from awaremw.experiments.snapshot import role_energy, snapshot_of
     from awaremw.gateway.broker import mask_url
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
     from awaremw.view.snapshot import with_leds
@@ -311,12 +311,15 @@ async def run_demo(
 
     def tick(now: float, run: RealtimeRun) -> None:
         cores = run.cores()
-        snap = with_leds(snapshot_of(sc, run.recorder, now, run.live, run.traffic()), cores)
+        traffic, fwd = run.traffic(), run.forwarders()
+        snap = snapshot_of(sc, run.recorder, now, run.live, traffic, forwarders=fwd)
+        snap = with_leds(snap, cores)
         view.update(snap)
         if dash is not None:
             from awaremw.view.web import field_of
 
-            dash.update_field(now, field_of(snap.motes, cores))
+            energy = role_energy(sc, run.recorder, now, traffic, fwd)
+            dash.update_field(now, field_of(snap.motes, cores), energy)
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)

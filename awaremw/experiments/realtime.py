@@ -147,6 +147,16 @@ class RealtimeRun:
             out.update(f.cores)
         return out
 
+    def forwarders(self) -> set[int]:
+        """Motes that acknowledged unicasts so far (data was routed through them)."""
+        from awaremw.runtime.fleet import Fleet
+
+        out: set[int] = set()
+        for f in self.fleets:
+            assert isinstance(f, Fleet)
+            out.update(n for n, c in f.counters.items() if c.acks_tx > 0)
+        return out
+
     def traffic(self) -> dict[int, tuple[int, int, float]]:
         from awaremw.runtime.fleet import Fleet
 
@@ -355,7 +365,9 @@ def run_realtime(
     view: View = LiveView() if not plain and sys.stdout.isatty() else PlainLog(every=10.0)
 
     def tick(now: float, run: RealtimeRun) -> None:
-        view.update(snapshot_of(sc, run.recorder, now, run.live, run.traffic()))
+        view.update(
+            snapshot_of(sc, run.recorder, now, run.live, run.traffic(), forwarders=run.forwarders())
+        )
 
     def event(node: int, ev: object, t: float) -> None:
         line = describe(node, ev, t)

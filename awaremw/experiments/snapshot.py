@@ -7,13 +7,14 @@ layer below only draws snapshots.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 
 from awaremw.experiments.client import Received
 from awaremw.experiments.metrics import Recorder
 from awaremw.experiments.scenario import Scenario
 from awaremw.gateway.schema import agg_name
 from awaremw.protocol.attributes import unit_of
+from awaremw.radio.energy import EnergyRole, role_of
 from awaremw.view.snapshot import GroupLine, MoteDot, RecordLine, Snapshot
 
 
@@ -31,9 +32,12 @@ def snapshot_of(
     live: object | None = None,
     traffic: Mapping[int, tuple[int, int, float]] | None = None,
     title: str | None = None,
+    forwarders: Collection[int] = (),
 ) -> Snapshot:
     """The view of a run at ``now``: positions from the deployment's mobility,
-    memberships from the recorded events, records from the robot client."""
+    memberships from the recorded events, records from the robot client;
+    with ``traffic``, frames and radio energy per mote, and per role per hour
+    (``forwarders``: motes that acknowledged unicasts, see radio/energy.py)."""
     gtype = sc.tracking_group if sc.group_json else None
     members = rec.members_at(gtype, now) if gtype is not None else {}
     dots = []
@@ -73,11 +77,51 @@ def snapshot_of(
         if sensors:
             stats["frames/mote"] = sum(traffic[n][0] for n in sensors) / len(sensors)
             stats["mJ/mote"] = sum(traffic[n][2] for n in sensors) / len(sensors)
+            for role, e in role_energy(sc, rec, now, traffic, forwarders).items():
+                stats[f"mJ/h {role}"] = e["mj_per_hour"]
+                stats[f"frames/h {role}"] = e["frames_per_hour"]
     w, h = sc.deployment.area
     return Snapshot(
         now, (0.0, w, 0.0, h), tuple(dots), tuple(groups), records, stats,
         title=title or f"awaremw {sc.name}", group_type=gtype,
     )  # fmt: skip
+
+
+def role_energy(
+    sc: Scenario,
+    rec: Recorder,
+    now: float,
+    traffic: Mapping[int, tuple[int, int, float]],
+    forwarders: Collection[int] = (),
+) -> dict[str, dict[str, float]]:
+    """Radio energy and frames per hour since the start (means over the sensor
+    motes) by the role each has at ``now``: ``leader``, ``member`` (of the
+    tracked group type), ``forwarder`` (in ``forwarders``: it acknowledged
+    unicasts, data went through it), ``idle`` (radio/energy.py). Role name ->
+    ``{"motes", "mj_per_hour", "frames_per_hour"}``; empty at ``now`` <= 0."""
+    if now <= 0:
+        return {}
+    gtype = sc.tracking_group if sc.group_json else None
+    members = rec.members_at(gtype, now) if gtype is not None else {}
+    fwd = set(forwarders)
+    by: dict[EnergyRole, list[int]] = {}
+    for n in sc.sensors:
+        if n not in traffic:
+            continue
+        s = members.get(n)
+        role = role_of(bool(s and s.leader), s is not None, 1 if n in fwd else 0)
+        by.setdefault(role, []).append(n)
+    per_hour = 3600.0 / now
+    out: dict[str, dict[str, float]] = {}
+    for role in EnergyRole:
+        ns = by.get(role)
+        if ns:
+            out[role.value] = {
+                "motes": len(ns),
+                "mj_per_hour": sum(traffic[n][2] for n in ns) / len(ns) * per_hour,
+                "frames_per_hour": sum(traffic[n][0] for n in ns) / len(ns) * per_hour,
+            }
+    return out
 
 
 def _attr_of(sc: Scenario, channel: int) -> str | None:

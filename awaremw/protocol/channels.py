@@ -231,11 +231,24 @@ class Channels(Component):
         if m.is_leader:
             self.timers.set(("final", key), self.slot_time(cid, e, 0))
         elif ("send", key) not in self.timers:
-            cfg = self.ctx.config
-            slot = self.period(cid) / (max(1, cfg.max_group_depth) + 1)
-            jitter = slot * min(max(cfg.slot_jitter, 0.0), 1.0)
-            t = self.slot_time(cid, e, m.hops) + self.ctx.rng.uniform(0, jitter)
-            self.timers.set(("send", key), t)
+            self.timers.set(("send", key), self._send_time(cid, e, m.hops))
+
+    def _send_time(self, cid: int, epoch: int, hops: int) -> float:
+        """A member's send time: its slot, plus a uniform offset in the slot's jitter.
+
+        Members deeper than ``max_group_depth`` share the first slot with the
+        members at that depth: they send in its first half, those at the depth
+        in its second half, so that a partial from one hop deeper still merges.
+        """
+        cfg = self.ctx.config
+        d = max(1, cfg.max_group_depth)
+        slot = self.period(cid) / (d + 1)
+        frac = min(max(cfg.slot_jitter, 0.0), 1.0)
+        t = self.slot_time(cid, epoch, hops)
+        if hops >= d:
+            half = slot / 2
+            return t + (0.0 if hops > d else half) + self.ctx.rng.uniform(0, half * frac)
+        return t + self.ctx.rng.uniform(0, slot * frac)
 
     def _claim(self, key: _Key) -> tuple[_Pending, Membership] | None:
         """The epoch's unsent partial and the membership it is still for, or None.
@@ -263,6 +276,12 @@ class Channels(Component):
         cid, gtype, gid, e = key
         if m.is_leader:  # took the group over since the epoch started
             self._final(key, now)
+            return
+        if now < self.slot_time(cid, e, m.hops):
+            # Our hop count shrank since the epoch started (a leader beacon came
+            # through a shorter way): children on the new tree send until our new
+            # slot, so wait for it; sending now would make their partials late.
+            self.timers.set(("send", key), self._send_time(cid, e, m.hops))
             return
         p.sent = True
         if p.count == 0 or m.parent is None:

@@ -5,9 +5,12 @@ advertise cost 0. Every other mote keeps a bounded table of neighbours heard in
 :class:`CtpBeacon` frames (their advertised path cost and parent) and picks as
 parent the one minimising ``advertised cost + link cost``; its own cost is that
 sum. Costs are ETX x 10 integers. Beacons are paced by a Trickle timer
-(``ctp_tau_l`` .. ``ctp_tau_h``) that is reset when the parent changes, when the
-cost moves by at least the switch threshold, when a neighbour asks (``pull``:
-it has no route) and when the data path detects an inconsistency.
+(``ctp_tau_l`` .. ``ctp_tau_h``, one hour: an idle network whispers) that is
+reset only on what CTP resets on: a route found after none or lost (poison), a
+neighbour that asks (``pull``: it has no route, e.g. a new mote), and the data
+path detecting a loop or an inconsistency. A parent switch or a cost that
+moved is not announced: a mote's children learn it from its next beacon, or at
+once when their data shows that their picture is stale (datapath validation).
 
 Link cost. As MultiHopLQI maps CC2420 LQI to a cost with a cubic, we map the
 EWMA RSSI of the neighbour's frames: ETX 1 at or above ``ctp_rssi_good``,
@@ -434,14 +437,18 @@ class Collection(Component):
         self.timers.cancel("holddown")
         self.stats.parent_changes += 1
         self.ctx.emit(ParentChanged(old, n.node, path))
-        self._announce(now)
+        if old is None:
+            # A route found after none: the neighbours that pulled (our children
+            # among them, poisoned with us) need it now. A switch between two
+            # routes is not announced: stale costs downstream are harmless until
+            # data flows, and then datapath validation asks for a beacon.
+            self._announce(now)
 
     def _set_cost(self, cost: int, now: float) -> None:
-        if cost != self._cost:
-            big = abs(cost - self._cost) >= self.ctx.config.ctp_parent_switch_threshold
-            self._cost = cost
-            if big:
-                self._reset_trickle(now)
+        # No beacon for a cost that moved (the link estimates of a static network
+        # wander with fading): CTP resets only on a loop, a lost route or a pull,
+        # and the data path reports the costs that matter (see _on_data).
+        self._cost = cost
 
     def _lose_parent(self, now: float) -> None:
         old = self._parent

@@ -33,7 +33,8 @@ class MiddlewareConfig:
 
     # Collection tree (CTP-like)
     ctp_tau_l: float = 0.5
-    ctp_tau_h: float = 300.0
+    # CTP beacons: 0.5 s .. 1 h, reset only on route trouble (docs/energy.md)
+    ctp_tau_h: float = 3600.0
     ctp_queue: int = 16
     ctp_max_thl: int = 32
     ctp_parent_switch_threshold: int = 15  # ETX x 10 improvement needed to switch parent
@@ -59,6 +60,12 @@ class MiddlewareConfig:
     tentative_periods: float = 1.0  # a new group's id is announced this long before it is taken
     unmerge_window_periods: float = 15.0  # a part losing a merged group this soon takes its id back
     forward_jitter: float = 0.05  # max random delay before re-broadcasting a leader beacon
+    # A member skips re-broadcasting a leader beacon when it heard this many copies
+    # from members at least as far from the leader during its jitter (0: always).
+    beacon_forward_cover: int = 1
+    # A leader whose channel records flow and whose group is unchanged doubles its
+    # beacon interval at each beacon, up to this many beacon periods (1: never).
+    beacon_settled_factor: float = 2.0
     report_every_beacons: int = 5  # leader's GroupReport to the gateway, in beacon periods
     max_group_types: int = 8
     # Hops; TAG slots per epoch are planned for this depth (docs/protocol-groups.md,

@@ -72,6 +72,7 @@ MAX_HOPS = 0xFF
 ELECTION_BACKOFF_FACTOR = 3.0  # creation backoff after a lost leader, x create_backoff
 TENTATIVE_CREATE_SPREAD = 0.5  # spontaneous creation backoff with tentative ids, x create_backoff
 TENTATIVE_BEACONS = 2  # a would-be group announces its id this many times, evenly spread
+MAX_COPIES = 8  # copies of one beacon seq remembered for the forward suppression
 
 
 # --------------------------------------------------------------------------- public values
@@ -179,6 +180,7 @@ class GroupStats:
 
     beacons_sent: int = 0
     beacons_forwarded: int = 0
+    beacons_suppressed: int = 0  # forwards skipped: enough members around had sent it
     beacons_rebutted: int = 0  # current beacon re-sent to a lighter contending group
     failovers: int = 0  # leader claims after the leader was lost (same id)
     tentative_sent: int = 0  # would-be groups announced (tentative beacons)
@@ -235,6 +237,20 @@ class _TypeState:
     nearby: dict[int, _Heard] = field(default_factory=dict)
     parent_rssi: float = -math.inf  # link RSSI (EWMA) of the parent when it was chosen
     forwarded: bool = True  # the current seq was re-broadcast (our hop count is public)
+    # Copies of the current seq heard before our own forward, (sender, its hops):
+    # counter-based suppression (see on_timer "fwd").
+    copies: list[tuple[int, int]] = field(default_factory=list)
+    must_forward: bool = False  # the beacon we joined on announces the group: no suppression
+    child_at: float = -math.inf  # last partial a child sent us (a member with children)
+    # Leader: its beacon interval now; member: the interval it saw between the
+    # leader's beacons (0: none seen yet). See _gap and docs/protocol-groups.md.
+    gap: float = 0.0
+    settled: bool = False  # leader: nothing unsettled the group since the last beacon
+    recorded: bool = False  # leader: a channel record was made since the last beacon
+    peak: int = 0  # leader: most readings in one record since the beacon before last
+    peak_prev: int = 0  # ... of the records between the last two beacons
+    dips: int = 0  # leader: records in a row 10 % under the peak
+    reported_at: float = -math.inf  # leader: last GroupReport ALIVE
     upstream: dict[int, _Up] = field(default_factory=dict)
     failed: dict[int, float] = field(default_factory=dict)  # neighbour -> last failed unicast
     # Member neighbours of a leader: handover candidates. n -> (t, readings, link RSSI)
@@ -392,11 +408,28 @@ class Groups(Component):
         if st is None or st.role is not Role.LEADER or n <= 0:
             return
         st.weight = min(st.weight + n, MAX_WEIGHT)
+        if n > st.peak:
+            # More readings than the group gave lately (lost partials only ever
+            # make fewer): new members, which need the tree and our pace.
+            self._unsettle(st)
+        # Fewer, twice in a row: a subtree's way up is broken (its partials fail
+        # and its members know no other parent yet) or members left; a beacon
+        # rebuilds the tree. Once is a lost frame: no beacon for that.
+        st.dips = st.dips + 1 if n * 10 < st.peak * 9 else 0
+        if st.dips >= 2:
+            st.dips = 0
+            self._unsettle(st)
+        st.peak = max(st.peak, n)
         st.readings = n
+        st.recorded = True
 
     def note_child(self, group_type: int, node: int, now: float, count: int = 0) -> None:
-        """Channel data (``count`` readings) came from ``node``: a handover candidate."""
+        """Channel data (``count`` readings) came from ``node``: a handover candidate
+        of a leader; for a member, proof that it is a parent in the group tree."""
         st = self._types.get(group_type)
+        if st is not None and st.role is Role.MEMBER:
+            st.child_at = now
+            return
         if st is None or st.role is not Role.LEADER:
             return
         st.children[node] = (now, count, self._link_rssi(node, -math.inf))
@@ -441,6 +474,32 @@ class Groups(Component):
         c = self.ctx.config
         return c.unmerge_window_periods * c.beacon_period
 
+    def _gap(self, st: _TypeState) -> float:
+        """The leader's beacon interval as this mote knows it (the base period
+        until a member saw two beacons: a mote that joins a settled group adds
+        readings to its records, which unsettles the leader, see add_weight)."""
+        return st.gap if st.gap > 0 else self.ctx.config.beacon_period
+
+    def _max_factor(self) -> float:
+        return max(1.0, self.ctx.config.beacon_settled_factor)
+
+    def _member_timeout(self, st: _TypeState) -> float:
+        """No new seq for this long: the leader is lost (in gaps seen, not periods)."""
+        return self.ctx.config.leader_timeout_periods * self._gap(st)
+
+    def _unsettle(self, st: _TypeState) -> None:
+        """Leader: the group changed; beacon at the base period again (and within one
+        base period of the last beacon), so that the tree and members catch up."""
+        base = self.ctx.config.beacon_period
+        st.settled = False
+        if st.gap <= base:
+            return
+        st.gap = base
+        name = ("beacon", st.gtype)
+        due = self.timers.get(name)
+        if due is not None and due > st.last_beacon + base:
+            self.timers.set(name, st.last_beacon + base)
+
     def _claim_after(self) -> float:
         """Hysteresis in time: a leader heard from this recently is not suspected."""
         return 1.25 * self.ctx.config.beacon_period
@@ -452,6 +511,11 @@ class Groups(Component):
         that evidence gets stale, unless new evidence arrives meanwhile."""
         if st.suspect_at is None:
             st.suspect_at = now
+            if st.gap > self.ctx.config.beacon_period:
+                # A settled leader beacons rarely: our ACKs are most of the signs
+                # of life we get, and one partial lost to a collision is no death.
+                # Claim on the next failure unless an ACK or a beacon comes first.
+                return
         at = max(now, st.leader_ok + self._claim_after())
         self._schedule_claim(st, at)
 
@@ -522,7 +586,14 @@ class Groups(Component):
         if kind == "beacon" and st.role is Role.LEADER:
             self._beacon(st, now)
         elif kind == "fwd" and st.role is Role.MEMBER:
-            self._forward(st)
+            if self._covered(st, now):
+                # A leaf (no child sent us a partial since the last beacon), and
+                # members at least as far out as we are already carried this seq
+                # to our neighbourhood: skip ours (counter-based flooding). Parents
+                # always forward, so that the tree and its hop counts stay put.
+                self.stats.beacons_suppressed += 1
+            else:
+                self._forward(st)
         elif kind == "lost" and st.role is Role.MEMBER:
             self._leader_lost(st, now)
         elif kind == "claim" and st.role is Role.MEMBER:
@@ -624,6 +695,8 @@ class Groups(Component):
         if st.nearby:
             for gid in [g for g, h in st.nearby.items() if now - h.t > ttl]:
                 del st.nearby[gid]
+        if st.role is Role.MEMBER or st.role is Role.LEADER:
+            ttl = max(ttl, self.ctx.config.leader_timeout_periods * self._gap(st))
         if st.upstream:
             for n in [n for n, u in st.upstream.items() if now - u.t > ttl]:
                 del st.upstream[n]
@@ -696,7 +769,8 @@ class Groups(Component):
         st.leader_ok = heard_at
         st.leader_direct = heard_at if src == leader else -math.inf
         self.timers.cancel(("claim", st.gtype))
-        self.timers.set(("lost", st.gtype), heard_at + self._timeout())
+        st.gap = 0.0  # not seen yet
+        self.timers.set(("lost", st.gtype), heard_at + self._member_timeout(st))
         self.ctx.emit(GroupJoined(self.ctx.node_id, st.gtype, gid, leader, now))
 
     def _join(self, st: _TypeState, gid: int, h: _Heard, now: float) -> None:
@@ -705,6 +779,7 @@ class Groups(Component):
         now rather than creating a contender before the leader's next beacon."""
         self._become_member(st, gid, h.leader, h.weight, h.seq, h.hops, h.src, h.t, h.rssi, now)
         st.forwarded = False
+        st.copies, st.must_forward = [], True
         self._schedule_forward(st, now)
         self._answer_tentatives(st, now)
 
@@ -714,6 +789,7 @@ class Groups(Component):
             st, f.group_id, f.leader, f.weight, f.seq, f.hops, f.src, now, rssi, now
         )
         st.forwarded = False
+        st.copies, st.must_forward = [], False
         self._schedule_forward(st, now)
         self._answer_tentatives(st, now)
 
@@ -836,6 +912,9 @@ class Groups(Component):
         st.gid, st.leader, st.weight, st.seq = gid, self.ctx.node_id, weight, seq
         st.hops, st.parent = 0, None
         st.beacons = 0
+        st.gap, st.settled, st.recorded = 0.0, False, False
+        st.peak = st.peak_prev = 0
+        st.reported_at = -math.inf
         st.readings = 0
         st.upstream = {}
         st.children = known
@@ -892,7 +971,7 @@ class Groups(Component):
             # member (a thin, flapping bridge to the leader often carries the next
             # beacon) before the group is given up for a new one.
             st.patience = True
-            self.timers.set(("lost", st.gtype), now + self.ctx.config.beacon_period)
+            self.timers.set(("lost", st.gtype), now + self._gap(st))
             return
         dead = st.gid
         st.split_from, st.split_t = dead, now  # named by the group this mote may create now
@@ -919,9 +998,34 @@ class Groups(Component):
         )
         self.stats.beacons_sent += 1
         st.beacons += 1
-        if (st.beacons - 1) % max(1, self.ctx.config.report_every_beacons) == 0:
+        c = self.ctx.config
+        base = c.beacon_period
+        if st.gap <= 0:
+            st.gap = base
+        elif st.settled and st.recorded:
+            # Settled: a channel's records flow (the data path detects a dead
+            # leader: its children's partials go unacknowledged) and nothing
+            # changed since the last beacon. Beacons only refresh the tree.
+            st.gap = min(2.0 * st.gap, base * self._max_factor())
+        st.settled, st.recorded = True, False
+        # The peak forgets records older than two beacons (members that left).
+        st.peak, st.peak_prev = max(st.peak_prev, st.readings), st.readings
+        st.last_beacon = now
+        # Reports keep their pace in time whatever the beacons' (the gateway
+        # expires a group unheard for a few report periods).
+        if st.beacons == 1 or now + st.gap > st.reported_at + c.report_every_beacons * base:
+            st.reported_at = now
             self._report(st, now, GroupStatus.ALIVE)
-        self.timers.set(("beacon", st.gtype), now + self.ctx.config.beacon_period)
+        self.timers.set(("beacon", st.gtype), now + st.gap)
+
+    def _covered(self, st: _TypeState, now: float) -> bool:
+        """Skip our forward of the current seq? Only a leaf (no child sent us a
+        partial since the last beacon) that heard ``beacon_forward_cover`` copies
+        from members at least as far from the leader as we are (not our parent)."""
+        k = self.ctx.config.beacon_forward_cover
+        if k <= 0 or st.must_forward or now - st.child_at <= self._gap(st):
+            return False
+        return sum(1 for src, h in st.copies if h >= st.hops and src != st.parent) >= k
 
     def _schedule_forward(self, st: _TypeState, now: float) -> None:
         name = ("fwd", st.gtype)
@@ -1001,9 +1105,11 @@ class Groups(Component):
         """A lighter contender (another group of our type, or a lighter leader of
         our id) is in range: re-send our current beacon soon, at most twice a beacon
         period, so that it yields within a flood rather than a beacon period."""
+        if st.role is Role.LEADER:
+            self._unsettle(st)  # a contender in range: beacon at the base period
         if now - st.rebutted < 0.5 * self.ctx.config.beacon_period:
             return
-        if st.role is Role.MEMBER and now - st.last_beacon > self._claim_after():
+        if st.role is Role.MEMBER and now - st.last_beacon > 1.25 * self._gap(st):
             return  # our own news is stale: do not hold a new group back with it
         st.rebutted = now
         name = ("rebut", st.gtype)
@@ -1035,6 +1141,15 @@ class Groups(Component):
             # The first copy of a new seq sets the parent ...
             if f.leader != st.leader:
                 st.leader_direct = now if f.src == f.leader else -math.inf
+                st.gap = 0.0  # another leader (a claimant): its pace is not known yet
+            else:
+                # The pace of the leader's beacons (a settled leader slows down,
+                # at most doubling its interval per beacon: a timeout of 3.5 gaps
+                # seen still covers the next one, a lost beacon too).
+                steps = (f.seq - st.seq) & 0xFFFF
+                base = self.ctx.config.beacon_period
+                seen = (now - st.last_beacon) / max(1, steps)
+                st.gap = min(max(seen, base), base * self._max_factor())
             st.leader_ok = now
             self._clear_suspicion(st)
             st.seq, st.leader, st.weight = f.seq, f.leader, f.weight
@@ -1042,10 +1157,13 @@ class Groups(Component):
             st.hops = hops
             st.parent, st.parent_rssi = f.src, lr
             st.forwarded = False
+            st.copies, st.must_forward = [], False
             st.last_beacon = now
-            self.timers.set(("lost", st.gtype), now + self._timeout())
+            self.timers.set(("lost", st.gtype), now + self._member_timeout(st))
             self._schedule_forward(st, now)
         elif f.seq == st.seq and f.src != st.parent:
+            if not st.forwarded and len(st.copies) < MAX_COPIES:
+                st.copies.append((f.src, f.hops))
             # ... a later copy replaces it if better by _link_key (good links
             # first, then fewest hops); once our hop count is on the air it may
             # only stay or shrink (loop freedom, docs/protocol-groups.md).

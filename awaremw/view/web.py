@@ -163,6 +163,8 @@ class DashboardState:
         self.mqtt_connected = False
         self.records = 0
         self.dropped_clients = 0
+        # Role -> {motes, mj_per_hour, frames_per_hour} (experiments.snapshot.role_energy)
+        self.energy: dict[str, dict[str, float]] = {}
         self.version = 0  # bumped on every change
         self.defs_version = 0  # bumped when a definition changes
 
@@ -384,6 +386,7 @@ class DashboardState:
             "gateway": self.gateway_status,
             "mqtt": self.mqtt_connected,
             "records": self.records,
+            "energy": self.energy,
         }
 
     def state(self) -> dict[str, Any]:
@@ -662,8 +665,15 @@ class Dashboard:
 
     # ------------------------------------------------------------------ feeding
 
-    def update_field(self, now: float, motes: Iterable[FieldMote]) -> None:
+    def update_field(
+        self,
+        now: float,
+        motes: Iterable[FieldMote],
+        energy: dict[str, dict[str, float]] | None = None,
+    ) -> None:
         self.state.set_field(now, motes)
+        if energy is not None:
+            self.state.energy = energy
         self._wake.set()
 
     def _on_mqtt(self, rel: str, payload: bytes, retained: bool) -> None:
