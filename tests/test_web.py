@@ -601,6 +601,12 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
                                        timeout=10_000)  # fmt: skip
                 page.select_option("#gtype", "2")
                 page.wait_for_function("window.awaremw.drawn.leaders.length > 0", timeout=60_000)
+                # Energy by role (issue 25): the demo's motes have a leader by now, and
+                # the table shows its row with the mJ and frames per hour of the state.
+                page.wait_for_selector("#energy tr[data-role='leader']", timeout=30_000)
+                assert page.is_hidden("#no-energy")
+                cells = page.locator("#energy tr[data-role='leader'] td").all_text_contents()
+                assert cells[0] == "leader" and int(cells[1]) >= 1 and float(cells[2]) > 0
                 plot = "svg.plot[data-channel='5']"
                 page.wait_for_selector(plot, timeout=60_000)
 

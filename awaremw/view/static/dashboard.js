@@ -212,6 +212,21 @@ function drawGroups() {
   sel.value = want;
 }
 
+function drawEnergy() {
+  // Mean radio energy and frames per hour of the motes in each role (docs/energy.md).
+  const rows = Object.entries(state.energy || {});
+  $("no-energy").hidden = rows.length > 0;
+  const body = $("energy").tBodies[0];
+  body.replaceChildren();
+  for (const [role, e] of rows) {
+    const tr = body.insertRow();
+    tr.dataset.role = role;
+    for (const v of [role, e.motes, e.mj_per_hour.toFixed(1), e.frames_per_hour.toFixed(1)]) {
+      tr.insertCell().textContent = v;
+    }
+  }
+}
+
 function drawPlot(ch) {
   const pts = series[ch] || [];
   const info = (state && state.channels[ch]) || {};
@@ -289,7 +304,7 @@ function drawSide() {
 
 function render() {
   if (!state) return;
-  scheduleField(); drawGroups(); drawSide();
+  scheduleField(); drawGroups(); drawEnergy(); drawSide();
   for (const ch of Object.keys(state.channels)) dirty.add(ch);
   flushPlots();
 }
