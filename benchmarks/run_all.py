@@ -1,6 +1,7 @@
 """Every figure of the figures table (docs/figures.md), in one session, from the commands it names.
 
     python benchmarks/run_all.py [--repeat 3] [--only KEY,...] [--out benchmarks/results.json]
+    python benchmarks/run_all.py --only KEY,... --merge   # re-measure some rows, keep the others
     python benchmarks/run_all.py --markdown [--results FILE]  # the full table from results
     python benchmarks/run_all.py --write-docs [--results FILE]  # docs/figures.md and the README
     python benchmarks/run_all.py --quick --out /tmp/r.json     # tiny sizes: checks the structure
@@ -105,10 +106,24 @@ def _scale_cell(r: Result) -> str:
     )
 
 
+def _aware_what(r: Result) -> str:
+    """The aware workload of a result, as it ran (bench/aware_load.py)."""
+    if "objects" not in r:  # results of the earlier workload: one fire crossing the grid
+        return (
+            "a fire tracked by a group, AVG channel every 2 s, collection to the gateway's "
+            "mote, Drip"
+        )
+    return (
+        f"{_n(r.get('objects'))} fire(s) looping at 1 m/s, one per ~1,000 motes, "
+        f"{_n(r.get('objects_tracked'))} tracked by a group; AVG channel every 2 s; collection "
+        f"to {_n(r.get('sinks'))} sink(s); Drip"
+    )
+
+
 def _scale_aware_cell(r: Result) -> str:
     return (
-        f"{_n(r.get('motes'))} full AwareMotes (a fire tracked by a group, AVG channel every 2 s, "
-        f"collection, Drip) in {_n(r.get('processes'))} process(es): timer lag p99 "
+        f"{_n(r.get('motes'))} full AwareMotes ({_aware_what(r)}) in "
+        f"{_n(r.get('processes'))} process(es): timer lag p99 "
         f"**{_n(r.get('timer_lag_p99_ms', r.get('lag_p99_ms')))} ms**; record delivery "
         f"**{_n(r.get('record_delivery'), 3)}** ({_n(r.get('records_delivered'))} of "
         f"{_n(r.get('records_produced'))}); on target: {_n(r.get('meets_target'))}"
@@ -118,8 +133,7 @@ def _scale_aware_cell(r: Result) -> str:
 
 def _virtual_cell(r: Result) -> str:
     what = "HelloMotes beaconing 1/s (the radio alone)" if r.get("workload") == "hello" else (
-        "full AwareMotes (a fire tracked by a group, AVG channel every 2 s, collection to the "
-        "gateway's mote, Drip)"
+        f"full AwareMotes ({_aware_what(r)})"
     )  # fmt: skip
     out = (
         f"{_n(r.get('motes'))} {what} x {_n(r.get('sim_seconds'))} s simulated in "
@@ -535,6 +549,20 @@ class Session:
 # --------------------------------------------------------------------------- the table
 
 
+def merged(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """``old`` with the rows of ``new`` in place of its own (``--merge``): each new
+    row keeps when and on what load it was measured; ``merges`` lists the sessions."""
+    m = new.get("machine", {})
+    for e in new["rows"].values():
+        e["measured_utc"] = m.get("started_utc")
+        e["measured_loadavg"] = [m.get("loadavg_start"), m.get("loadavg_end")]
+    out = dict(old)
+    out["rows"] = {**old.get("rows", {}), **new["rows"]}
+    session = {"rows": sorted(new["rows"]), "repeat": new.get("repeat"), "machine": m}
+    out["merges"] = [*old.get("merges", []), session]
+    return out
+
+
 def markdown(report: dict[str, Any], rows: Sequence[Row] = ROWS) -> str:
     """The README's figures table (and a line on the machine) from a results report."""
     lines = [
@@ -552,6 +580,8 @@ def markdown(report: dict[str, Any], rows: Sequence[Row] = ROWS) -> str:
             how = (f"median of {n} by `{row.headline}`: {vals}" if n > 1 else
                    f"one run: {e['one_run']}" if "one_run" in e else "one run")  # fmt: skip
             cell = f"{row.cell(e['median'])} ({how})"
+            if e.get("measured_utc"):  # re-measured by a later session (--merge)
+                cell += f"; re-measured {e['measured_utc']}, load {e['measured_loadavg'][0]}"
         command = e["command"] if e is not None else row.command
         lines.append(f"| {row.label} | `{command}` | {cell.replace('|', '/')} | {row.target} |")
     m = report.get("machine", {})
@@ -616,6 +646,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     ", ".join(r.key for r in ROWS))  # fmt: skip
     ap.add_argument("--out", default=None, help="results file (default benchmarks/results.json)")
     ap.add_argument("--quick", action="store_true", help="tiny sizes, one run: the structure only")
+    ap.add_argument("--merge", action="store_true",
+                    help="with --only: put the new rows into the existing results file (each "
+                    "re-measured row says when) instead of replacing it")  # fmt: skip
     ap.add_argument("--markdown", action="store_true", help="print the table from --results")
     ap.add_argument("--write-docs", "--write-readme", action="store_true",
                     help="write the table into docs/figures.md and the short one into README.md")
@@ -642,6 +675,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     compiled = Path(a.compiled).resolve() if a.compiled else None
     report = Session(repeat, a.quick, [by_key[k] for k in keys], compiled).run()
     out = Path(a.out) if a.out else HERE / "results.json"
+    if a.merge and out.exists():
+        report = merged(json.loads(out.read_text(encoding="utf-8")), report)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
     print(markdown(report, [by_key[k] for k in keys]), end="")

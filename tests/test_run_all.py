@@ -98,6 +98,7 @@ def test_median_run_is_one_whole_run() -> None:
 
 
 @pytest.mark.zenoh
+@pytest.mark.timeout(900)  # about 2 minutes on a quiet machine, 5 under load
 def test_quick_session_writes_every_row_with_its_median_run(tmp_path: Path) -> None:
     ra = _run_all()
     out = tmp_path / "results.json"

@@ -282,6 +282,13 @@ def cell_of(x: float, y: float, cell_size_m: float) -> tuple[int, int]:
     return math.floor(x / cell_size_m), math.floor(y / cell_size_m)
 
 
+def expect_motes(model: RadioModel, motes: int) -> None:
+    """A medium holds ``motes`` motes: size ``model``'s link caches for them (about
+    :data:`LINKS_PER_MOTE` links each, never below the default bound), so that a
+    large network does not clear and recompute them over and over."""
+    model.link_cache_max = max(model.link_cache_max, LINKS_PER_MOTE * motes)
+
+
 # --------------------------------------------------------------------------- BER / PRR
 
 # Below this BER * bits, the PRR differs from 1 by less than 1e-12: we return 1.0
@@ -323,7 +330,6 @@ class RadioModel:
         "_d0",
         "_d_min",
         "_fading_link",
-        "_link_max",
         "_max_fade",
         "_one_snr_db",
         "_pl_d0",
@@ -331,6 +337,7 @@ class RadioModel:
         "_seed_mix",
         "_shadow",
         "_ten_n",
+        "link_cache_max",
         "preset",
         "prr_memo",
         "seed",
@@ -344,9 +351,9 @@ class RadioModel:
         self._bn_over_r = preset.noise_bandwidth_hz / preset.bitrate_bps
         # Bounds (entries; each cache is cleared when full, its values are pure
         # functions, so clearing only costs recomputation):
-        self._shadow: dict[int, float] = {}  # per link: _link_max
-        self._fading_link: dict[int, int] = {}  # per directed link: _link_max
-        self._link_max = _LINK_CACHE_MAX
+        self._shadow: dict[int, float] = {}  # per link: link_cache_max (expect_motes)
+        self._fading_link: dict[int, int] = {}  # per directed link: link_cache_max
+        self.link_cache_max = _LINK_CACHE_MAX
         self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
         # prr_bits' cache, also read by a caller's inlined lookup (read only): the PRR
         # at snr_db = rssi - noise floor (below the PRR-one SNR) of `bits` bits is
@@ -371,12 +378,6 @@ class RadioModel:
         d = max(distance_m, p.d0_m * 0.1)
         return p.pl_d0_db + 10.0 * p.path_loss_exponent * math.log10(d / p.d0_m)
 
-    def expect_motes(self, motes: int) -> None:
-        """A medium holds ``motes`` motes: size the link caches for them (about
-        :data:`LINKS_PER_MOTE` links each, never below the default bound), so that
-        a large network does not clear and recompute them over and over."""
-        self._link_max = max(self._link_max, LINKS_PER_MOTE * motes)
-
     def static_shadow_db(self, src: int, dst: int) -> float:
         """The per-link, time-invariant shadowing loss (dB), cached."""
         if src > dst and self.symmetric:
@@ -392,7 +393,7 @@ class RadioModel:
                 self._seed_mix ^ ((DOMAIN_SHADOW << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
             )
             v = sigma * _NORMAL[h >> _SHIFT]
-            if len(self._shadow) >= self._link_max:
+            if len(self._shadow) >= self.link_cache_max:
                 self._shadow.clear()  # keyed by remote sender ids: bounded, recomputable
             self._shadow[k] = v
         return v
@@ -406,7 +407,7 @@ class RadioModel:
             h = splitmix64(
                 self._seed_mix ^ ((DOMAIN_FADING << 40) | ((src & 0xFFFF) << 16) | (dst & 0xFFFF))
             )
-            if len(self._fading_link) >= self._link_max:
+            if len(self._fading_link) >= self.link_cache_max:
                 self._fading_link.clear()  # keyed by remote sender ids: bounded, recomputable
             self._fading_link[k] = h
         return h

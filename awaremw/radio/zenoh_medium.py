@@ -101,7 +101,7 @@ from awaremw.radio.mac import (
     OnAir,
     mac_params,
 )
-from awaremw.radio.model import RadioModel, cell_of, packet_key
+from awaremw.radio.model import RadioModel, cell_of, expect_motes, packet_key
 from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear
 from awaremw.radio.security import FrameGuard, RadioSecurity
 from awaremw.world.clock import EmulatedClock
@@ -399,7 +399,7 @@ class ZenohMedium:
         r = Radio(self, sink, mobility, txp, self.model.max_range_m(txp), battery, counters)
         r.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self.radios[nid] = r
-        self.model.expect_motes(len(self.radios))
+        expect_motes(self.model, len(self.radios))
         self._nb.add(r, self.clock.now())
         if not r.static:
             self._ensure_mobility_tick()

@@ -60,6 +60,7 @@ from awaremw.radio.model import (
     _SHIFT,
     _U32,
     RadioModel,
+    expect_motes,
     packet_key,
 )
 from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear, hear_link
@@ -214,7 +215,7 @@ class VirtualNetwork:
         node.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self._nodes[nid] = node
         self._cores[nid] = core
-        self.model.expect_motes(len(self._nodes))
+        expect_motes(self.model, len(self._nodes))
         self._push(t, _START, node, None)
 
     def kill(self, node_id: int, reason: str = "killed") -> None:
