@@ -21,7 +21,8 @@ subscriptions. Samples reach the event loop in one of two ways (``handler``):
 
 * ``"channel"`` (default): each subscription has a Zenoh FIFO channel that the
   loop drains with ``try_recv`` every 1 ms after traffic, backing off to 4 ms
-  when idle -- no Python runs on Zenoh's threads at all;
+  when idle, both longer on a slowed clock (:func:`poll_bounds`) -- no Python
+  runs on Zenoh's threads at all;
 * ``"callback"``: a callback on Zenoh's thread copies the bytes into a deque
   and wakes the loop with one ``call_soon_threadsafe`` per batch, not per
   sample.
