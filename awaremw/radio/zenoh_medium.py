@@ -21,7 +21,8 @@ subscriptions. Samples reach the event loop in one of two ways (``handler``):
 
 * ``"channel"`` (default): each subscription has a Zenoh FIFO channel that the
   loop drains with ``try_recv`` every 1 ms after traffic, backing off to 4 ms
-  when idle -- no Python runs on Zenoh's threads at all;
+  when idle, both longer on a slowed clock (:func:`poll_bounds`) -- no Python
+  runs on Zenoh's threads at all;
 * ``"callback"``: a callback on Zenoh's thread copies the bytes into a deque
   and wakes the loop with one ``call_soon_threadsafe`` per batch, not per
   sample.
@@ -129,7 +130,7 @@ AIR_SLACK_S = 0.02
 # and clock skew are milliseconds), and it would pin the Air.
 EARLY_LIMIT_S = 1.0
 CHANNEL_POLL_MIN_S = 0.001  # wall seconds between polls in "channel" mode: after traffic,
-CHANNEL_POLL_MAX_S = 0.004  # backing off to this while nothing arrives
+CHANNEL_POLL_MAX_S = 0.004  # backing off to this while nothing arrives (at speed >= 1)
 CHANNEL_CAPACITY = 1 << 16
 
 
@@ -316,7 +317,10 @@ class ZenohMedium:
         self._wakeup = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._poll: asyncio.TimerHandle | None = None
-        self._poll_s = CHANNEL_POLL_MIN_S
+        self._poll_min_s, self._poll_max_s = poll_bounds(
+            clock.speed, model.preset.airtime_s(0), guard_s
+        )
+        self._poll_s = self._poll_min_s
         self._closed = False
         self._frozen = False
         self._mobility_handle: asyncio.TimerHandle | None = None
@@ -480,7 +484,7 @@ class ZenohMedium:
                 )
             )
             if self._poll is None:
-                self._poll = self.loop.call_later(CHANNEL_POLL_MIN_S, self._poll_channels)
+                self._poll = self.loop.call_later(self._poll_min_s, self._poll_channels)
         self.stats.subscriptions += 1
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -537,9 +541,9 @@ class ZenohMedium:
             st = self.stats
             st.batches += 1
             st.max_batch = max(st.max_batch, n)
-            self._poll_s = CHANNEL_POLL_MIN_S
+            self._poll_s = self._poll_min_s
         else:
-            self._poll_s = min(self._poll_s * 2.0, CHANNEL_POLL_MAX_S)
+            self._poll_s = min(self._poll_s * 2.0, self._poll_max_s)
         self._poll = self.loop.call_later(self._poll_s, self._poll_channels)
 
     # ------------------------------------------------------------------ receive side
@@ -1064,6 +1068,24 @@ class ZenohMedium:
         for r in nb.moving:
             nb.locate(r, now)
         self._mobility_handle = self.loop.call_later(0.5, self._mobility_tick)
+
+
+def poll_bounds(speed: float, shortest_airtime_s: float, guard_s: float) -> tuple[float, float]:
+    """Wall seconds between polls of the channels (``"channel"`` mode): after
+    traffic, and at most while nothing arrives.
+
+    At speed 1 and above: :data:`CHANNEL_POLL_MIN_S` and :data:`CHANNEL_POLL_MAX_S`.
+    A slowed clock spreads the same emulated traffic over more wall time, and
+    every wake-up of the loop costs CPU whether or not an envelope waits (about
+    70 us on a loaded 2-core machine, where 10,000 motes over 8 workers at speed
+    0.1 woke each worker's loop for a poll more often than for anything else),
+    so both grow as ``1 / speed`` -- but never beyond half the wall time a
+    remote frame's envelope has before its receptions are decided (the shortest
+    frame's airtime, slowed, plus the guard), nor below the speed-1 bounds.
+    """
+    slow = 1.0 / min(speed, 1.0)
+    cap = max(CHANNEL_POLL_MAX_S, 0.5 * (shortest_airtime_s / speed + guard_s))
+    return min(CHANNEL_POLL_MIN_S * slow, cap), min(CHANNEL_POLL_MAX_S * slow, cap)
 
 
 def _tally(links: dict[tuple[int, int], int], src: int, dst: int) -> None:

@@ -253,6 +253,12 @@ class Fleet:
         self.control.bind(medium, loop)
         if s.control:
             self.control.open(self._session)
+        if s.freeze_gc:
+            # Setup made many long-lived objects: keep the collector off them.
+            # Here, not at the start: a worker of 1,300 AwareMotes collects for
+            # about 1 s, and all workers at the shared start would boot late.
+            gc.collect()
+            gc.freeze()
 
     def _prime(self, medium: ZenohMedium) -> int:
         """Precompute receiver lists for every static deployment mote near ours."""
@@ -269,10 +275,6 @@ class Fleet:
             raise RuntimeError("fleet already started")
         self.started = True
         self.clock.restart(time.time() if start_wall is None else start_wall)
-        if self.settings.freeze_gc:
-            # Setup made many long-lived objects: keep the collector off them.
-            gc.collect()
-            gc.freeze()
         self.motes.start()
 
     async def aclose(self) -> None:
