@@ -595,3 +595,34 @@ def test_two_group_types_at_once_with_a_channel_on_any_type() -> None:
     last = {r.group_type: r for _, r in sc.records(since=30.0)}
     assert last[1].count == len(hot) and last[2].count == len(wet)
     assert last[1].group_id == sc.motes[min(hot)].groups.membership(1).group_id  # type: ignore[union-attr]
+
+
+def test_a_mote_in_no_group_keeps_no_epoch_timer() -> None:
+    """Epochs tick only while a mote is in a group: a channel defined on a mote in
+    none arms nothing; entering a group starts the epochs at the next boundary;
+    leaving every group stops them once its pending partials are forgotten."""
+    class FakeGroups:
+        def __init__(self) -> None:
+            self.ms: dict[int, Membership] = {}
+            self.on_enter: object = None
+
+        def memberships(self) -> dict[int, Membership]:
+            return dict(self.ms)
+
+    ctx = MoteContext(5, MiddlewareConfig(), random.Random(1), None)
+    groups = FakeGroups()
+    ch = Channels(ctx, groups, None)  # type: ignore[arg-type]
+    assert groups.on_enter == ch._wake  # the hook Groups calls on entering a group
+    ch.define(1, ChannelDef(TEMPERATURE, 1, ANY_GROUP_ID, 2000, AggId.AVG), 3.1)
+    assert ch.timers.next_deadline() is None  # in no group: nothing armed
+    groups.ms = {1: Membership(1, 77, 9, False, 9, 1, 0)}
+    ch._wake(5.3)
+    assert ch.timers.next_deadline() == 6.0  # the next epoch boundary
+    groups.ms = {}
+    for _ in range(10):  # left the group: the epochs run out, then stop
+        t = ch.timers.next_deadline()
+        if t is None:
+            break
+        for name in ch.timers.due(t):
+            ch.on_timer(name, t)
+    assert ch.timers.next_deadline() is None

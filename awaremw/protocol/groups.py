@@ -46,6 +46,7 @@ The rules (ties and choices the paper leaves open are in docs/protocol-groups.md
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import NamedTuple
@@ -343,6 +344,9 @@ class Groups(Component):
         self.stats = GroupStats()
         self._types: dict[int, _TypeState] = {}
         self._echoed: tuple[int, int, int, int] | None = None  # last refusal sent back
+        # Called with ``now`` when this mote enters a group (as member or leader):
+        # the channels start their epochs then (a mote in no group keeps no epoch timer).
+        self.on_enter: Callable[[float], None] | None = None
 
     # ----------------------------------------------------------------- public API
 
@@ -772,6 +776,8 @@ class Groups(Component):
         st.gap = 0.0  # not seen yet
         self.timers.set(("lost", st.gtype), heard_at + self._member_timeout(st))
         self.ctx.emit(GroupJoined(self.ctx.node_id, st.gtype, gid, leader, now))
+        if self.on_enter is not None:
+            self.on_enter(now)
 
     def _join(self, st: _TypeState, gid: int, h: _Heard, now: float) -> None:
         """Join a group remembered from an earlier beacon, and announce it: forward
@@ -920,6 +926,8 @@ class Groups(Component):
         st.children = known
         st.suspect_at = None
         self.ctx.emit(LeaderElected(self.ctx.node_id, st.gtype, gid, weight, cause, now))
+        if self.on_enter is not None:
+            self.on_enter(now)
         self._beacon(st, now)
 
     def _leave(self, st: _TypeState, now: float, reason: LeaveReason, into: int = 0) -> None:
