@@ -297,7 +297,7 @@ _PRR_ONE_EPS: Final = 1e-12
 _PRR_CACHE_MAX: Final = 1 << 17
 _RANGE_CACHE_MAX: Final = 64  # distinct tx powers (a mote uses one; presets a handful)
 _LINK_CACHE_MAX: Final = 1 << 18  # links (local receivers x senders heard), at least
-LINKS_PER_MOTE: Final = 64  # the link caches' bound grows with the motes (expect_motes)
+LINKS_PER_MOTE: Final = 128  # the link caches' bound grows with the motes (expect_motes)
 _OQPSK_COEF: Final[tuple[tuple[float, float], ...]] = tuple(
     ((-1) ** k * math.comb(16, k), 20.0 * (1.0 / k - 1.0)) for k in range(2, 17)
 )
