@@ -24,6 +24,15 @@ it does beyond plain amqtt (see docs/robustness.md):
   one; its ``session_expiry_interval`` is set (``BrokerLimits.session_expiry_s``,
   default one hour), so a client away longer loses its session and that queue with it
   (:meth:`EmbeddedBroker.queued_for` tells what is queued).
+* **MQTT's retained-message rules, as Mosquitto keeps them**: amqtt 0.12.1
+  sends every connecting client the retained messages matching *every*
+  subscription any session holds (a subscriber of ``nothing/at/all`` got the
+  ``aware/def/*`` definitions; one of ``aware/def/#`` got each twice), and
+  delivers the messages queued for an away persistent session with the retain
+  flag set. Here retained messages go only to a new subscription, for the
+  topics its filter matches, once each, and queued messages keep retain 0
+  (MQTT 3.1.1 3.3.1-6 and 3.3.1-9; docs/gateway.md "The embedded broker's
+  amqtt patch").
 * **retained messages survive a restart**: with a state directory they are kept
   in ``retained.sqlite`` and put back before the listener opens. (amqtt's own
   ``SessionDBPlugin`` would need SQLAlchemy; the standard library's sqlite3
@@ -53,6 +62,8 @@ from urllib.parse import quote
 
 from amqtt.adapters import ReaderAdapter, StreamReaderAdapter, StreamWriterAdapter
 from amqtt.broker import Broker, RetainedApplicationMessage
+from amqtt.contexts import Action
+from amqtt.events import BrokerEvents
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +79,7 @@ PORT_FILE = "broker.json"
 RETAINED_FILE = "retained.sqlite"
 LOCK_FILE = "broker.lock"
 REFUSAL_LOG_INTERVAL_S = 10.0
+_REFUSED = 0x80  # SUBACK return code of a refused filter
 
 
 class BrokerError(RuntimeError):
@@ -194,6 +206,66 @@ class _LimitedBroker(Broker):  # type: ignore[misc]
     ) -> None:
         limited: ReaderAdapter = _LimitedReader(reader, self)
         await self._client_connected(listener_name, limited, StreamWriterAdapter(writer))
+
+    # ----------------------------------------------------------------- retained delivery
+    # amqtt 0.12.1 calls _publish_retained_messages_for_subscription from two
+    # places: after a SUBSCRIBE (right) and on every CONNECT for every filter in
+    # the broker, whoever holds it (wrong: MQTT sends retained messages only for
+    # a new subscription). The hook is silenced and SUBSCRIBE does its own.
+
+    async def _publish_retained_messages_for_subscription(
+        self, subscription: tuple[str, int], session: Any
+    ) -> None:
+        return None
+
+    async def _handle_subscription(
+        self, client_session: Any, handler: Any, subscribe_waiter: asyncio.Future[Any]
+    ) -> None:
+        subscriptions = subscribe_waiter.result()
+        codes = [await self.add_subscription(s, client_session) for s in subscriptions.topics]
+        await handler.mqtt_acknowledge_subscription(subscriptions.packet_id, codes)
+        for (topic_filter, _), code in zip(subscriptions.topics, codes, strict=True):
+            if code == _REFUSED:
+                continue
+            await self.plugins_manager.fire_event(
+                BrokerEvents.CLIENT_SUBSCRIBED,
+                client_id=client_session.client_id,
+                topic=topic_filter,
+                qos=code,
+            )
+            await self._send_retained(topic_filter, code, client_session, handler)
+
+    async def _send_retained(self, topic_filter: str, qos: int, session: Any, handler: Any) -> None:
+        """The retained messages ``topic_filter`` matches, once each, retain flag set."""
+        sends = []
+        for topic, msg in list(self._retained_messages.items()):
+            if not self._matches(topic, topic_filter):
+                continue
+            if not await self._topic_filtering(session, topic, Action.RECEIVE):
+                continue  # amqtt forgets this check for retained messages too
+            sends.append(
+                asyncio.ensure_future(
+                    handler.mqtt_publish(topic, msg.data, min(qos, msg.qos or 0), retain=True)
+                )
+            )
+        if sends:
+            await asyncio.wait(sends)
+
+    async def _publish_session_retained_messages(self, session: Any) -> None:
+        """What an away persistent session missed: live messages, so retain 0
+        (amqtt 0.12.1 sets it, and the gateway would take them for replays)."""
+        handler = self._get_handler(session)
+        sends = []
+        if handler is not None:
+            while not session.retained_messages.empty():
+                msg = session.retained_messages.get_nowait()
+                sends.append(
+                    asyncio.ensure_future(
+                        handler.mqtt_publish(msg.topic, msg.data, msg.qos, retain=False)
+                    )
+                )
+        if sends:
+            await asyncio.wait(sends)
 
     async def _start_listeners(self) -> None:
         # start() has just cleared the retained store: put back the persisted one
