@@ -55,6 +55,7 @@ import socket
 import sqlite3
 import tempfile
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -94,12 +95,6 @@ class BrokerStateInUse(BrokerError):
     pass
 
 
-def default_state_dir() -> Path:
-    """``$XDG_STATE_HOME/awaremw/broker`` (``~/.local/state/awaremw/broker``)."""
-    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
-    return Path(base) / "awaremw" / "broker"
-
-
 def mask_url(url: str) -> str:
     """``url`` with its password replaced by ``***`` (for logs and summaries)."""
     scheme, sep, rest = url.partition("://")
@@ -133,6 +128,8 @@ class BrokerStats:
     retained_refused: int = 0  # retained messages not retained (store full)
     retained: int = 0  # topics retained now
     retained_bytes: int = 0  # their payload bytes
+    write_failures: int = 0  # writes to retained.sqlite that failed (kept in memory, retried)
+    pending_writes: int = 0  # retained topics whose change the file does not hold yet
 
     def as_dict(self) -> dict[str, int]:
         return {k: getattr(self, k) for k in self.__slots__}
@@ -180,13 +177,24 @@ class _LimitedBroker(Broker):  # type: ignore[misc]
         self.max_retained_bytes = max_retained_bytes
         self.stats = stats
         self._db: sqlite3.Connection | None = None
+        self._db_path = db_path
+        # Retained topics changed in memory but not in the file (a write failed);
+        # beyond 2 * max_retained the whole table is rewritten instead.
+        self._dirty: set[str] = set()
+        self._dirty_all = False
+        self.on_write_error: Callable[[str], None] | None = None
         if db_path is not None:
-            self._db = sqlite3.connect(str(db_path))
-            os.chmod(db_path, 0o600)
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute(self._sql)
-            self._db.commit()
+            try:
+                self._db = sqlite3.connect(str(db_path))
+                os.chmod(db_path, 0o600)
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.execute(self._sql)
+                self._db.commit()
+            except (sqlite3.Error, OSError) as e:
+                self.close_store()
+                raise BrokerError(f"cannot open the retained store {db_path}: {e}") from None
         self._last_log = -REFUSAL_LOG_INTERVAL_S
+        self._last_write_log = -REFUSAL_LOG_INTERVAL_S
 
     def _rate_limited(self, msg: str, *args: object) -> None:
         now = time.monotonic()
@@ -306,20 +314,71 @@ class _LimitedBroker(Broker):  # type: ignore[misc]
                     self.max_retained_bytes, topic_name[:200],
                 )  # fmt: skip
                 return
+        known = topic_name is not None and topic_name in self._retained_messages
         await super().retain_message(source_session, topic_name, data, qos)
         self._recount()
-        if self._db is not None and topic_name is not None:
-            with self._db:
-                if data:
-                    self._db.execute(
-                        "INSERT OR REPLACE INTO retained VALUES (?, ?, ?)",
-                        (topic_name, bytes(data), qos or 0),
-                    )
+        if self._db is not None and topic_name is not None and (data or known):
+            if not self._dirty_all:
+                self._dirty.add(topic_name)
+                if len(self._dirty) > 2 * self.max_retained:
+                    self._dirty.clear()
+                    self._dirty_all = True
+            self.retry_writes()
+
+    def retry_writes(self) -> bool:
+        """Write the retained changes the file lacks; True when it holds them all.
+        A failure keeps them (in memory, served as usual) for the next try."""
+        db = self._db
+        if db is None or not (self._dirty or self._dirty_all):
+            return True
+        try:
+            with db:
+                if self._dirty_all:
+                    db.execute("DELETE FROM retained")
+                    topics: Iterable[str] = list(self._retained_messages)
                 else:
-                    self._db.execute("DELETE FROM retained WHERE topic=?", (topic_name,))
+                    topics = self._dirty
+                for topic in topics:
+                    m = self._retained_messages.get(topic)
+                    if m is None or not m.data:
+                        db.execute("DELETE FROM retained WHERE topic=?", (topic,))
+                    else:
+                        db.execute(
+                            "INSERT OR REPLACE INTO retained VALUES (?, ?, ?)",
+                            (topic, bytes(m.data), m.qos or 0),
+                        )
+        except (sqlite3.Error, OSError) as e:
+            self.stats.write_failures += 1
+            self.stats.pending_writes = (
+                len(self._retained_messages) if self._dirty_all else len(self._dirty)
+            )
+            now = time.monotonic()
+            if now - self._last_write_log >= REFUSAL_LOG_INTERVAL_S:
+                self._last_write_log = now
+                text = (
+                    f"the embedded broker's retained store {self._db_path} cannot be written "
+                    f"({e}): {self.stats.pending_writes} retained topics kept in memory and "
+                    f"retried ({self.stats.write_failures} failed writes); they are lost if the "
+                    "broker stops before they are written"
+                )
+                log.error("%s", text)
+                if self.on_write_error is not None:
+                    self.on_write_error(text)
+            return False
+        if self.stats.pending_writes:
+            log.warning("embedded broker: retained store written again")
+        self._dirty.clear()
+        self._dirty_all = False
+        self.stats.pending_writes = 0
+        return True
 
     def close_store(self) -> None:
         if self._db is not None:
+            if not self.retry_writes():
+                log.error(
+                    "embedded broker: %d retained changes could not be written and are lost",
+                    self.stats.pending_writes,
+                )
             self._db.close()
             self._db = None
 
@@ -353,6 +412,7 @@ class EmbeddedBroker:
         self.moved_from: int | None = None  # the busy port this start did not get
         self.limits = limits or BrokerLimits()
         self.stats = BrokerStats()
+        self._on_write_error: Callable[[str], None] | None = None
         self._broker: _LimitedBroker | None = None
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
         self._lock_fd: int | None = None
@@ -402,14 +462,19 @@ class EmbeddedBroker:
             # amqtt checks every second; it bounds the offline queues in time only.
             "session_expiry_interval": self.limits.session_expiry_s,
         }
-        broker = _LimitedBroker(
-            config,
-            max_message_bytes=self.limits.max_message_bytes,
-            max_retained=self.limits.max_retained,
-            max_retained_bytes=self.limits.max_retained_bytes,
-            db_path=None if self.state_dir is None else state / RETAINED_FILE,
-            stats=self.stats,
-        )
+        try:
+            broker = _LimitedBroker(
+                config,
+                max_message_bytes=self.limits.max_message_bytes,
+                max_retained=self.limits.max_retained,
+                max_retained_bytes=self.limits.max_retained_bytes,
+                db_path=None if self.state_dir is None else state / RETAINED_FILE,
+                stats=self.stats,
+            )
+        except BrokerError:
+            self._release()
+            raise
+        broker.on_write_error = self._on_write_error
         try:
             await broker.start()
         except Exception as e:
@@ -421,7 +486,11 @@ class EmbeddedBroker:
         if self.port == 0:
             self.port = _bound_port(broker)
         if self.state_dir is not None:
-            _write_private(state / PORT_FILE, json.dumps({"port": self.port}) + "\n")
+            try:
+                _write_private(state / PORT_FILE, json.dumps({"port": self.port}) + "\n")
+            except OSError as e:
+                await self.stop()
+                raise BrokerError(f"cannot write {state / PORT_FILE}: {e.strerror or e}") from None
         log.info("embedded MQTT broker listening on %s", self.public_url)
 
     async def stop(self) -> None:
@@ -436,6 +505,44 @@ class EmbeddedBroker:
     async def __aenter__(self) -> EmbeddedBroker:
         await self.start()
         return self
+
+    @property
+    def on_write_error(self) -> Callable[[str], None] | None:
+        """Told (rate-limited) when retained.sqlite cannot be written."""
+        return self._on_write_error
+
+    @on_write_error.setter
+    def on_write_error(self, fn: Callable[[str], None] | None) -> None:
+        self._on_write_error = fn
+        if self._broker is not None:
+            self._broker.on_write_error = fn
+
+    def retry_writes(self) -> bool:
+        """Write what retained.sqlite lacks after failed writes; True when nothing is pending."""
+        return True if self._broker is None else self._broker.retry_writes()
+
+    async def clear_foreign_groups(self, prefix: str, motes: set[int]) -> list[str]:
+        """Clear the retained group states (``<prefix>/groups/<type>/<id>``) whose
+        leader is not one of ``motes`` (a state left by another network); the
+        topics of the others, relative to the prefix (``groups/1/513``), are
+        returned: the caller clears those the network does not report again."""
+        if self._broker is None:
+            raise RuntimeError("the embedded broker is not running")
+        head = f"{prefix}/groups/"
+        kept: list[str] = []
+        for topic, msg in list(self._broker.retained_messages.items()):
+            if not topic.startswith(head):
+                continue
+            leader: object = None
+            with contextlib.suppress(ValueError, AttributeError):
+                leader = json.loads(msg.data).get("leader")
+            if isinstance(leader, int) and leader in motes:
+                kept.append(topic[len(prefix) + 1 :])
+            else:
+                await self._broker.retain_message(None, topic, b"")
+                log.info("embedded broker: cleared %s (leader %s not in this network)",
+                         topic, leader)  # fmt: skip
+        return kept
 
     def queued_for(self, client_id: str) -> int | None:
         """Messages queued for the persistent client ``client_id`` while it is away;
