@@ -29,7 +29,7 @@ from pathlib import Path
 import aiomqtt
 import pytest
 
-from awaremw.gateway.broker import EmbeddedBroker
+from awaremw.gateway.broker import EmbeddedBroker, account_for_port
 from awaremw.gateway.state import (
     StateError,
     default_dir,
@@ -147,6 +147,13 @@ def test_read_only_and_full_directories_are_refused_at_start(tmpfs: Mount) -> No
     full = tmpfs("64k")
     with pytest.raises(StateError, match=r"is full \(\d+ KiB free"):
         open_state(full / "state", "x", name="x", source="x")
+
+
+async def test_clients_find_the_account_of_a_local_embedded_broker(tmp_path: Path) -> None:
+    broker_dir = tmp_path / "awaremw" / "deployments" / "fire" / "broker"
+    async with EmbeddedBroker(state_dir=broker_dir) as b:
+        assert account_for_port(b.port, tmp_path / "awaremw") == (b.username, b.password)
+        assert account_for_port(b.port + 1, tmp_path / "awaremw") is None
 
 
 # ----------------------------------------------------------------- run-time write failures

@@ -80,7 +80,8 @@ class Shell:
         for port, actual in self.subst.items():
             line = re.sub(rf"(?<=[:\s]){port}\b", actual, line)
         if "ACCOUNT" in line:
-            account = (self.cwd / "state/awaremw/broker/mqtt-account").read_text().strip()
+            (acc,) = (self.cwd / "state/awaremw/deployments").glob("*/broker/mqtt-account")
+            account = acc.read_text().strip()
             line = line.replace("ACCOUNT", account)
         verb = line.split()[1] if line.startswith("awaremw ") else ""
         if verb in FAST and not line.endswith("&"):

@@ -95,6 +95,23 @@ class BrokerStateInUse(BrokerError):
     pass
 
 
+def account_for_port(port: int, root: Path | None = None) -> tuple[str, str] | None:
+    """``(user, password)`` of the embedded broker a gateway of this machine keeps on
+    ``port`` (its state under ``root``, default :func:`state.state_root`), or None.
+    For clients on this machine (no password to copy by hand)."""
+    from awaremw.gateway.state import BROKER_DIR, DEPLOYMENTS, state_root
+
+    base = (root or state_root()) / DEPLOYMENTS
+    for saved in sorted(base.glob(f"*/{BROKER_DIR}/{PORT_FILE}")):
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+            if int(json.loads(saved.read_text())["port"]) != port:
+                continue
+            user, sep, password = (saved.parent / ACCOUNT_FILE).read_text().strip().partition(":")
+            if sep and user and password:
+                return user, password
+    return None
+
+
 def mask_url(url: str) -> str:
     """``url`` with its password replaced by ``***`` (for logs and summaries)."""
     scheme, sep, rest = url.partition("://")
