@@ -28,8 +28,10 @@ from pathlib import Path
 
 import aiomqtt
 import pytest
+from mosquitto import Collector, Mosquitto, mosquitto_fixture, pub  # noqa: F401
 
 from awaremw.gateway.broker import EmbeddedBroker, account_for_port
+from awaremw.gateway.leftovers import sort_leftovers
 from awaremw.gateway.state import (
     StateError,
     default_dir,
@@ -412,3 +414,41 @@ async def test_disk_filling_at_run_time_is_reported_not_a_traceback(tmpfs: Mount
     with VersionStore(state / "gateway.sqlite") as s:
         stored = {i.item_id: i.json["period_s"] for i in s.items(ItemKind.CHANNEL) if i.json}
     assert stored == last  # the last definition of each, nothing lost
+
+
+def test_leftover_group_states_are_sorted_by_their_leader() -> None:
+    states = {
+        "groups/1/600": json.dumps({"leader": 999}).encode(),  # not a mote here
+        "groups/1/601": json.dumps({"leader": 3}).encode(),
+        "groups/1/602": json.dumps({"group_type": 1, "merged_into": 601}).encode(),
+        "groups/1/603": b"garbage",
+    }
+    found = sort_leftovers(states, {0, 1, 2, 3})
+    assert found.kept == ("groups/1/601",)
+    assert found.foreign == ("groups/1/600", "groups/1/602", "groups/1/603")
+
+
+async def test_a_gateway_clears_group_states_left_on_an_external_broker(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """Mosquitto (broker_cfg ACL): a state led by mote 999 (not in grid_small) is
+    cleared at start; one led by mote 3 when grid_small does not report it again."""
+    for rel, leader in (("groups/9/600", 999), ("groups/9/601", 3)):
+        body = json.dumps({"group_type": 9, "group_id": int(rel[-3:]), "leader": leader})
+        assert pub(mosquitto, "gateway", f"aware/{rel}", body).returncode == 0
+    p = subprocess.Popen(
+        [sys.executable, "-m", "awaremw", "gateway", "grid_small", "--no-hbn", "--speed", "10",
+         "--mqtt", mosquitto.url("gateway"), "--state-dir", str(tmp_path / "state")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        async with Collector(mosquitto.url("viewer"), "aware/groups/#") as seen:
+            cleared = await seen.wait_for(
+                lambda ms: {t for t, pl, _ in ms if not pl} >= {"aware/groups/9/600",
+                                                               "aware/groups/9/601"},
+                timeout=30,
+            )  # fmt: skip
+        order = [t for t, pl, _ in cleared if not pl]
+        assert order.index("aware/groups/9/600") < order.index("aware/groups/9/601")
+    finally:
+        _stop(p)

@@ -34,6 +34,7 @@ import signal
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,6 +43,7 @@ from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
 if TYPE_CHECKING:
     from awaremw.gateway.broker import EmbeddedBroker
+    from awaremw.gateway.leftovers import Leftovers
     from awaremw.gateway.service import GatewayService
     from awaremw.gateway.state import DeploymentState
 
@@ -234,6 +236,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
+    from awaremw.gateway.bridge import Publish
     from awaremw.gateway.broker import BrokerError, EmbeddedBroker
     from awaremw.gateway.service import GatewaySettings, attach_to_fleet, deployment_definitions
     from awaremw.gateway.state import StateError
@@ -288,7 +291,6 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
                 print(f"awaremw gateway: {e}", file=sys.stderr)
                 return 2
             print_broker(broker)
-            stale_groups = await broker.clear_foreign_groups(args.prefix, set(dep.ids))
             mqtt = MqttSettings.from_url(
                 broker.url, client_id=args.client_id, buffer_size=args.buffer
             )
@@ -324,12 +326,15 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         except StoreError as e:
             print(f"awaremw gateway: {e}", file=sys.stderr)
             return 2
+        leftovers = await _leftovers(replace(mqtt, prefix=args.prefix), set(dep.ids))
         await stack.enter_async_context(svc)
         _report_write_errors(svc, broker)
-        if broker is not None and stale_groups:
-            stack.push_async_callback(
-                _cancelled, asyncio.create_task(_clear_unheard(svc, stale_groups, args.speed))
-            )
+        if leftovers is not None:
+            for rel in leftovers.foreign:  # led by a mote this network does not have
+                svc.publish(Publish(rel, b"", retain=True))
+            if leftovers.kept:
+                task = asyncio.create_task(_clear_unheard(svc, leftovers.kept, args.speed))
+                stack.push_async_callback(_cancelled, task)
         stack.push_async_callback(_cancelled, asyncio.create_task(_retry_writes(svc, broker)))
         if args.define_initial:
             for out in svc.define_initial(deployment_definitions(dep.groups, dep.channels)):
@@ -400,7 +405,26 @@ async def _retry_writes(svc: GatewayService, broker: EmbeddedBroker | None) -> N
             broker.retry_writes()
 
 
-async def _clear_unheard(svc: GatewayService, topics: list[str], speed: float) -> None:
+async def _leftovers(mqtt: MqttSettings, motes: set[int]) -> Leftovers | None:
+    """The retained group states left on the broker, sorted; None when it cannot say."""
+    import aiomqtt
+
+    from awaremw.gateway.leftovers import retained_groups, sort_leftovers
+
+    try:
+        states = await retained_groups(mqtt)
+    except (aiomqtt.MqttError, TimeoutError, OSError) as e:
+        log.warning("cannot read the retained group states on %s (%s): left as they are",
+                    mqtt.url, e)  # fmt: skip
+        return None
+    found = sort_leftovers(states, motes)
+    if found.foreign:
+        log.info("clearing %d retained group states led by motes not in this network",
+                 len(found.foreign))  # fmt: skip
+    return found
+
+
+async def _clear_unheard(svc: GatewayService, topics: tuple[str, ...], speed: float) -> None:
     """Clear the retained group states kept from the last run that the network has
     not reported again within the bridge's expiry (their group is gone)."""
     from awaremw.gateway.bridge import Publish

@@ -538,29 +538,6 @@ class EmbeddedBroker:
         """Write what retained.sqlite lacks after failed writes; True when nothing is pending."""
         return True if self._broker is None else self._broker.retry_writes()
 
-    async def clear_foreign_groups(self, prefix: str, motes: set[int]) -> list[str]:
-        """Clear the retained group states (``<prefix>/groups/<type>/<id>``) whose
-        leader is not one of ``motes`` (a state left by another network); the
-        topics of the others, relative to the prefix (``groups/1/513``), are
-        returned: the caller clears those the network does not report again."""
-        if self._broker is None:
-            raise RuntimeError("the embedded broker is not running")
-        head = f"{prefix}/groups/"
-        kept: list[str] = []
-        for topic, msg in list(self._broker.retained_messages.items()):
-            if not topic.startswith(head):
-                continue
-            leader: object = None
-            with contextlib.suppress(ValueError, AttributeError):
-                leader = json.loads(msg.data).get("leader")
-            if isinstance(leader, int) and leader in motes:
-                kept.append(topic[len(prefix) + 1 :])
-            else:
-                await self._broker.retain_message(None, topic, b"")
-                log.info("embedded broker: cleared %s (leader %s not in this network)",
-                         topic, leader)  # fmt: skip
-        return kept
-
     def queued_for(self, client_id: str) -> int | None:
         """Messages queued for the persistent client ``client_id`` while it is away;
         None when the broker holds no session of it (never seen, clean, or expired)."""
