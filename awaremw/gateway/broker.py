@@ -389,13 +389,19 @@ class _LimitedBroker(Broker):  # type: ignore[misc]
         self.stats.pending_writes = 0
         return True
 
+    async def shutdown(self) -> None:
+        # amqtt's shutdown forgets the retained messages: write what is pending first.
+        if not self.retry_writes():
+            log.error(
+                "embedded broker: %d retained changes could not be written and are lost",
+                self.stats.pending_writes,
+            )
+        self._dirty.clear()
+        self._dirty_all = False
+        await super().shutdown()
+
     def close_store(self) -> None:
         if self._db is not None:
-            if not self.retry_writes():
-                log.error(
-                    "embedded broker: %d retained changes could not be written and are lost",
-                    self.stats.pending_writes,
-                )
             self._db.close()
             self._db = None
 
