@@ -19,6 +19,8 @@ build, so a suite meant for the compiled modules never quietly tests the sources
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 
 import pytest
 from hypothesis import settings
@@ -41,11 +43,19 @@ settings.load_profile(os.environ.get(PROFILE_ENV, "dev"))
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
+    # What runs keep (gateway versions, the embedded broker's account and retained
+    # messages, demo summaries) goes to a directory of this session, never to the
+    # user's ~/.local/state: tests start clean and leave nothing behind.
+    os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="awaremw-test-state-")
     if os.environ.get("AWAREMW_EXPECT_COMPILED") == "1" and not awaremw.compiled_modules():
         raise pytest.UsageError(
             f"AWAREMW_EXPECT_COMPILED=1 but {awaremw.__file__} has no compiled module: "
             "install with AWAREMW_USE_MYPYC=1 (setup.py) and run pytest outside the checkout"
         )
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    shutil.rmtree(os.environ["XDG_STATE_HOME"], ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

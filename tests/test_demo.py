@@ -5,12 +5,13 @@ robot's client over MQTT; and the live view's rendering."""
 from __future__ import annotations
 
 import io
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from mosquitto import Mosquitto, mosquitto_fixture  # noqa: F401
+from mosquitto import Collector, Mosquitto, mosquitto_fixture, pub  # noqa: F401
 from rich.console import Console
 
 from awaremw.experiments.scenario import load_scenario
@@ -89,6 +90,26 @@ async def test_demo_against_mosquitto_with_acl(
     # the one the records came from, and a leader was elected for it.
     assert len(summary["groups"]) >= 1 and summary["elections"] >= 1
     assert not summary["errors"]
+
+
+async def test_demo_on_a_users_broker_inherits_none_of_its_definitions(
+    mosquitto: Mosquitto, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A group type every mote joins and a channel on it, retained on the broker
+    before the demo: the demo's gateway takes neither (no record on channel 7)."""
+    from awaremw.cli.demo import run_demo
+
+    every = {"conditions": [{"attr": "x", "op": ">", "value": -1}]}
+    chan = {"attr": "x", "group_type": 7, "group_id": "*", "period_s": 1.0, "agg": "count"}
+    for topic, body in (("aware/def/group/7", every), ("aware/def/channel/7", chan)):
+        assert pub(mosquitto, "operator", topic, json.dumps(body)).returncode == 0
+    async with Collector(mosquitto.url("viewer"), "aware/data/7/#") as seven:
+        summary = await run_demo(
+            load_scenario("romeo4r"), 60.0, 10.0, mosquitto.url("gateway"), True,
+            robot_mqtt=mosquitto.url("operator"),
+        )  # fmt: skip
+    assert summary["records_received"] >= 2, capsys.readouterr().out[-3000:]
+    assert seven.messages == []
 
 
 def test_demo_runs_the_large_deployment(tmp_path: Path) -> None:

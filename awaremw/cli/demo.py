@@ -113,9 +113,9 @@ def summary_path(arg: str | None) -> Path:
     """Where the summary is written: ``arg``, else next to the gateway's state."""
     if arg is not None:
         return Path(arg)
-    from awaremw.gateway.broker import default_state_dir
+    from awaremw.gateway.state import state_root
 
-    return default_state_dir().parent / "demo-summary.txt"
+    return state_root() / "demo-summary.txt"
 
 
 def main(args: argparse.Namespace) -> int:

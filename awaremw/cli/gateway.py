@@ -5,11 +5,15 @@
     awaremw gateway romeo4r --connect tcp/127.0.0.1:7447 --mqtt mqtt://gateway:pw@broker:1883
     awaremw gateway romeo4r                      # embedded broker (port 1883 if free), printed
 
-The embedded broker has an account (user ``awaremw``, a password generated on
-first start, printed once and kept with mode 0600 in ``STATE/broker/mqtt-account``
-where STATE is ``--state-dir``, by default ``~/.local/state/awaremw``), keeps its
-port and retained messages across restarts, and refuses anonymous clients unless
-``--mqtt-anonymous``. See docs/robustness.md.
+What the gateway keeps belongs to the deployment it runs, in its state
+directory (``--state-dir``, by default
+``$XDG_STATE_HOME/awaremw/deployments/<deployment>``; awaremw/gateway/state.py):
+the versions (``gateway.sqlite``) and the embedded broker's account, port and
+retained messages (``broker/``). A restart on the same deployment keeps them,
+another deployment starts clean, ``--fresh`` forgets them. The embedded
+broker's account (user ``awaremw``, a password generated on first start,
+printed once, kept with mode 0600 in ``broker/mqtt-account``) refuses
+anonymous clients unless ``--mqtt-anonymous``. See docs/robustness.md.
 
 The gateway runs the deployment's gateway motes (collection roots) in this
 process, joined to the emulation through ``--connect`` (a router or a fleet
@@ -29,11 +33,20 @@ import logging
 import signal
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets
 from awaremw.cli.helptext import add_verb
 from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
+
+if TYPE_CHECKING:
+    from awaremw.gateway.broker import EmbeddedBroker
+    from awaremw.gateway.leftovers import Leftovers
+    from awaremw.gateway.service import GatewayService
+    from awaremw.gateway.state import DeploymentState
 
 log = logging.getLogger(__name__)
 
@@ -108,9 +121,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--state-dir",
         default=None,
         metavar="DIR",
-        help="keep versions in DIR/gateway.sqlite and the embedded broker's account, port "
-        "and retained messages in DIR/broker (default for the broker: "
-        "~/.local/state/awaremw/broker)",
+        help="the deployment's state directory: versions in DIR/gateway.sqlite, the embedded "
+        "broker's account, port and retained messages in DIR/broker (default: "
+        "$XDG_STATE_HOME/awaremw/deployments/<deployment>, i.e. ~/.local/state/...)",
+    )
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="forget the versions and retained messages kept for this deployment (the "
+        "embedded broker's account and port stay)",
     )
     p.add_argument("--speed", type=float, default=1.0, help="emulation speed factor")
     p.add_argument(
@@ -223,8 +242,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
-    from awaremw.gateway.broker import BrokerError, EmbeddedBroker, default_state_dir
+    from awaremw.gateway.bridge import Publish
+    from awaremw.gateway.broker import BrokerError, EmbeddedBroker
     from awaremw.gateway.service import GatewaySettings, attach_to_fleet, deployment_definitions
+    from awaremw.gateway.state import StateError
+    from awaremw.gateway.store import StoreError
     from awaremw.nodes import KindsFactory, kind_names, validate
     from awaremw.radio.zenoh_medium import DEFAULT_PREFIX
     from awaremw.runtime.deployment import DeploymentError, load
@@ -251,14 +273,24 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             loop.add_signal_handler(sig, stop.set)
 
     async with contextlib.AsyncExitStack() as stack:
+        try:
+            state = stack.enter_context(_open_state(dep, args.state_dir, args.fresh))
+        except StateError as e:
+            print(f"awaremw gateway: {e}", file=sys.stderr)
+            return 2
+        print(
+            f"awaremw gateway: state of {dep.name} in {state.dir}"
+            + (f" (--fresh: forgot {', '.join(state.forgotten)})" if state.forgotten else ""),
+            flush=True,
+        )
+        broker: EmbeddedBroker | None = None
         if mqtt is None:
-            state = (
-                default_state_dir() if args.state_dir is None else Path(args.state_dir) / "broker"
-            )
             try:
                 broker = await stack.enter_async_context(
                     EmbeddedBroker(
-                        port=args.mqtt_port, state_dir=state, anonymous=args.mqtt_anonymous
+                        port=args.mqtt_port,
+                        state_dir=state.broker_dir,
+                        anonymous=args.mqtt_anonymous,
                     )
                 )
             except (BrokerError, OSError) as e:
@@ -294,12 +326,22 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             capture = Capture.to_file(args.pcap, epoch=fleet.clock.start_wall)
             stack.callback(capture.close)  # closed before the fleet: later taps are ignored
             fleet.medium.tap = capture
-        settings = GatewaySettings(
-            prefix=args.prefix,
-            state_dir=None if args.state_dir is None else Path(args.state_dir),
-        )
-        svc = attach_to_fleet(fleet, settings=settings, mqtt=mqtt, hbn=not args.no_hbn)
+        settings = GatewaySettings(prefix=args.prefix, state_dir=state.dir)
+        try:
+            svc = attach_to_fleet(fleet, settings=settings, mqtt=mqtt, hbn=not args.no_hbn)
+        except StoreError as e:
+            print(f"awaremw gateway: {e}", file=sys.stderr)
+            return 2
+        leftovers = await _leftovers(replace(mqtt, prefix=args.prefix), set(dep.ids))
         await stack.enter_async_context(svc)
+        _report_write_errors(svc, broker)
+        if leftovers is not None:
+            for rel in leftovers.foreign:  # led by a mote this network does not have
+                svc.publish(Publish(rel, b"", retain=True))
+            if leftovers.kept:
+                task = asyncio.create_task(_clear_unheard(svc, leftovers.kept, args.speed))
+                stack.push_async_callback(_cancelled, task)
+        stack.push_async_callback(_cancelled, asyncio.create_task(_retry_writes(svc, broker)))
         if args.define_initial:
             for out in svc.define_initial(deployment_definitions(dep.groups, dep.channels)):
                 if out.error is not None:
@@ -328,6 +370,84 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             if (exc := t.exception()) is not None:
                 raise exc
     return 0
+
+
+RETRY_WRITES_S = 5.0  # how often changes a full or read-only disk refused are written again
+
+
+def _open_state(dep: object, state_dir: str | None, fresh: bool) -> DeploymentState:
+    """The deployment's state directory, opened and locked (StateError: one line)."""
+    from awaremw.gateway.state import default_dir, deployment_key, open_state
+    from awaremw.runtime.deployment import Deployment, shipped_dir
+
+    assert isinstance(dep, Deployment)
+    key = deployment_key(dep.name, dep.path, shipped_dir())
+    d = default_dir(key) if state_dir is None else Path(state_dir)
+    return open_state(d, key, name=dep.name, source=str(dep.path or dep.name), fresh=fresh)
+
+
+def _report_write_errors(svc: GatewayService, broker: EmbeddedBroker | None) -> None:
+    """Failed writes of the state directory go to <prefix>/errors (rate-limited by their
+    sources), besides the log."""
+    from awaremw.gateway.bridge import ErrorReport, Publish
+
+    def report(where: str) -> Callable[[str], None]:
+        def publish(text: str) -> None:
+            err = ErrorReport(topic=where, code="state_write_failed", error=text, payload="")
+            svc.publish(Publish("errors", err.to_json()))
+
+        return publish
+
+    svc.store.on_write_error = report(f"state:{svc.store.path}")
+    if broker is not None:
+        broker.on_write_error = report(f"state:{broker.state_dir}")
+
+
+async def _retry_writes(svc: GatewayService, broker: EmbeddedBroker | None) -> None:
+    while True:
+        await asyncio.sleep(RETRY_WRITES_S)  # a retry period, not a synchronisation
+        svc.store.retry()
+        if broker is not None:
+            broker.retry_writes()
+
+
+async def _leftovers(mqtt: MqttSettings, motes: set[int]) -> Leftovers | None:
+    """The retained group states left on the broker, sorted; None when it cannot say."""
+    import aiomqtt
+
+    from awaremw.gateway.leftovers import retained_groups, sort_leftovers
+
+    try:
+        states = await retained_groups(mqtt)
+    except (aiomqtt.MqttError, TimeoutError, OSError) as e:
+        log.warning("cannot read the retained group states on %s (%s): left as they are",
+                    mqtt.url, e)  # fmt: skip
+        return None
+    found = sort_leftovers(states, motes)
+    if found.foreign:
+        log.info("clearing %d retained group states led by motes not in this network",
+                 len(found.foreign))  # fmt: skip
+    return found
+
+
+async def _clear_unheard(svc: GatewayService, topics: tuple[str, ...], speed: float) -> None:
+    """Clear the retained group states kept from the last run that the network has
+    not reported again within the bridge's expiry (their group is gone)."""
+    from awaremw.gateway.bridge import Publish
+
+    policy = svc.bridge.policy
+    await asyncio.sleep(policy.report_period_s * policy.expiry_periods / speed)  # the expiry
+    live = svc.bridge.group_states()
+    for rel in topics:
+        if rel not in live:
+            svc.publish(Publish(rel, b"", retain=True))
+            log.info("cleared %s: its group was not reported since the gateway started", rel)
+
+
+async def _cancelled(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
 
 
 def print_broker(broker: object) -> None:

@@ -73,6 +73,15 @@ def _tls(s: MqttSettings) -> ssl.SSLContext | None:
     return ssl.create_default_context(cafile=s.ca_file)
 
 
+def definition_payloads(
+    groups: Mapping[int, Mapping[str, Any]], channels: Mapping[int, Mapping[str, Any]]
+) -> list[tuple[str, bytes]]:
+    """The robot's definitions as MQTT messages: (topic relative to the prefix, payload)."""
+    out = [(f"def/group/{t}", json.dumps(b).encode()) for t, b in groups.items()]
+    out += [(f"def/channel/{c}", json.dumps(b).encode()) for c, b in channels.items()]
+    return out
+
+
 class RobotClient:
     """Define, then listen. ``await client.ready`` waits until definitions are out."""
 
@@ -101,6 +110,10 @@ class RobotClient:
     def stop(self) -> None:
         self._stop.set()
 
+    def definitions(self) -> list[tuple[str, bytes]]:
+        """What :meth:`run` publishes (retained): (topic relative to the prefix, payload)."""
+        return definition_payloads(self.groups, self.channels)
+
     async def run(self, define: bool = True) -> None:
         s = self.settings
         async with aiomqtt.Client(
@@ -118,12 +131,8 @@ class RobotClient:
             await client.subscribe(f"{p}/groups/#", qos=1)
             await client.subscribe(f"{p}/errors", qos=1)
             if define:
-                for gtype, body in self.groups.items():
-                    await client.publish(f"{p}/def/group/{gtype}", json.dumps(body), qos=1,
-                                         retain=True)  # fmt: skip
-                for cid, body in self.channels.items():
-                    await client.publish(f"{p}/def/channel/{cid}", json.dumps(body), qos=1,
-                                         retain=True)  # fmt: skip
+                for rel, payload in self.definitions():
+                    await client.publish(f"{p}/{rel}", payload, qos=1, retain=True)
             self.ready.set()
             reader = asyncio.create_task(self._read(client))
             try:

@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from awaremw.experiments.client import GroupSeen, Received, RobotClient
+from awaremw.experiments.client import GroupSeen, Received, RobotClient, definition_payloads
 from awaremw.experiments.metrics import Recorder, RunResult
 from awaremw.experiments.scenario import Scenario
 from awaremw.gateway.mqtt import MqttSettings
@@ -250,8 +250,11 @@ class RealtimeRun:
                 fleets.append(f)
             self.fleets = list(fleets)
             gw_fleet = next(f for f in fleets if f.name == "gateway")
-            svc = attach_to_fleet(gw_fleet, settings=GatewaySettings(prefix=self.prefix),
-                                  mqtt=gw_mqtt, hbn=True)  # fmt: skip
+            # A run starts from its scenario, never from what a broker retained before
+            # (its own definitions only: they may be retained before the gateway subscribes).
+            own = definition_payloads(sc.group_json, sc.channel_json)
+            gw_settings = GatewaySettings(prefix=self.prefix, retained_only=frozenset(own))
+            svc = attach_to_fleet(gw_fleet, settings=gw_settings, mqtt=gw_mqtt, hbn=True)
             await stack.enter_async_context(svc)
             for f in fleets:
                 for n, r in f.runners.items():

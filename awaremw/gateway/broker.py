@@ -24,6 +24,15 @@ it does beyond plain amqtt (see docs/robustness.md):
   one; its ``session_expiry_interval`` is set (``BrokerLimits.session_expiry_s``,
   default one hour), so a client away longer loses its session and that queue with it
   (:meth:`EmbeddedBroker.queued_for` tells what is queued).
+* **MQTT's retained-message rules, as Mosquitto keeps them**: amqtt 0.12.1
+  sends every connecting client the retained messages matching *every*
+  subscription any session holds (a subscriber of ``nothing/at/all`` got the
+  ``aware/def/*`` definitions; one of ``aware/def/#`` got each twice), and
+  delivers the messages queued for an away persistent session with the retain
+  flag set. Here retained messages go only to a new subscription, for the
+  topics its filter matches, once each, and queued messages keep retain 0
+  (MQTT 3.1.1 3.3.1-6 and 3.3.1-9; docs/gateway.md "The embedded broker's
+  amqtt patch").
 * **retained messages survive a restart**: with a state directory they are kept
   in ``retained.sqlite`` and put back before the listener opens. (amqtt's own
   ``SessionDBPlugin`` would need SQLAlchemy; the standard library's sqlite3
@@ -46,6 +55,7 @@ import socket
 import sqlite3
 import tempfile
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -53,6 +63,8 @@ from urllib.parse import quote
 
 from amqtt.adapters import ReaderAdapter, StreamReaderAdapter, StreamWriterAdapter
 from amqtt.broker import Broker, RetainedApplicationMessage
+from amqtt.contexts import Action
+from amqtt.events import BrokerEvents
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +80,7 @@ PORT_FILE = "broker.json"
 RETAINED_FILE = "retained.sqlite"
 LOCK_FILE = "broker.lock"
 REFUSAL_LOG_INTERVAL_S = 10.0
+_REFUSED = 0x80  # SUBACK return code of a refused filter
 
 
 class BrokerError(RuntimeError):
@@ -82,10 +95,21 @@ class BrokerStateInUse(BrokerError):
     pass
 
 
-def default_state_dir() -> Path:
-    """``$XDG_STATE_HOME/awaremw/broker`` (``~/.local/state/awaremw/broker``)."""
-    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
-    return Path(base) / "awaremw" / "broker"
+def account_for_port(port: int, root: Path | None = None) -> tuple[str, str] | None:
+    """``(user, password)`` of the embedded broker a gateway of this machine keeps on
+    ``port`` (its state under ``root``, default :func:`state.state_root`), or None.
+    For clients on this machine (no password to copy by hand)."""
+    from awaremw.gateway.state import BROKER_DIR, DEPLOYMENTS, state_root
+
+    base = (root or state_root()) / DEPLOYMENTS
+    for saved in sorted(base.glob(f"*/{BROKER_DIR}/{PORT_FILE}")):
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+            if int(json.loads(saved.read_text())["port"]) != port:
+                continue
+            user, sep, password = (saved.parent / ACCOUNT_FILE).read_text().strip().partition(":")
+            if sep and user and password:
+                return user, password
+    return None
 
 
 def mask_url(url: str) -> str:
@@ -121,6 +145,8 @@ class BrokerStats:
     retained_refused: int = 0  # retained messages not retained (store full)
     retained: int = 0  # topics retained now
     retained_bytes: int = 0  # their payload bytes
+    write_failures: int = 0  # writes to retained.sqlite that failed (kept in memory, retried)
+    pending_writes: int = 0  # retained topics whose change the file does not hold yet
 
     def as_dict(self) -> dict[str, int]:
         return {k: getattr(self, k) for k in self.__slots__}
@@ -168,13 +194,24 @@ class _LimitedBroker(Broker):  # type: ignore[misc]
         self.max_retained_bytes = max_retained_bytes
         self.stats = stats
         self._db: sqlite3.Connection | None = None
+        self._db_path = db_path
+        # Retained topics changed in memory but not in the file (a write failed);
+        # beyond 2 * max_retained the whole table is rewritten instead.
+        self._dirty: set[str] = set()
+        self._dirty_all = False
+        self.on_write_error: Callable[[str], None] | None = None
         if db_path is not None:
-            self._db = sqlite3.connect(str(db_path))
-            os.chmod(db_path, 0o600)
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute(self._sql)
-            self._db.commit()
+            try:
+                self._db = sqlite3.connect(str(db_path))
+                os.chmod(db_path, 0o600)
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.execute(self._sql)
+                self._db.commit()
+            except (sqlite3.Error, OSError) as e:
+                self.close_store()
+                raise BrokerError(f"cannot open the retained store {db_path}: {e}") from None
         self._last_log = -REFUSAL_LOG_INTERVAL_S
+        self._last_write_log = -REFUSAL_LOG_INTERVAL_S
 
     def _rate_limited(self, msg: str, *args: object) -> None:
         now = time.monotonic()
@@ -194,6 +231,66 @@ class _LimitedBroker(Broker):  # type: ignore[misc]
     ) -> None:
         limited: ReaderAdapter = _LimitedReader(reader, self)
         await self._client_connected(listener_name, limited, StreamWriterAdapter(writer))
+
+    # ----------------------------------------------------------------- retained delivery
+    # amqtt 0.12.1 calls _publish_retained_messages_for_subscription from two
+    # places: after a SUBSCRIBE (right) and on every CONNECT for every filter in
+    # the broker, whoever holds it (wrong: MQTT sends retained messages only for
+    # a new subscription). The hook is silenced and SUBSCRIBE does its own.
+
+    async def _publish_retained_messages_for_subscription(
+        self, subscription: tuple[str, int], session: Any
+    ) -> None:
+        return None
+
+    async def _handle_subscription(
+        self, client_session: Any, handler: Any, subscribe_waiter: asyncio.Future[Any]
+    ) -> None:
+        subscriptions = subscribe_waiter.result()
+        codes = [await self.add_subscription(s, client_session) for s in subscriptions.topics]
+        await handler.mqtt_acknowledge_subscription(subscriptions.packet_id, codes)
+        for (topic_filter, _), code in zip(subscriptions.topics, codes, strict=True):
+            if code == _REFUSED:
+                continue
+            await self.plugins_manager.fire_event(
+                BrokerEvents.CLIENT_SUBSCRIBED,
+                client_id=client_session.client_id,
+                topic=topic_filter,
+                qos=code,
+            )
+            await self._send_retained(topic_filter, code, client_session, handler)
+
+    async def _send_retained(self, topic_filter: str, qos: int, session: Any, handler: Any) -> None:
+        """The retained messages ``topic_filter`` matches, once each, retain flag set."""
+        sends = []
+        for topic, msg in list(self._retained_messages.items()):
+            if not self._matches(topic, topic_filter):
+                continue
+            if not await self._topic_filtering(session, topic, Action.RECEIVE):
+                continue  # amqtt forgets this check for retained messages too
+            sends.append(
+                asyncio.ensure_future(
+                    handler.mqtt_publish(topic, msg.data, min(qos, msg.qos or 0), retain=True)
+                )
+            )
+        if sends:
+            await asyncio.wait(sends)
+
+    async def _publish_session_retained_messages(self, session: Any) -> None:
+        """What an away persistent session missed: live messages, so retain 0
+        (amqtt 0.12.1 sets it, and the gateway would take them for replays)."""
+        handler = self._get_handler(session)
+        sends = []
+        if handler is not None:
+            while not session.retained_messages.empty():
+                msg = session.retained_messages.get_nowait()
+                sends.append(
+                    asyncio.ensure_future(
+                        handler.mqtt_publish(msg.topic, msg.data, msg.qos, retain=False)
+                    )
+                )
+        if sends:
+            await asyncio.wait(sends)
 
     async def _start_listeners(self) -> None:
         # start() has just cleared the retained store: put back the persisted one
@@ -234,17 +331,74 @@ class _LimitedBroker(Broker):  # type: ignore[misc]
                     self.max_retained_bytes, topic_name[:200],
                 )  # fmt: skip
                 return
+        known = topic_name is not None and topic_name in self._retained_messages
         await super().retain_message(source_session, topic_name, data, qos)
         self._recount()
-        if self._db is not None and topic_name is not None:
-            with self._db:
-                if data:
-                    self._db.execute(
-                        "INSERT OR REPLACE INTO retained VALUES (?, ?, ?)",
-                        (topic_name, bytes(data), qos or 0),
-                    )
+        if self._db is not None and topic_name is not None and (data or known):
+            if not self._dirty_all:
+                self._dirty.add(topic_name)
+                if len(self._dirty) > 2 * self.max_retained:
+                    self._dirty.clear()
+                    self._dirty_all = True
+            self.retry_writes()
+
+    def retry_writes(self) -> bool:
+        """Write the retained changes the file lacks; True when it holds them all.
+        A failure keeps them (in memory, served as usual) for the next try."""
+        db = self._db
+        if db is None or not (self._dirty or self._dirty_all):
+            return True
+        try:
+            with db:
+                if self._dirty_all:
+                    db.execute("DELETE FROM retained")
+                    topics: Iterable[str] = list(self._retained_messages)
                 else:
-                    self._db.execute("DELETE FROM retained WHERE topic=?", (topic_name,))
+                    topics = self._dirty
+                for topic in topics:
+                    m = self._retained_messages.get(topic)
+                    if m is None or not m.data:
+                        db.execute("DELETE FROM retained WHERE topic=?", (topic,))
+                    else:
+                        db.execute(
+                            "INSERT OR REPLACE INTO retained VALUES (?, ?, ?)",
+                            (topic, bytes(m.data), m.qos or 0),
+                        )
+        except (sqlite3.Error, OSError) as e:
+            self.stats.write_failures += 1
+            self.stats.pending_writes = (
+                len(self._retained_messages) if self._dirty_all else len(self._dirty)
+            )
+            now = time.monotonic()
+            if now - self._last_write_log >= REFUSAL_LOG_INTERVAL_S:
+                self._last_write_log = now
+                text = (
+                    f"the embedded broker's retained store {self._db_path} cannot be written "
+                    f"({e}): {self.stats.pending_writes} retained topics kept in memory and "
+                    f"retried ({self.stats.write_failures} failed writes); they are lost if the "
+                    "broker stops before they are written"
+                )
+                log.error("%s", text)
+                if self.on_write_error is not None:
+                    self.on_write_error(text)
+            return False
+        if self.stats.pending_writes:
+            log.warning("embedded broker: retained store written again")
+        self._dirty.clear()
+        self._dirty_all = False
+        self.stats.pending_writes = 0
+        return True
+
+    async def shutdown(self) -> None:
+        # amqtt's shutdown forgets the retained messages: write what is pending first.
+        if not self.retry_writes():
+            log.error(
+                "embedded broker: %d retained changes could not be written and are lost",
+                self.stats.pending_writes,
+            )
+        self._dirty.clear()
+        self._dirty_all = False
+        await super().shutdown()
 
     def close_store(self) -> None:
         if self._db is not None:
@@ -281,6 +435,7 @@ class EmbeddedBroker:
         self.moved_from: int | None = None  # the busy port this start did not get
         self.limits = limits or BrokerLimits()
         self.stats = BrokerStats()
+        self._on_write_error: Callable[[str], None] | None = None
         self._broker: _LimitedBroker | None = None
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
         self._lock_fd: int | None = None
@@ -330,14 +485,19 @@ class EmbeddedBroker:
             # amqtt checks every second; it bounds the offline queues in time only.
             "session_expiry_interval": self.limits.session_expiry_s,
         }
-        broker = _LimitedBroker(
-            config,
-            max_message_bytes=self.limits.max_message_bytes,
-            max_retained=self.limits.max_retained,
-            max_retained_bytes=self.limits.max_retained_bytes,
-            db_path=None if self.state_dir is None else state / RETAINED_FILE,
-            stats=self.stats,
-        )
+        try:
+            broker = _LimitedBroker(
+                config,
+                max_message_bytes=self.limits.max_message_bytes,
+                max_retained=self.limits.max_retained,
+                max_retained_bytes=self.limits.max_retained_bytes,
+                db_path=None if self.state_dir is None else state / RETAINED_FILE,
+                stats=self.stats,
+            )
+        except BrokerError:
+            self._release()
+            raise
+        broker.on_write_error = self._on_write_error
         try:
             await broker.start()
         except Exception as e:
@@ -349,7 +509,11 @@ class EmbeddedBroker:
         if self.port == 0:
             self.port = _bound_port(broker)
         if self.state_dir is not None:
-            _write_private(state / PORT_FILE, json.dumps({"port": self.port}) + "\n")
+            try:
+                _write_private(state / PORT_FILE, json.dumps({"port": self.port}) + "\n")
+            except OSError as e:
+                await self.stop()
+                raise BrokerError(f"cannot write {state / PORT_FILE}: {e.strerror or e}") from None
         log.info("embedded MQTT broker listening on %s", self.public_url)
 
     async def stop(self) -> None:
@@ -364,6 +528,21 @@ class EmbeddedBroker:
     async def __aenter__(self) -> EmbeddedBroker:
         await self.start()
         return self
+
+    @property
+    def on_write_error(self) -> Callable[[str], None] | None:
+        """Told (rate-limited) when retained.sqlite cannot be written."""
+        return self._on_write_error
+
+    @on_write_error.setter
+    def on_write_error(self, fn: Callable[[str], None] | None) -> None:
+        self._on_write_error = fn
+        if self._broker is not None:
+            self._broker.on_write_error = fn
+
+    def retry_writes(self) -> bool:
+        """Write what retained.sqlite lacks after failed writes; True when nothing is pending."""
+        return True if self._broker is None else self._broker.retry_writes()
 
     def queued_for(self, client_id: str) -> int | None:
         """Messages queued for the persistent client ``client_id`` while it is away;

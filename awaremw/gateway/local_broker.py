@@ -27,10 +27,11 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
-from awaremw.gateway.broker import ACCOUNT_FILE, DEFAULT_PORT, PORT_FILE, default_state_dir
+from awaremw.gateway.broker import ACCOUNT_FILE, DEFAULT_PORT, PORT_FILE
+from awaremw.gateway.state import state_root
 
 LOOPBACK = frozenset({"127.0.0.1", "localhost", "::1"})
-# How deep under the base to look for state directories (awaremw/<deployment>/broker).
+# How deep under the base to look for state directories (deployments/<key>/broker).
 _MAX_DEPTH = 3
 _MAX_CANDIDATES = 64
 
@@ -52,8 +53,9 @@ class LocalBroker:
 
 
 def state_base() -> Path:
-    """Where every embedded broker's state directory lives (``.../awaremw``)."""
-    return default_state_dir().parent
+    """Where every embedded broker's state directory lives (``.../awaremw``; each
+    deployment's under ``deployments/<key>/broker``, gateway/state.py)."""
+    return state_root()
 
 
 def find_local_broker(port: int | None = None, base: Path | None = None) -> LocalBroker | None:

@@ -56,6 +56,10 @@ class GatewaySettings:
     expiry_periods: float = 3.0  # group reports missed before a group is taken as gone
     max_payload_bytes: int = 4096
     hbn: bool = True  # offer the Zenoh HBN API (needs a session)
+    # Retained definitions replayed by the broker are taken only when they are one
+    # of these (relative topic, payload) pairs; None: all. Live ones are always
+    # taken. A demo on a user's broker inherits nothing but its own definitions.
+    retained_only: frozenset[tuple[str, bytes]] | None = None
 
 
 def deployment_definitions(groups: Any, channels: Any) -> list[tuple[str, bytes]]:
@@ -209,6 +213,10 @@ class GatewayService:
     ) -> Outcome:
         """One payload from an IP transport (``via``: ``mqtt``, ``hbn`` or ``local``);
         ``size``: the payload's size as sent, when the transport did not copy it whole."""
+        only = self.settings.retained_only
+        if retained and only is not None and (rel, payload) not in only:
+            self.handled.set()
+            return Outcome(replay=True)
         out = self.bridge.handle(rel, payload, source=topic or rel, retained=retained, size=size)
         if out.inject is not None:
             self._inject_all(out.inject)

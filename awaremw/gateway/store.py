@@ -9,12 +9,21 @@ tombstones with a version of their own.
 It also remembers the hash of the last payload seen on each source topic, so a
 retained MQTT message replayed after a (re)connect is recognised and not
 applied twice, and the command-name -> Drip slot map.
+
+The store works on an in-memory copy and writes every change through to the
+file. A write that fails (disk full, file system gone read-only) loses
+nothing: the change stays in memory, marked, and is written again with the
+next change or :meth:`VersionStore.retry`; each failure is counted
+(``write_failures``), logged at most every :data:`WRITE_ERROR_INTERVAL_S`, and
+handed to ``on_write_error`` (the gateway publishes it on ``<prefix>/errors``).
+A file that cannot be opened at all is a :class:`StoreError` (one line).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import sqlite3
 import time
 from collections.abc import Callable
@@ -62,6 +71,9 @@ def unwrap(wire: int, ref: int | None) -> int:
 
 
 MAX_SEEN = 4096  # source topics whose last payload hash is remembered (LRU beyond)
+WRITE_ERROR_INTERVAL_S = 10.0  # at most one log line / error report per interval while failing
+
+log = logging.getLogger(__name__)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS items (
@@ -85,6 +97,10 @@ CREATE TABLE IF NOT EXISTS command_slots (
     used INTEGER NOT NULL  -- monotonic use counter, for least-recently-used reuse
 );
 """
+
+_ITEM_COLS = "kind, item_id, version, hash, wire, json, updated"
+_SEEN_COLS = "source, hash, used"
+_SLOT_COLS = "name, slot, used"
 
 _FROM_WIRE: dict[ItemKind, Callable[[Any], ItemBody]] = {
     ItemKind.GROUP_TYPE: GroupTypeDef.from_wire,
@@ -117,6 +133,10 @@ class StoredItem:
         return self.body is None
 
 
+class StoreError(RuntimeError):
+    """The version store's file cannot be opened or created (the text is one line)."""
+
+
 class VersionOverflow(RuntimeError):
     """An item reached the largest store version (2**63 - 1: never expected)."""
 
@@ -124,26 +144,68 @@ class VersionOverflow(RuntimeError):
 class VersionStore:
     """Versions and bodies of the gateway's items; ``path=None`` keeps them in memory."""
 
-    def __init__(self, path: str | Path | None = None, *, max_seen: int = MAX_SEEN) -> None:
+    def __init__(
+        self,
+        path: str | Path | None = None,
+        *,
+        max_seen: int = MAX_SEEN,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         if max_seen < 1:
             raise ValueError("max_seen must be >= 1")
         self.max_seen = max_seen
         self.path = None if path is None else Path(path)
-        if self.path is not None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(":memory:" if self.path is None else str(self.path))
-        if self.path is not None:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=NORMAL")
+        self.write_failures = 0  # writes to the file that failed (the change kept, retried)
+        self.last_write_error: str | None = None
+        # Told (rate-limited) what failed and what is kept; the gateway publishes it.
+        self.on_write_error: Callable[[str], None] | None = None
+        self._clock = clock
+        self._last_report: float | None = None
+        self._unreported = 0
+        # Changes not yet in the file: item keys, seen sources (or all of them), slots.
+        self._dirty_items: set[tuple[int, int]] = set()
+        self._dirty_seen: set[str] = set()
+        self._seen_all = False
+        self._slots_dirty = False
+        self._db = sqlite3.connect(":memory:")
         self._db.executescript(_SCHEMA)
-        cols = {r[1] for r in self._db.execute("PRAGMA table_info(seen)")}
-        if "used" not in cols:  # a store written before the bound existed
-            self._db.execute("ALTER TABLE seen ADD COLUMN used INTEGER NOT NULL DEFAULT 0")
-        self._db.commit()
+        self._disk = False
+        if self.path is not None:
+            try:
+                self._attach(self.path)
+            except (sqlite3.Error, OSError) as e:
+                self._db.close()
+                raise StoreError(f"cannot open the version store {self.path}: {e}") from None
         row = self._db.execute("SELECT COALESCE(MAX(used), 0) FROM seen").fetchone()
         self._seen_tick = int(row[0])
 
+    def _attach(self, path: Path) -> None:
+        """Open (create) the file and load it into memory."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        db = self._db
+        db.execute("ATTACH DATABASE ? AS disk", (str(path),))
+        db.execute("PRAGMA disk.journal_mode=WAL")
+        db.execute("PRAGMA disk.synchronous=NORMAL")
+        db.executescript(_SCHEMA.replace("IF NOT EXISTS ", "IF NOT EXISTS disk."))
+        cols = {r[1] for r in db.execute("PRAGMA disk.table_info(seen)")}
+        if "used" not in cols:  # a store written before the bound existed
+            db.execute("ALTER TABLE disk.seen ADD COLUMN used INTEGER NOT NULL DEFAULT 0")
+        with db:
+            db.execute(f"INSERT INTO main.items SELECT {_ITEM_COLS} FROM disk.items")
+            db.execute(f"INSERT INTO main.seen SELECT {_SEEN_COLS} FROM disk.seen")
+            db.execute(
+                f"INSERT INTO main.command_slots SELECT {_SLOT_COLS} FROM disk.command_slots"
+            )
+        self._disk = True
+
     def close(self) -> None:
+        if self.pending_writes:
+            self.retry()
+        if self.pending_writes:
+            log.error(
+                "version store %s: %d changes could not be written and are lost (%s)",
+                self.path, self.pending_writes, self.last_write_error,
+            )  # fmt: skip
         self._db.close()
 
     def __enter__(self) -> VersionStore:
@@ -151,6 +213,77 @@ class VersionStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    # ----------------------------------------------------------------- writing through
+
+    @property
+    def pending_writes(self) -> int:
+        """Changes kept in memory that the file does not hold yet."""
+        n = len(self._dirty_items) + len(self._dirty_seen) + int(self._slots_dirty)
+        return n + (self.seen_count() if self._seen_all else 0)
+
+    def retry(self) -> bool:
+        """Write the pending changes; True when the file holds everything."""
+        if not self._disk or not (
+            self._dirty_items or self._dirty_seen or self._seen_all or self._slots_dirty
+        ):
+            return True
+        db = self._db
+        try:
+            with db:
+                for kind, item_id in self._dirty_items:
+                    db.execute(
+                        f"INSERT OR REPLACE INTO disk.items SELECT {_ITEM_COLS} FROM main.items "
+                        "WHERE kind=? AND item_id=?",
+                        (kind, item_id),
+                    )
+                if self._seen_all:
+                    db.execute("DELETE FROM disk.seen")
+                    db.execute(f"INSERT INTO disk.seen SELECT {_SEEN_COLS} FROM main.seen")
+                else:
+                    for source in self._dirty_seen:
+                        db.execute("DELETE FROM disk.seen WHERE source=?", (source,))
+                        db.execute(
+                            f"INSERT INTO disk.seen SELECT {_SEEN_COLS} FROM main.seen "
+                            "WHERE source=?",
+                            (source,),
+                        )
+                if self._slots_dirty:
+                    db.execute("DELETE FROM disk.command_slots")
+                    db.execute(
+                        f"INSERT INTO disk.command_slots SELECT {_SLOT_COLS} "
+                        "FROM main.command_slots"
+                    )
+        except (sqlite3.Error, OSError) as e:
+            self._write_failed(e)
+            return False
+        if self.last_write_error is not None:
+            log.warning("version store %s: written again after %d failed writes",
+                        self.path, self.write_failures)  # fmt: skip
+            self.last_write_error = None
+        self._dirty_items.clear()
+        self._dirty_seen.clear()
+        self._seen_all = self._slots_dirty = False
+        return True
+
+    def _write_failed(self, e: BaseException) -> None:
+        self.write_failures += 1
+        self.last_write_error = str(e)
+        now = self._clock()
+        if self._last_report is not None and now - self._last_report < WRITE_ERROR_INTERVAL_S:
+            self._unreported += 1
+            return
+        self._last_report = now
+        more = f"; {self._unreported} more failures not reported" if self._unreported else ""
+        self._unreported = 0
+        text = (
+            f"the version store {self.path} cannot be written ({e}): {self.pending_writes} "
+            f"changes kept in memory and retried ({self.write_failures} failed writes{more}); "
+            "they are lost if the gateway stops before they are written"
+        )
+        log.error("%s", text)
+        if self.on_write_error is not None:
+            self.on_write_error(text)
 
     # ----------------------------------------------------------------- items
 
@@ -257,6 +390,9 @@ class VersionStore:
                 "INSERT OR REPLACE INTO items VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (int(kind), item_id, version, h, wire, text, time.time()),
             )
+        if self._disk:
+            self._dirty_items.add((int(kind), item_id))
+            self.retry()
         return StoredItem(kind, item_id, version, body, None if js is None else dict(js))
 
     @staticmethod
@@ -277,16 +413,28 @@ class VersionStore:
         recently seen is forgotten (its next retained replay is applied again,
         which is harmless: an equal definition makes no new version)."""
         self._seen_tick += 1
+        evicted: list[str] = []
         with self._db:
             self._db.execute(
                 "INSERT OR REPLACE INTO seen VALUES (?, ?, ?)", (source, h, self._seen_tick)
             )
             if self.seen_count() > self.max_seen:
-                self._db.execute(
-                    "DELETE FROM seen WHERE source NOT IN "
-                    "(SELECT source FROM seen ORDER BY used DESC LIMIT ?)",
-                    (self.max_seen,),
-                )
+                evicted = [
+                    str(r[0])
+                    for r in self._db.execute(
+                        "SELECT source FROM seen ORDER BY used DESC LIMIT -1 OFFSET ?",
+                        (self.max_seen,),
+                    )
+                ]
+                self._db.executemany("DELETE FROM seen WHERE source=?", [(e,) for e in evicted])
+        if self._disk:
+            if not self._seen_all:
+                self._dirty_seen.add(source)
+                self._dirty_seen.update(evicted)
+                if len(self._dirty_seen) > self.max_seen:  # bounded: rewrite the table instead
+                    self._dirty_seen.clear()
+                    self._seen_all = True
+            self.retry()
 
     def seen_count(self) -> int:
         return int(self._db.execute("SELECT COUNT(*) FROM seen").fetchone()[0])
@@ -306,21 +454,31 @@ class VersionStore:
             ).fetchone()
             if row is not None:
                 self._db.execute("UPDATE command_slots SET used=? WHERE name=?", (tick, name))
-                return int(row[0])
-            self._db.execute("DELETE FROM command_slots WHERE name=?", (name,))
-            taken = {
-                int(r[0])
-                for r in self._db.execute("SELECT slot FROM command_slots WHERE slot<?", (n_slots,))
-            }
-            free = [s for s in range(n_slots) if s not in taken]
-            if free:
-                slot = free[0]
+                slot = int(row[0])
             else:
-                lru = self._db.execute(
-                    "SELECT slot FROM command_slots WHERE slot<? ORDER BY used LIMIT 1",
-                    (n_slots,),
-                ).fetchone()
-                slot = int(lru[0])
-                self._db.execute("DELETE FROM command_slots WHERE slot=?", (slot,))
-            self._db.execute("INSERT INTO command_slots VALUES (?, ?, ?)", (name, slot, tick))
-            return slot
+                slot = self._new_slot(name, n_slots, tick)
+        self._slots_changed()
+        return slot
+
+    def _new_slot(self, name: str, n_slots: int, tick: int) -> int:
+        self._db.execute("DELETE FROM command_slots WHERE name=?", (name,))
+        taken = {
+            int(r[0])
+            for r in self._db.execute("SELECT slot FROM command_slots WHERE slot<?", (n_slots,))
+        }
+        free = [s for s in range(n_slots) if s not in taken]
+        if free:
+            slot = free[0]
+        else:
+            lru = self._db.execute(
+                "SELECT slot FROM command_slots WHERE slot<? ORDER BY used LIMIT 1", (n_slots,)
+            ).fetchone()
+            slot = int(lru[0])
+            self._db.execute("DELETE FROM command_slots WHERE slot=?", (slot,))
+        self._db.execute("INSERT INTO command_slots VALUES (?, ?, ?)", (name, slot, tick))
+        return slot
+
+    def _slots_changed(self) -> None:
+        if self._disk:
+            self._slots_dirty = True
+            self.retry()
