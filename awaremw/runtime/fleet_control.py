@@ -43,6 +43,7 @@ class ControlService:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._queryable: zenoh.Queryable[None] | None = None
         self._closed = False
+        self.restarts = 0  # times the launcher started this worker again (in stats)
 
     def bind(self, medium: ZenohMedium, loop: asyncio.AbstractEventLoop) -> None:
         """Where faults are counted (the medium's fault log) and requests answered."""
@@ -91,6 +92,8 @@ class ControlService:
                 return {**base, "ok": True, "done": True, "t": t, "motes": motes}
             case "stats":
                 snap = self.stats.snapshot().as_dict()
+                snap["restarts"] = self.restarts
+                snap["pid"] = os.getpid()
                 if self._medium is not None:  # remote garbage dropped, bugs contained
                     snap["rejected"] = self._medium.rejected.as_dict()
                     snap["faults"] = self._medium.faults.as_dict()
