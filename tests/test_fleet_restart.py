@@ -28,8 +28,10 @@ from awaremw.nodes import KindsFactory, kind_names
 from awaremw.protocol.frames import DataRecord
 from awaremw.runtime.deployment import load
 from awaremw.runtime.fleet import Fleet, FleetSettings, stripes
+from awaremw.runtime.fleet_clock import ClockSync
 from awaremw.runtime.workers import MAX_FRAMES_PER_S, RestartBudget, resume_counters
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
+from awaremw.world.clock import EmulatedClock
 
 AWAREMW = [sys.executable, "-m", "awaremw"]
 
@@ -149,3 +151,89 @@ async def test_kill_9_of_a_worker_restarts_it_and_records_flow_from_both_stripes
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert "exited unexpectedly (exit code -9); starting it again (restart 1)" in err
+
+
+# --------------------------------------------------------------------------- time origin
+
+
+def test_clock_sync_moves_only_on_agreeing_evidence_and_only_forward() -> None:
+    wall = [100.0]
+    clock = EmulatedClock(2.0, start_wall=time.time())
+    jumps: list[float] = []
+    sync = ClockSync("t", clock, jumps.append, wall=lambda: wall[0])
+    sync.on_early(80.0)
+    assert not jumps  # not active before the fleet started
+    sync.activate()
+    origin = clock.start_wall
+    sync.on_early(80.0)  # one stray frame...
+    sync.on_early(-5.0)  # (a late frame is no evidence)
+    wall[0] += 10  # ...and the evidence goes stale
+    sync.on_early(80.0)
+    sync.on_early(30.0)  # peers that disagree
+    sync.on_early(80.0)
+    assert not jumps and clock.start_wall == origin
+    for _ in range(3):
+        sync.on_early(80.0)
+    assert jumps == [pytest.approx(80.0)] and sync.jumps == 1
+    assert clock.start_wall == pytest.approx(origin - 40.0)  # 80 emulated s at x2
+    assert clock.now() == pytest.approx(80.0, abs=0.5)
+
+
+@pytest.mark.zenoh
+@pytest.mark.parametrize("late", ["sensors", "gateway"])
+async def test_a_process_started_under_running_peers_joins_their_time(late: str) -> None:
+    """A fleet (or gateway) started with its own time origin under peers that have
+    run for 40 s hears them within seconds, not after 40 s."""
+    dep = load("grid_small", kind_names())
+    ep = free_tcp_endpoint()
+    t_start = time.time()
+    older, newer = t_start - 40.0, t_start
+    sensors = Fleet(
+        dep,
+        KindsFactory(),
+        FleetSettings(
+            name="sensors", listen=(ep,), start_wall=newer if late == "sensors" else older
+        ),
+        node_filter=lambda s: s.kind != "gateway",
+    )
+    async with sensors:
+        gw = Fleet(
+            dep,
+            KindsFactory(),
+            FleetSettings(
+                name="gateway",
+                connect=(ep,),
+                start_wall=newer if late == "gateway" else older,
+                control=False,
+            ),
+            node_filter=lambda s: s.kind == "gateway",
+        )
+        async with gw:
+            svc = attach_to_fleet(gw, settings=GatewaySettings(hbn=False))
+            records: list[float] = []
+
+            def on_event(node: int, ev: object, now: float) -> None:
+                if isinstance(getattr(ev, "payload", None), DataRecord):
+                    records.append(time.monotonic())
+
+            gw.on_event(on_event)
+            async with svc:
+                defs = [
+                    ("def/group/1", {"conditions": [{"attr": "x", "op": ">", "value": 3}]}),
+                    ("def/channel/1", {"attr": "temperature", "group_type": 1,
+                                       "group_id": "*", "period_s": 2.0, "agg": "avg"}),
+                ]  # fmt: skip
+                w0 = time.monotonic()
+                for out in svc.define_initial((rel, json.dumps(d).encode()) for rel, d in defs):
+                    assert out.accepted
+
+                async def any_record() -> bool:
+                    return bool(records)
+
+                await _until(any_record, 25, "a record at the gateway")
+                took = records[0] - w0
+                print(f"{late} started 40 s late: first record after {took:.1f} s")
+            moved = sensors if late == "sensors" else gw
+            assert moved.clock_sync.jumps == 1
+            assert abs(sensors.clock.start_wall - gw.clock.start_wall) < 0.5
+            assert took < 25

@@ -48,6 +48,7 @@ from awaremw.radio.model import RadioModel
 from awaremw.radio.zenoh_medium import MacSettings, ZenohMedium
 from awaremw.runtime.deployment import Deployment
 from awaremw.runtime.driver import EventHook, LagStats
+from awaremw.runtime.fleet_clock import ClockSync
 from awaremw.runtime.fleet_control import MAX_CONTROL_BYTES, ControlService
 from awaremw.runtime.fleet_guard import FleetError, LoopGuard
 from awaremw.runtime.fleet_motes import (
@@ -160,6 +161,7 @@ class Fleet:
         self.stats = FleetStats(s.name, self.clock, self.lag, self._counters, self.motes.on_air)
         self.control = ControlService(s.name, s.prefix, self.motes, self.stats)
         self._guard = LoopGuard(s.name)
+        self.clock_sync = ClockSync(s.name, self.clock, self._rearm)
         self._session = session
         self._own_session = session is None
         self._medium: ZenohMedium | None = None
@@ -255,6 +257,7 @@ class Fleet:
         medium.open()
         if s.track_links:
             medium.links = {}
+        medium.on_early = self.clock_sync.on_early
         self.motes.attach(medium)
         self._prime(medium)
         self.control.bind(medium, loop)
@@ -281,6 +284,15 @@ class Fleet:
             gc.collect()
             gc.freeze()
         self.motes.start()
+        self.clock_sync.activate()
+
+    def _rearm(self, jump: float) -> None:
+        """The clock moved ``jump`` emulated seconds forward (:class:`ClockSync`):
+        every mote's timer is armed again on the new origin."""
+        for r in list(self.motes.runners.values()):
+            r.rearm()
+        if self.lag is not None:
+            self.lag.clear()  # the re-armed timers fire "late" by the jump, once
 
     async def aclose(self) -> None:
         if self._closed:
