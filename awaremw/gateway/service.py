@@ -132,6 +132,7 @@ class GatewayService:
         self._tasks: list[asyncio.Task[None]] = []
         self.injected = 0
         self.inject_failures = 0
+        self._refresh_due = False
         self.handled = asyncio.Event()  # set after every payload handled or version learned
         self.delivered = asyncio.Event()  # set after every record or report from the WSN
 
@@ -159,7 +160,7 @@ class GatewayService:
                 max_payload_bytes=self.settings.max_payload_bytes,
             )
             self.hbn.start()
-            self._refresh_hbn()
+            self._refresh_now()
             self.hbn.publish(Publish(STATUS_TOPIC, b"online", retain=True))
         if self.mqtt is not None:
             self._tasks.append(asyncio.create_task(self.mqtt.run(), name="gateway-mqtt"))
@@ -348,10 +349,21 @@ class GatewayService:
                 "received": self.hbn.received,
                 "dropped": self.hbn.dropped,
                 "queries": self.hbn.queries,
+                "inbox": self.hbn.inbox.stats.as_dict(),
             }
         return out
 
     def _refresh_hbn(self) -> None:
+        """Renew the queryable's snapshot once the loop is free: a burst of
+        definitions makes one snapshot, not one per definition (each is a JSON
+        dump of every definition and group)."""
+        if self.hbn is None or self._refresh_due:
+            return
+        self._refresh_due = True
+        asyncio.get_running_loop().call_soon(self._refresh_now)
+
+    def _refresh_now(self) -> None:
+        self._refresh_due = False
         if self.hbn is not None:
             self.hbn.set_state(self.state())
 
