@@ -467,6 +467,7 @@ class MqttBridge:
         being read in between, and coalesces what comes meanwhile)."""
         while True:
             await self._inbox_ready.wait()
+            await self._let_read()  # what is on the way coalesces before it is handled
             self._inbox_ready.clear()
             slice_end = time.monotonic() + HANDLE_SLICE_S
             while (m := self.inbox.pop()) is not None:
@@ -475,8 +476,21 @@ class MqttBridge:
                 except Exception:  # a bug in the handler must not take the connection down
                     log.exception("handling %s failed", m.topic[:200])
                 if time.monotonic() >= slice_end:
-                    await asyncio.sleep(0)
+                    await self._let_read()
                     slice_end = time.monotonic() + HANDLE_SLICE_S
+
+    async def _let_read(self) -> None:
+        """Give the loop to the connection's reader while it takes messages (up to a
+        slice): paho reads one packet per readable event, so a single yield would let
+        one message in per slice, and the backlog would wait in the broker (which
+        bounds it) instead of coalescing here."""
+        end = time.monotonic() + HANDLE_SLICE_S
+        while True:
+            before = self.stats.received + self.stats.ignored
+            for _ in range(2):  # the reader runs in the loop iteration after ours
+                await asyncio.sleep(0)
+            if self.stats.received + self.stats.ignored == before or time.monotonic() >= end:
+                return
 
     async def _reconciler(self, client: aiomqtt.Client) -> None:
         """After a burst of definitions, once they went quiet: subscribe again, so the

@@ -1,0 +1,197 @@
+"""The last definition wins: the gateway's inbox (coalescing, bounds, reports) and
+the MQTT bridge's reconcile after a burst, against a real Mosquitto.
+
+The full-size attacks (20,000 redefinitions over MQTT, 50,000 over Zenoh, checked
+on every mote) are ``benchmarks/abuse.py``; docs/robustness.md has the figures.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import random
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import aiomqtt
+import pytest
+from mosquitto import Collector, Mosquitto, mosquitto_fixture  # noqa: F401
+
+from awaremw.gateway.inbox import OVERFLOW, Inbox, Incoming, overflow_report
+from awaremw.gateway.mqtt import MqttBridge, MqttSettings
+
+
+def msg(rel: str, payload: bytes = b"{}", retained: bool = False) -> Incoming:
+    return Incoming(rel, payload, f"aware/{rel}", retained)
+
+
+def drain(box: Inbox) -> list[Incoming]:
+    out = []
+    while (m := box.pop()) is not None:
+        out.append(m)
+    return out
+
+
+def test_the_newest_definition_replaces_the_waiting_one_in_its_place() -> None:
+    box = Inbox()
+    for m in (
+        msg("def/channel/1", b"a"),
+        msg("def/group/1", b"g"),
+        msg("cmd/led", b"c1"),
+        msg("def/channel/1", b"b"),  # supersedes "a", keeps its place before the group
+        msg("cmd/led", b"c2"),  # commands are events: both kept, in order
+        msg("def/channel/1", b""),  # a deletion is a value too: the newest wins
+    ):
+        assert box.put(m) is None
+    got = [(m.rel, m.payload) for m in drain(box)]
+    assert got == [("def/channel/1", b""), ("def/group/1", b"g"), ("cmd/led", b"c1"),
+                   ("cmd/led", b"c2")]  # fmt: skip
+    assert box.stats.as_dict() == {"taken": 6, "coalesced": 2, "dropped": 0, "handed": 4,
+                                   "peak": 4}  # fmt: skip
+
+
+def test_bounds_refuse_and_return_what_does_not_fit() -> None:
+    box = Inbox(max_definitions=2, max_commands=2)
+    for i in range(2):
+        assert box.put(msg(f"def/channel/{i}")) is None
+        assert box.put(msg(f"cmd/c{i}")) is None
+    third = msg("def/channel/9")
+    assert box.put(third) is third  # a third topic does not fit...
+    assert box.put(msg("def/channel/0", b"new")) is None  # ...a newer value of one waiting does
+    cmd = msg("cmd/c9")
+    assert box.put(cmd) is cmd
+    assert box.stats.dropped == 2 and len(box) == 4
+    box.pop()  # a definition left: room for another
+    assert box.put(third) is None and box.put(cmd) is cmd
+    r = json.loads(overflow_report(third, "the MQTT inbox", refetched=True).to_json())
+    assert r["code"] == OVERFLOW and r["topic"] == "aware/def/channel/9"
+    assert "retained value is read again" in r["error"]
+    r = json.loads(overflow_report(cmd, "the Zenoh HBN inbox", refetched=False).to_json())
+    assert "send the command again" in r["error"]
+
+
+def test_random_bursts_end_on_the_last_value_of_every_topic() -> None:
+    for seed in range(5):
+        rng = random.Random(seed)
+        box = Inbox(max_definitions=8)
+        last: dict[str, bytes] = {}
+        applied: dict[str, bytes] = {}
+        for i in range(5000):
+            topic = f"def/channel/{rng.randrange(8)}"
+            last[topic] = payload = str(i).encode()
+            assert box.put(msg(topic, payload)) is None  # 8 topics never overflow 8 slots
+            if rng.random() < 0.1:  # the gateway handles now and then
+                for m in drain(box):
+                    applied[m.rel] = m.payload
+        for m in drain(box):
+            applied[m.rel] = m.payload
+        assert applied == last
+        assert box.stats.coalesced > 0 and box.stats.dropped == 0
+
+
+# --------------------------------------------------------------------------- Mosquitto
+
+
+@asynccontextmanager
+async def running(bridge: MqttBridge) -> AsyncIterator[None]:
+    task = asyncio.create_task(bridge.run())
+    try:
+        await asyncio.wait_for(bridge.connected.wait(), 10)
+        yield
+    finally:
+        bridge.stop()
+        await asyncio.wait_for(task, 10)
+
+
+async def until(cond: object, timeout: float) -> None:
+    assert callable(cond)
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "timed out"
+        await asyncio.sleep(0.05)
+
+
+@pytest.mark.mosquitto
+async def test_a_burst_ends_on_the_broker_retained_values_even_with_losses(
+    mosquitto: Mosquitto,
+) -> None:
+    """2,000 retained redefinitions of 8 channels as fast as the broker takes them;
+    the gateway handles slowly (3 ms each, a stand-in for its store) and loses every
+    live message of channel 8 (a stand-in for a broker that drops some). After the
+    burst the bridge re-reads the retained definitions: every channel ends on the
+    broker's value."""
+    state: dict[str, bytes] = {}
+    handled = [0]
+
+    def gateway(rel: str, payload: bytes, retained: bool, topic: str) -> None:
+        handled[0] += 1
+        time.sleep(0.003)  # the cost of handling one definition, not a synchronisation
+        if rel == "def/channel/8" and not retained:
+            return  # lost on the way
+        state[rel] = payload
+
+    settings = MqttSettings.from_url(mosquitto.url("gateway"), reconnect_min_s=0.05)
+    bridge = MqttBridge(settings, gateway)
+    rng = random.Random(1)
+    last: dict[str, bytes] = {}
+    async with running(bridge), aiomqtt.Client(
+        "127.0.0.1", mosquitto.port, username="operator", password="operator-pw"
+    ) as op:  # fmt: skip
+        op.pending_calls_threshold = 250
+        pending = []
+        for i in range(2000):
+            rel = f"def/channel/{1 + rng.randrange(8)}"
+            doc = {"attr": "temperature", "period_s": round(1 + rng.random() * 4, 1),
+                   "agg": rng.choice(["avg", "min", "max"]), "n": i}  # fmt: skip
+            last[rel] = payload = json.dumps(doc).encode()
+            pending.append(op.publish(f"aware/{rel}", payload, qos=1, retain=True))
+            if len(pending) == 200:
+                await asyncio.gather(*pending)
+                pending.clear()
+        await asyncio.gather(*pending)
+        t_last = time.monotonic()
+        await until(lambda: state == last, 10)
+        took = time.monotonic() - t_last
+    st = bridge.inbox.stats
+    print(f"converged {took:.2f} s after the last; handled {handled[0]} of 2000; {st}")
+    assert bridge.stats.reconciles >= 1
+    assert st.coalesced > 0 and handled[0] < 2000 + 8 * (bridge.stats.reconciles + 1)
+    assert st.dropped == 0
+
+
+@pytest.mark.mosquitto
+async def test_commands_the_gateway_cannot_take_are_each_reported(mosquitto: Mosquitto) -> None:
+    got: list[str] = []
+
+    def gateway(rel: str, payload: bytes, retained: bool, topic: str) -> None:
+        time.sleep(0.005)  # a slow gateway
+        got.append(payload.decode())
+
+    settings = MqttSettings.from_url(mosquitto.url("gateway"), max_incoming=5)
+    bridge = MqttBridge(settings, gateway)
+    n = 200
+    async with (
+        Collector(mosquitto.url("viewer"), "aware/errors") as errors,
+        running(bridge),
+        aiomqtt.Client("127.0.0.1", mosquitto.port, username="operator",
+                       password="operator-pw") as op,
+    ):  # fmt: skip
+        await asyncio.gather(
+            *(op.publish("aware/cmd/led", json.dumps({"n": i}), qos=1) for i in range(n))
+        )
+        await until(
+            lambda: len(got) + bridge.inbox.stats.dropped == n and not len(bridge.inbox), 20
+        )
+        dropped = bridge.inbox.stats.dropped
+        await errors.wait_for(lambda ms: len(ms) >= dropped)
+    reports = [json.loads(p) for p in errors.payloads("aware/errors")]
+    assert all(r["code"] == OVERFLOW and r["topic"] == "aware/cmd/led" for r in reports)
+    # Each refused command is reported (a report may come twice: QoS 1 after a
+    # stop that swallowed its acknowledgement, counted in ``resent``) ...
+    reported = {json.loads(r["payload"])["n"] for r in reports}
+    assert dropped > 0 and len(reported) == dropped
+    assert len(reports) - len(reported) <= bridge.stats.resent
+    # ... and every command is either handled or reported, never both.
+    handled = [json.loads(p)["n"] for p in got]
+    assert sorted(handled + sorted(reported)) == list(range(n))
