@@ -26,8 +26,16 @@ from awaremw.cli.fleet import control_query
 from awaremw.gateway.service import GatewaySettings, attach_to_fleet
 from awaremw.nodes import KindsFactory, kind_names
 from awaremw.protocol.frames import DataRecord
+from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.deployment import load
-from awaremw.runtime.fleet import Fleet, FleetSettings, stripes
+from awaremw.runtime.fleet import (
+    Fleet,
+    FleetLauncher,
+    FleetSettings,
+    LauncherSettings,
+    hello_core,
+    stripes,
+)
 from awaremw.runtime.fleet_clock import ClockSync
 from awaremw.runtime.workers import MAX_FRAMES_PER_S, RestartBudget, resume_counters
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
@@ -237,3 +245,51 @@ async def test_a_process_started_under_running_peers_joins_their_time(late: str)
             assert moved.clock_sync.jumps == 1
             assert abs(sensors.clock.start_wall - gw.clock.start_wall) < 0.5
             assert took < 25
+
+
+@pytest.mark.zenoh
+@pytest.mark.slow
+async def test_a_restarted_worker_on_a_secured_radio_goes_on_counting_its_frames() -> None:
+    """The restarted worker's motes start their frame counters above what their
+    neighbours last accepted: the other worker refuses none of their frames as
+    a replay, and keeps hearing them."""
+    dep = load("grid_small", kind_names())
+    security, _ = RadioSecurity.throwaway()
+    settings = LauncherSettings(
+        processes=2, speed=4.0, progress_s=0.5, exclude_kinds=frozenset({"gateway"}),
+        security=security,
+    )  # fmt: skip
+    async with FleetLauncher(dep, hello_core, settings) as launcher:
+        run = asyncio.create_task(launcher.run(None))
+        ep = launcher.endpoint
+
+        async def stats() -> dict[str, dict[str, Any]]:
+            return {k: d["snapshot"] for k, d in (await _ctl(ep, "stats")).items()}
+
+        async def counters_high() -> bool:
+            # Old counters well above what a restart from 0 would reach in the
+            # window measured below: without the resume its frames would be replays.
+            _, reported = launcher.frame_counters.get(1, (0.0, {}))
+            return bool(reported) and min(reported.values()) >= 40
+
+        await _until(counters_high, 40, "w1 reported frame counters of 40 and more")
+        launcher.pool.procs[1].kill()
+
+        async def restarted() -> bool:
+            s = await stats()
+            return s.get("w1", {}).get("restarts") == 1
+
+        await _until(restarted, 30, "w1 restarted")
+        # While the new worker's Zenoh links settle, a frame may arrive twice (a
+        # true replay, refused); after that, nothing of the restarted motes is.
+        await asyncio.sleep(2.0)
+        first = (await stats())["w0"]
+        await asyncio.sleep(4.0)  # the restarted motes beacon every second
+        later = (await stats())["w0"]
+        assert not run.done()
+        run.cancel()
+    replays = [(s["refused"] or {}).get("replay", 0) for s in (first, later)]
+    print("replays refused by w0 after the restart:", replays)
+    assert replays[1] == replays[0], replays
+    assert later["frames_rx"] > first["frames_rx"]
+    assert launcher.restarts == {1: 1}

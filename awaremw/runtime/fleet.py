@@ -521,7 +521,9 @@ class FleetLauncher:
         self._pool: WorkerPool | None = None
         self._progress: dict[str, FleetSnapshot] = {}
         self._last: dict[int, FleetSnapshot] = {}  # each worker's latest snapshot
-        self._frame_counters: dict[int, tuple[float, dict[int, int]]] = {}
+        # Each worker's last report on a secured radio: (emulated t, {node: frame counter}).
+        # Each worker's last report on a secured radio: (emulated t, {node: frame counter}).
+        self.frame_counters: dict[int, tuple[float, dict[int, int]]] = {}
         self._budget = RestartBudget(settings.max_restarts, settings.restart_window_s)
         self.restarts: dict[int, int] = {}  # worker index -> times it was started again
         self._failed: str | None = None
@@ -599,7 +601,7 @@ class FleetLauncher:
                 self._progress.clear()
             return True
         if kind == "counters":
-            self._frame_counters[k] = arg
+            self.frame_counters[k] = arg
             return True
         if kind == "result" and arg.error and not self._budget.enabled:
             self._failed = f"worker {arg.name}: {arg.error}"
@@ -662,7 +664,7 @@ class FleetLauncher:
         self.restarts[k] = n = self.restarts.get(k, 0) + 1
         last = self._last.get(k)
         base = {} if last is None else {f: getattr(last, f) for f in _TOTALS}
-        t, counters = self._frame_counters.get(k, (self.now(), {}))
+        t, counters = self.frame_counters.get(k, (self.now(), {}))
         resume = Resume(n, resume_counters(counters, self.now() - t), base)
         log.warning(
             "worker %s exited unexpectedly (exit code %s); starting it again (restart %d)",
