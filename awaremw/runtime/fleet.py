@@ -522,7 +522,6 @@ class FleetLauncher:
         self._progress: dict[str, FleetSnapshot] = {}
         self._last: dict[int, FleetSnapshot] = {}  # each worker's latest snapshot
         # Each worker's last report on a secured radio: (emulated t, {node: frame counter}).
-        # Each worker's last report on a secured radio: (emulated t, {node: frame counter}).
         self.frame_counters: dict[int, tuple[float, dict[int, int]]] = {}
         self._budget = RestartBudget(settings.max_restarts, settings.restart_window_s)
         self.restarts: dict[int, int] = {}  # worker index -> times it was started again
