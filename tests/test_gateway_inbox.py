@@ -16,10 +16,14 @@ from contextlib import asynccontextmanager
 
 import aiomqtt
 import pytest
+import zenoh
 from mosquitto import Collector, Mosquitto, mosquitto_fixture  # noqa: F401
 
+from awaremw.gateway.bridge import ErrorReport
+from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.inbox import OVERFLOW, Inbox, Incoming, overflow_report
 from awaremw.gateway.mqtt import MqttBridge, MqttSettings
+from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint, open_session
 
 
 def msg(rel: str, payload: bytes = b"{}", retained: bool = False) -> Incoming:
@@ -195,3 +199,80 @@ async def test_commands_the_gateway_cannot_take_are_each_reported(mosquitto: Mos
     # ... and every command is either handled or reported, never both.
     handled = [json.loads(p)["n"] for p in got]
     assert sorted(handled + sorted(reported)) == list(range(n))
+
+
+# --------------------------------------------------------------------------- Zenoh
+
+
+def overflow(reports: list[bytes]) -> list[dict[str, str]]:
+    """The overflow reports among what arrived on the errors key (probes left out)."""
+    docs = [json.loads(r) for r in reports]
+    return [d for d in docs if d["code"] == OVERFLOW]
+
+
+@pytest.mark.zenoh
+async def test_zenoh_bursts_end_on_the_last_put_and_overflow_is_reported() -> None:
+    """5,000 puts on 4 definition keys and 300 commands while the gateway handles
+    slowly: each key ends on its last put; each command is handled or reported on
+    ``aware/hbn/errors``."""
+    ep = free_tcp_endpoint()
+    gw = open_session(SessionSettings(listen=(ep,)))
+    dev = open_session(SessionSettings(connect=(ep,)))
+    state: dict[str, bytes] = {}
+    commands: list[int] = []
+
+    def gateway(rel: str, payload: bytes, retained: bool, key: str, size: int) -> None:
+        time.sleep(0.002)  # the cost of handling one message, not a synchronisation
+        if rel.startswith("cmd/"):
+            commands.append(json.loads(payload)["n"])
+        else:
+            state[rel] = payload
+
+    api = HbnApi(gw, gateway, max_commands=5)
+    reports: list[bytes] = []
+    loop = asyncio.get_running_loop()
+    sub = dev.declare_subscriber(
+        "aware/hbn/errors",
+        lambda s: loop.call_soon_threadsafe(reports.append, s.payload.to_bytes()),
+    )
+    api.start()
+    try:
+        # Routes up: a probe put reaches the gateway.
+        async def probe() -> bool:
+            dev.put("aware/hbn/def/channel/0", b"probe")
+            await asyncio.sleep(0.1)
+            return "def/channel/0" in state
+
+        deadline = time.monotonic() + 10
+        while not await probe():
+            assert time.monotonic() < deadline, "no route to the gateway"
+        # ... and one from the gateway's errors to our subscriber.
+        while not reports:
+            assert time.monotonic() < deadline, "no route from the gateway"
+            api.publish_error(ErrorReport("probe", "probe", "probe", ""))
+            await asyncio.sleep(0.05)
+        rng = random.Random(2)
+        last: dict[str, bytes] = {"def/channel/0": b"probe"}
+
+        def burst() -> None:
+            block = zenoh.CongestionControl.BLOCK
+            for i in range(5000):
+                rel = f"def/channel/{1 + rng.randrange(4)}"
+                last[rel] = str(i).encode()
+                dev.put(f"aware/hbn/{rel}", last[rel], congestion_control=block)
+            for n in range(300):
+                dev.put("aware/hbn/cmd/led", json.dumps({"n": n}), congestion_control=block)
+
+        await asyncio.to_thread(burst)
+        await until(lambda: state == last and len(commands) + api.dropped == 300, 20)
+        await until(lambda: len(overflow(reports)) >= api.dropped, 10)
+    finally:
+        api.close()
+        sub.undeclare()  # type: ignore[no-untyped-call]
+        dev.close()  # type: ignore[no-untyped-call]
+        gw.close()  # type: ignore[no-untyped-call]
+    st = api.inbox.stats
+    assert st.coalesced > 0 and st.dropped > 0
+    docs = overflow(reports)
+    reported = [json.loads(d["payload"])["n"] for d in docs]
+    assert sorted(commands + reported) == list(range(300))

@@ -41,7 +41,14 @@ from types import MappingProxyType
 import zenoh
 
 from awaremw.gateway.bridge import ErrorReport, Publish, RateLimitedLog
-from awaremw.gateway.inbox import MAX_COMMANDS, MAX_DEFINITIONS, Inbox, Incoming, overflow_report
+from awaremw.gateway.inbox import (
+    MAX_COMMANDS,
+    MAX_DEFINITIONS,
+    OVERFLOW,
+    Inbox,
+    Incoming,
+    overflow_report,
+)
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +175,15 @@ class HbnApi:
         for r in refused:
             self._report_overflow(r)
         if unreported:
-            log.warning("Zenoh HBN input full: %d more samples not taken, not reported", unreported)
+            # Beyond MAX_REPORTS waiting reports: one report says how many, not which.
+            self._overflow_log.warning(
+                "input_overflow_more", "Zenoh HBN input full: %d more samples not taken", unreported
+            )
+            summary = ErrorReport(
+                f"{self.base}/**", OVERFLOW, f"{unreported} more samples not taken: inbox full", ""
+            )
+            with contextlib.suppress(zenoh.ZError):
+                self.publish_error(summary)
         end = time.monotonic() + HANDLE_SLICE_S
         while True:
             with self._lock:
