@@ -19,10 +19,11 @@ import pytest
 import zenoh
 from mosquitto import Collector, Mosquitto, mosquitto_fixture  # noqa: F401
 
-from awaremw.gateway.bridge import ErrorReport
+from awaremw.gateway.bridge import ErrorReport, Inject
 from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.inbox import OVERFLOW, Inbox, Incoming, overflow_report
 from awaremw.gateway.mqtt import MqttBridge, MqttSettings
+from awaremw.gateway.service import GatewayService, GatewaySettings
 from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint, open_session
 
 
@@ -55,6 +56,28 @@ def test_the_newest_definition_replaces_the_waiting_one_in_its_place() -> None:
                                    "peak": 4}  # fmt: skip
 
 
+def test_an_invalid_definition_keeps_its_place_to_be_refused_in_its_turn() -> None:
+    box = Inbox(max_commands=2, valid=lambda m: m.payload != b"bad")
+    for m in (
+        msg("def/channel/1", b"bad"),
+        msg("def/group/1", b"g"),
+        msg("def/channel/1", b"good"),  # does not replace the bad one: waits behind it
+        msg("def/channel/1", b"better"),  # replaces "good" (valid)
+        msg("def/channel/1", b"bad"),
+        msg("def/channel/1", b"best"),
+    ):
+        assert box.put(m) is None
+    got = [(m.rel, m.payload) for m in drain(box)]
+    assert got == [("def/channel/1", b"bad"), ("def/group/1", b"g"),
+                   ("def/channel/1", b"bad"), ("def/channel/1", b"best")]  # fmt: skip
+    # Kept invalid ones count with the commands (events): bounded too.
+    for _ in range(2):
+        assert box.put(msg("def/channel/2", b"bad")) is None
+    assert box.put(msg("def/channel/2", b"bad")) is None  # the topic's newest: a value
+    last = msg("def/channel/2", b"x")
+    assert box.put(last) is last and box.stats.dropped == 1
+
+
 def test_bounds_refuse_and_return_what_does_not_fit() -> None:
     box = Inbox(max_definitions=2, max_commands=2)
     for i in range(2):
@@ -84,7 +107,7 @@ def test_random_bursts_end_on_the_last_value_of_every_topic() -> None:
         for i in range(5000):
             topic = f"def/channel/{rng.randrange(8)}"
             last[topic] = payload = str(i).encode()
-            assert box.put(msg(topic, payload)) is None  # 8 topics never overflow 8 slots
+            assert box.put(msg(topic, payload)) is None  # 8 topics fit 8 slots
             if rng.random() < 0.1:  # the gateway handles now and then
                 for m in drain(box):
                     applied[m.rel] = m.payload
@@ -228,7 +251,7 @@ async def test_zenoh_bursts_end_on_the_last_put_and_overflow_is_reported() -> No
         else:
             state[rel] = payload
 
-    api = HbnApi(gw, gateway, max_commands=5)
+    api = HbnApi(gw, gateway, inbox=Inbox(max_commands=5))
     reports: list[bytes] = []
     loop = asyncio.get_running_loop()
     sub = dev.declare_subscriber(
@@ -276,3 +299,43 @@ async def test_zenoh_bursts_end_on_the_last_put_and_overflow_is_reported() -> No
     docs = overflow(reports)
     reported = [json.loads(d["payload"])["n"] for d in docs]
     assert sorted(commands + reported) == list(range(300))
+
+
+@pytest.mark.mosquitto
+async def test_a_bad_definition_superseded_at_once_is_still_refused_with_its_code(
+    mosquitto: Mosquitto,
+) -> None:
+    """200 x (a bad channel definition, then a good one) on one topic, as fast as the
+    broker takes them: the gateway applies the last good one, and each bad one is
+    refused on ``aware/errors`` with its code -- also those a good one superseded in
+    the inbox before they were handled."""
+    injected: list[Inject] = []
+    svc = GatewayService(
+        [0], mqtt=MqttSettings.from_url(mosquitto.url("gateway")), settings=GatewaySettings()
+    )
+    svc.bind(lambda node, inj: injected.append(inj), lambda: 0.0)
+    n = 200
+    async with Collector(mosquitto.url("viewer"), "aware/errors") as errors, svc:
+        assert svc.mqtt is not None
+        await asyncio.wait_for(svc.mqtt.connected.wait(), 10)
+        async with aiomqtt.Client(
+            "127.0.0.1", mosquitto.port, username="operator", password="operator-pw"
+        ) as op:  # fmt: skip
+            op.pending_calls_threshold = 2 * n + 10
+            await asyncio.gather(
+                *(
+                    op.publish("aware/def/channel/1", payload, qos=1, retain=True)
+                    for i in range(n)
+                    for payload in (
+                        json.dumps({"attr": "temperature", "period_s": 0}),
+                        json.dumps({"attr": "temperature", "period_s": 1 + i}),
+                    )
+                )
+            )
+        await errors.wait_for(lambda ms: len(ms) >= n, timeout=20)
+        await until(lambda: svc.bridge.definitions().get("def/channel/1", {}).get("period_s")
+                    == float(n), 10)  # fmt: skip
+    codes = [json.loads(p)["code"] for p in errors.payloads("aware/errors")]
+    assert codes.count("period_out_of_range") >= n
+    assert svc.mqtt.inbox.stats.coalesced > 0, svc.mqtt.inbox.stats  # some were superseded
+    assert svc.bridge.stats.refused_by_code["period_out_of_range"] == n

@@ -42,8 +42,6 @@ import zenoh
 
 from awaremw.gateway.bridge import ErrorReport, Publish, RateLimitedLog
 from awaremw.gateway.inbox import (
-    MAX_COMMANDS,
-    MAX_DEFINITIONS,
     OVERFLOW,
     Inbox,
     Incoming,
@@ -74,8 +72,7 @@ class HbnApi:
         prefix: str = "aware",
         loop: asyncio.AbstractEventLoop | None = None,
         max_payload_bytes: int = 4096,
-        max_definitions: int = MAX_DEFINITIONS,
-        max_commands: int = MAX_COMMANDS,
+        inbox: Inbox | None = None,
     ) -> None:
         self.session = session
         self.on_message = on_message
@@ -88,7 +85,8 @@ class HbnApi:
         self.received = 0  # samples handed to the gateway
         self.queries = 0
         # Written on Zenoh threads and read on the loop: guarded by _lock.
-        self.inbox = Inbox(max_definitions, max_commands)
+        self.inbox = inbox if inbox is not None else Inbox()  # (an empty one is falsy)
+        # Its ``valid`` (if any) runs on Zenoh's threads, under the lock: it must be pure.
         self._refused: deque[Incoming] = deque()  # bounded by MAX_REPORTS
         self.unreported = 0  # refusals beyond MAX_REPORTS: counted, summed up in the log
         self._scheduled = False  # a drain is due on the loop
@@ -174,6 +172,7 @@ class HbnApi:
             unreported, self.unreported = self.unreported, 0
         for r in refused:
             self._report_overflow(r)
+
         if unreported:
             # Beyond MAX_REPORTS waiting reports: one report says how many, not which.
             self._overflow_log.warning(

@@ -11,15 +11,19 @@ Both are bounded: at most ``max_definitions`` distinct definition topics and
 ``max_commands`` commands wait at once. What does not fit is refused by
 :meth:`Inbox.put`, counted in ``dropped``, and returned to the caller, which
 reports it on the errors topic of its transport (:func:`overflow_report`):
-nothing is dropped silently. A transport takes every message it is handed
-(aiomqtt's own queue would discard, and log a line per message, when the
-gateway lags), so a burst costs one dictionary entry per topic, not a queue
-slot per message.
+nothing is dropped silently. An invalid definition is never replaced (see
+:class:`Inbox`): it is refused with its code in its turn, even when a good one
+followed it at once.
+
+A transport takes every message it is handed (aiomqtt's own queue would
+discard, and log a line per message, when the gateway lags), so a burst costs
+one dictionary entry per topic, not a queue slot per message.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from awaremw.gateway.bridge import MAX_ERROR_TOPIC, ErrorReport, clip
@@ -58,37 +62,59 @@ class InboxStats:
 
 
 class Inbox:
-    """Latest value per definition topic, commands in order; both bounded."""
+    """Latest value per definition topic, commands in order; both bounded.
 
-    def __init__(self, max_definitions: int = MAX_DEFINITIONS, max_commands: int = MAX_COMMANDS):
+    ``valid(m)`` (pure; optional) says whether a definition is valid on its own. A
+    waiting definition that is *invalid* is not replaced by a newer one: it keeps
+    its place, to be refused with its code when its turn comes, and the newer one
+    waits behind it (counted with the commands: events, not values).
+    """
+
+    def __init__(
+        self,
+        max_definitions: int = MAX_DEFINITIONS,
+        max_commands: int = MAX_COMMANDS,
+        valid: Callable[[Incoming], bool] | None = None,
+    ) -> None:
         if max_definitions < 1 or max_commands < 1:
             raise ValueError("an inbox holds at least one definition and one command")
         self.max_definitions = max_definitions
         self.max_commands = max_commands
+        self.valid = valid
         self.stats = InboxStats()
-        # Definition topic -> its newest payload; command number -> the command.
-        self._entries: OrderedDict[str | int, Incoming] = OrderedDict()
-        self._definitions = 0
+        # Arrival number -> message, in order; definition topic -> the number of
+        # its newest waiting value (which a newer one replaces in place).
+        self._entries: OrderedDict[int, Incoming] = OrderedDict()
+        self._latest: dict[str, int] = {}
         self._seq = 0
 
     def __len__(self) -> int:
         return len(self._entries)
 
     def put(self, m: Incoming) -> Incoming | None:
-        """Take ``m``; None if taken, else ``m`` itself (full: count it, report it)."""
+        """Take ``m``: None; or refuse it (full): ``m`` itself, for the caller to
+        count and report."""
         if m.is_definition:
-            if m.topic in self._entries:
-                self._entries[m.topic] = m  # the newest wins, at the older one's place
-                self.stats.coalesced += 1
-                self.stats.taken += 1
-                return None
-            if self._definitions >= self.max_definitions:
+            at = self._latest.get(m.topic)
+            if at is not None:
+                old = self._entries[at]
+                if self.valid is None or self.valid(old):
+                    self._entries[at] = m  # the newest wins, at the older one's place
+                    self.stats.coalesced += 1
+                    self.stats.taken += 1
+                    return None
+                if self._events() >= self.max_commands:
+                    self.stats.dropped += 1
+                    return m
+                del self._latest[m.topic]  # the invalid one stays, as an event
+            elif len(self._latest) >= self.max_definitions:
                 self.stats.dropped += 1
                 return m
-            self._entries[m.topic] = m
-            self._definitions += 1
+            self._seq += 1
+            self._entries[self._seq] = m
+            self._latest[m.topic] = self._seq
         else:
-            if len(self._entries) - self._definitions >= self.max_commands:
+            if self._events() >= self.max_commands:
                 self.stats.dropped += 1
                 return m
             self._seq += 1
@@ -97,13 +123,17 @@ class Inbox:
         self.stats.peak = max(self.stats.peak, len(self._entries))
         return None
 
+    def _events(self) -> int:
+        """Waiting entries that are not a topic's newest value (commands, invalid ones)."""
+        return len(self._entries) - len(self._latest)
+
     def pop(self) -> Incoming | None:
         """The oldest waiting entry, or None."""
         if not self._entries:
             return None
-        key, m = self._entries.popitem(last=False)
-        if isinstance(key, str):
-            self._definitions -= 1
+        seq, m = self._entries.popitem(last=False)
+        if self._latest.get(m.topic) == seq:
+            del self._latest[m.topic]
         self.stats.handed += 1
         return m
 

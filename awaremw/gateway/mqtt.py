@@ -208,7 +208,12 @@ class _Item:
 class MqttBridge:
     """One resilient MQTT connection for the gateway."""
 
-    def __init__(self, settings: MqttSettings, on_message: OnMessage) -> None:
+    def __init__(
+        self,
+        settings: MqttSettings,
+        on_message: OnMessage,
+        valid: Callable[[Incoming], bool] | None = None,
+    ) -> None:
         self.settings = settings
         self.on_message = on_message
         self.stats = MqttStats()
@@ -228,7 +233,8 @@ class MqttBridge:
         }[settings.protocol]
         self._reported_dropped = 0
         self._last_error = ""
-        self.inbox = Inbox(settings.max_definitions, settings.max_incoming)
+        # ``valid``: an invalid definition is not coalesced away (it is refused in its turn).
+        self.inbox = Inbox(settings.max_definitions, settings.max_incoming, valid)
         self._inbox_ready = asyncio.Event()
         self._burst = asyncio.Event()  # a reconcile is due once definitions go quiet
         self._live_defs = 0  # live definitions since the last reconcile

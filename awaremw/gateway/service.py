@@ -29,8 +29,16 @@ from typing import Any
 
 import zenoh
 
-from awaremw.gateway.bridge import BridgePolicy, GatewayBridge, Inject, Outcome, Publish
+from awaremw.gateway.bridge import (
+    BridgePolicy,
+    ErrorReport,
+    GatewayBridge,
+    Inject,
+    Outcome,
+    Publish,
+)
 from awaremw.gateway.hbn import HbnApi
+from awaremw.gateway.inbox import Inbox, Incoming
 from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSettings
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore, unwrap, wire_version
@@ -123,6 +131,7 @@ class GatewayService:
                 lambda rel, payload, retained, topic: self.handle(
                     rel, payload, retained=retained, topic=topic, via="mqtt"
                 ),
+                self._valid,
             )
         self._session = zenoh_session
         self.hbn: HbnApi | None = None
@@ -158,6 +167,7 @@ class GatewayService:
                 ),
                 prefix=self.settings.prefix,
                 max_payload_bytes=self.settings.max_payload_bytes,
+                inbox=Inbox(valid=self._valid),
             )
             self.hbn.start()
             self._refresh_now()
@@ -215,13 +225,22 @@ class GatewayService:
             self._inject_all(out.inject)
             self._refresh_hbn()
         if out.error is not None:
-            err = Publish("errors", out.error.to_json())
-            if via == "mqtt" and self.mqtt is not None:
-                self.mqtt.publish(err)
-            elif via == "hbn" and self.hbn is not None:
-                self.hbn.publish_error(out.error)
+            self._report(out.error, via)
         self.handled.set()
         return out
+
+    def _valid(self, m: Incoming) -> bool:
+        """Whether a waiting definition is valid on its own (the inbox does not let a
+        newer one replace an invalid one, so that it is refused in its turn). Pure:
+        the HBN inbox calls it on Zenoh's threads."""
+        return self.bridge.validate(m.rel, m.payload, source=m.topic, size=m.size) is None
+
+    def _report(self, error: ErrorReport, via: str) -> None:
+        """An error report on the errors topic of the transport it concerns."""
+        if via == "mqtt" and self.mqtt is not None:
+            self.mqtt.publish(Publish("errors", error.to_json()))
+        elif via == "hbn" and self.hbn is not None:
+            self.hbn.publish_error(error)
 
     def define_initial(self, definitions: Iterable[tuple[str, bytes]]) -> list[Outcome]:
         """Apply definitions that come with the deployment (as if published live)."""
