@@ -152,6 +152,16 @@ async def test_kill_9_of_a_worker_restarts_it_and_records_flow_from_both_stripes
                 assert after["w0"]["restarts"] == 0 and after["w0"]["pid"] == before["w0"]["pid"]
                 # The figures go on from the dead incarnation's last report.
                 assert after["w1"]["frames_tx"] >= before["w1"]["frames_tx"]
+                # Read back: the restarted motes hold the definitions again.
+                items = await asyncio.to_thread(
+                    subprocess.run,
+                    [*AWAREMW, "fleet-ctl", "--connect", ep, "--timeout", "2", "items"],
+                    capture_output=True, text=True, timeout=60, check=False,
+                )  # fmt: skip
+                assert items.returncode == 0, items.stderr
+                held = {d["fleet"]: d["items"] for d in map(json.loads, items.stdout.splitlines())}
+                assert set(held) == {"w0", "w1"}
+                assert all("channel/2" in motes for motes in held["w1"].values())
                 print(f"records from both stripes {took:.1f} s after the kill")
                 assert took <= 30
     finally:

@@ -22,6 +22,8 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +57,7 @@ InjectFn = Callable[[int, Inject], None]
 BodyFn = Callable[[int, ItemKind, int], ItemBody | None]
 ClockFn = Callable[[], float]
 STORE_FILE = "gateway.sqlite"
+INJECT_GAP_S = 0.5  # wall seconds between two injections of one definition (the newest wins)
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,7 +145,11 @@ class GatewayService:
         self.injected = 0
         self.inject_failures = 0
         self._refresh_due = False
-        self.handled = asyncio.Event()  # set after every payload handled or version learned
+        # Pacing of definition injections (bounded by the item ids: 255 + 256 keys).
+        self._last_inject: dict[tuple[ItemKind, int], float] = {}
+        self._deferred: dict[tuple[ItemKind, int], asyncio.TimerHandle] = {}
+        # Set after every payload handled, version learned or paced injection made.
+        self.handled = asyncio.Event()
         self.delivered = asyncio.Event()  # set after every record or report from the WSN
 
     # ----------------------------------------------------------------- lifecycle
@@ -184,6 +191,9 @@ class GatewayService:
         )
 
     async def stop(self) -> None:
+        for handle in self._deferred.values():  # the store has them: injected at next start
+            handle.cancel()
+        self._deferred.clear()
         if self.mqtt is not None:
             self.mqtt.stop()
         for t in self._tasks:
@@ -222,7 +232,7 @@ class GatewayService:
         ``size``: the payload's size as sent, when the transport did not copy it whole."""
         out = self.bridge.handle(rel, payload, source=topic or rel, retained=retained, size=size)
         if out.inject is not None:
-            self._inject_all(out.inject)
+            self._inject_paced(out.inject)
             self._refresh_hbn()
         if out.error is not None:
             self._report(out.error, via)
@@ -247,6 +257,35 @@ class GatewayService:
         return [
             self.handle(rel, p, topic=f"deployment:{rel}", via="local") for rel, p in definitions
         ]
+
+    def _inject_paced(self, inj: Inject) -> None:
+        """Inject a new definition, at most once per ``INJECT_GAP_S`` per item: in a
+        burst the newest version goes on the radio at the end of the gap (the motes
+        would only pass superseded versions around, and the last one would queue
+        behind them). Commands are events: injected at once."""
+        if inj.kind is ItemKind.COMMAND:
+            self._inject_all(inj)
+            return
+        key = (inj.kind, inj.item_id)
+        if key in self._deferred:
+            return  # the deferred injection takes the newest version from the store
+        now = time.monotonic()
+        wait = self._last_inject.get(key, -math.inf) + INJECT_GAP_S - now
+        if wait <= 0:
+            self._last_inject[key] = now
+            self._inject_all(inj)
+            return
+        loop = asyncio.get_running_loop()
+        self._deferred[key] = loop.call_later(wait, self._inject_deferred, key)
+
+    def _inject_deferred(self, key: tuple[ItemKind, int]) -> None:
+        del self._deferred[key]
+        item = self.bridge.store.get(*key)
+        if item is None:
+            return
+        self._last_inject[key] = time.monotonic()
+        self._inject_all(Inject(item.kind, item.item_id, item.version, item.body))
+        self.handled.set()
 
     def _inject_all(self, inj: Inject) -> None:
         for node in self.roots:
