@@ -201,6 +201,23 @@ def mismatches(ep: str, expected: dict[int, list[Any] | None]) -> tuple[int, int
     return motes, bad
 
 
+def gateway_holds(ep: str, expected: dict[int, list[Any] | None]) -> bool:
+    """Whether the gateway's definitions (its HBN queryable) are ``expected``."""
+    session = open_session(SessionSettings("client", (ep,)))
+    try:
+        held: dict[int, list[Any] | None] = {}
+        for r in session.get("aware/hbn/def/channel/*", timeout=2.0):
+            if r.ok is None:
+                continue
+            doc = json.loads(r.ok.payload.to_bytes())
+            doc.pop("version", None)
+            c = int(str(r.ok.key_expr).rsplit("/", 1)[1])
+            held[c] = wire_of(c, json.dumps(doc).encode())
+        return all(held.get(c) == w for c, w in expected.items())
+    finally:
+        close_quietly(session)
+
+
 class Errors:
     """Counts what arrives on an errors topic, by code."""
 
@@ -309,9 +326,12 @@ async def _verdict(
     session: zenoh.Session | None = None,
 ) -> dict[str, Any]:
     converged: float | None = None
+    gateway_s: float | None = None  # when the gateway's own definitions were the expected ones
     last_seen = (0, 0)
     deadline = t_last + 60.0
     while time.monotonic() < deadline:
+        if gateway_s is None and await asyncio.to_thread(gateway_holds, run.ep, expected):
+            gateway_s = time.monotonic() - t_last
         last_seen = await asyncio.to_thread(mismatches, run.ep, expected)
         if last_seen[0] > 0 and last_seen[1] == 0:
             converged = time.monotonic() - t_last
@@ -332,6 +352,7 @@ async def _verdict(
         "motes_read_back": last_seen[0],
         "motes_differing": last_seen[1],
         "converged_s": None if converged is None else round(converged, 2),
+        "gateway_s": None if gateway_s is None else round(gateway_s, 2),
         "ok": converged is not None
         and converged <= CONVERGE_S
         and errors.by_code.get("input_overflow", 0) >= inbox.get("dropped", 0),

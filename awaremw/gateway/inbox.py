@@ -30,6 +30,7 @@ from awaremw.gateway.bridge import MAX_ERROR_TOPIC, ErrorReport, clip
 
 MAX_DEFINITIONS = 4096  # distinct definition topics waiting (the contract's ids are u16)
 MAX_COMMANDS = 1_000  # commands waiting
+MAX_VERDICTS = 4096  # remembered (topic, payload, size) -> valid: a burst repeats payloads
 OVERFLOW = "input_overflow"  # error code of a message the gateway could not take
 
 
@@ -81,6 +82,7 @@ class Inbox:
         self.max_definitions = max_definitions
         self.max_commands = max_commands
         self.valid = valid
+        self._verdicts: dict[tuple[str, bytes, int | None], bool] = {}  # MAX_VERDICTS
         self.stats = InboxStats()
         # Arrival number -> message, in order; definition topic -> the number of
         # its newest waiting value (which a newer one replaces in place).
@@ -98,7 +100,7 @@ class Inbox:
             at = self._latest.get(m.topic)
             if at is not None:
                 old = self._entries[at]
-                if self.valid is None or self.valid(old):
+                if self._valid(old):
                     self._entries[at] = m  # the newest wins, at the older one's place
                     self.stats.coalesced += 1
                     self.stats.taken += 1
@@ -122,6 +124,18 @@ class Inbox:
         self.stats.taken += 1
         self.stats.peak = max(self.stats.peak, len(self._entries))
         return None
+
+    def _valid(self, m: Incoming) -> bool:
+        """``valid(m)``, remembered: a burst mostly repeats a few payloads per topic."""
+        if self.valid is None:
+            return True
+        key = (m.topic, m.payload, m.size)  # an oversize put arrives empty, with its size
+        verdict = self._verdicts.get(key)
+        if verdict is None:
+            if len(self._verdicts) >= MAX_VERDICTS:
+                self._verdicts.clear()
+            verdict = self._verdicts[key] = self.valid(m)
+        return verdict
 
     def _events(self) -> int:
         """Waiting entries that are not a topic's newest value (commands, invalid ones)."""
