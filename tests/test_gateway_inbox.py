@@ -24,6 +24,7 @@ from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.inbox import OVERFLOW, Inbox, Incoming, overflow_report
 from awaremw.gateway.mqtt import MqttBridge, MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings
+from awaremw.protocol.frames import ItemKind
 from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint, open_session
 
 
@@ -339,3 +340,21 @@ async def test_a_bad_definition_superseded_at_once_is_still_refused_with_its_cod
     assert codes.count("period_out_of_range") >= n
     assert svc.mqtt.inbox.stats.coalesced > 0, svc.mqtt.inbox.stats  # some were superseded
     assert svc.bridge.stats.refused_by_code["period_out_of_range"] == n
+
+
+async def test_a_burst_goes_on_the_radio_as_its_newest_version_paced() -> None:
+    """100 redefinitions of a channel in one go: the gateway mote gets the first at
+    once and the newest at the end of the gap, not 100 versions; commands at once."""
+    injected: list[Inject] = []
+    svc = GatewayService([0], settings=GatewaySettings(hbn=False))
+    svc.bind(lambda node, inj: injected.append(inj), lambda: 0.0)
+    async with svc:
+        for i in range(100):
+            doc = {"attr": "temperature", "period_s": 1 + i}
+            assert svc.handle("def/channel/1", json.dumps(doc).encode()).accepted
+        assert svc.handle("cmd/led", json.dumps({"target": "all", "args": {}}).encode()).accepted
+        assert [i.kind for i in injected] == [ItemKind.CHANNEL, ItemKind.COMMAND]
+        latest = svc.bridge.item(ItemKind.CHANNEL, 1)
+        assert latest is not None and latest.version == 100
+        await until(lambda: len(injected) == 3, 5)
+        assert injected[-1] == Inject(ItemKind.CHANNEL, 1, 100, latest.body)
