@@ -3,6 +3,7 @@
     python benchmarks/abuse.py mqtt-burst  [--count 20000] [--seeds 1-3] [--json OUT] [--bound S]
     python benchmarks/abuse.py hbn-burst   [--count 50000] [--seeds 1-3] [--json OUT] [--bound S]
     python benchmarks/abuse.py kill-worker [--seeds 1-3] [--json OUT]
+    python benchmarks/abuse.py restart-fleet [--seeds 1-3] [--json OUT]
 
 Real processes, as a user runs them: ``awaremw router``, ``awaremw fleet
 grid_small --without-kind gateway`` and ``awaremw gateway grid_small --mqtt
@@ -25,6 +26,9 @@ with its default queue bounds (``max_queued_messages 1000``, ``max_inflight_mess
   groups in both stripes, ``kill -9`` of worker ``w1`` at a random moment
   (seeded). Verdict: ``fleet-ctl stats`` shows it restarted, records come from
   both stripes again within 30 s, the fleet never exits.
+* ``restart-fleet``: once records flow, the peers run on for 20-40 s (seeded);
+  then the fleet is killed and started again under the running gateway.
+  Verdict: records again within 30 s (the new fleet joins the peers' time).
 
 Each seed is one run from scratch; the summary gives mean and spread over the
 seeds. Timings depend on the machine's load (this one has 2 cores shared).
@@ -111,9 +115,14 @@ class Run:
         self.processes = processes
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.logs: dict[str, Any] = {}
+        self.fleet_cmd = [*AW, "fleet", DEPLOYMENT, "--without-kind", "gateway", "--plain",
+                          "--connect", self.ep, "--processes", str(processes),
+                          "--progress", "60"]  # fmt: skip
 
     def spawn(self, name: str, cmd: list[str]) -> None:
-        self.logs[name] = open(self.work / f"{name}.log", "wb")  # noqa: SIM115
+        if name in self.logs:
+            self.logs[name].close()  # started again: one log, appended
+        self.logs[name] = open(self.work / f"{name}.log", "ab")  # noqa: SIM115
         self.procs[name] = subprocess.Popen(cmd, stdout=self.logs[name], stderr=subprocess.STDOUT)
 
     def log(self, name: str) -> str:
@@ -133,9 +142,7 @@ class Run:
             self.spawn("router", [*AW, "router", "--listen", self.ep])
             await wait_port(self.port, 10)
             await wait_port(int(self.ep.rsplit(":", 1)[1]), 30)
-            self.spawn("fleet", [*AW, "fleet", DEPLOYMENT, "--without-kind", "gateway", "--plain",
-                                 "--connect", self.ep, "--processes", str(self.processes),
-                                 "--progress", "60"])  # fmt: skip
+            self.spawn("fleet", self.fleet_cmd)
             await until(lambda: len(fleet_replies(self.ep, "list")) >= self.processes, 60, "fleet")
             self.spawn("gateway", [*AW, "gateway", DEPLOYMENT, "--connect", self.ep,
                                    "--mqtt", f"mqtt://127.0.0.1:{self.port}",
@@ -449,6 +456,54 @@ async def kill_worker(seed: int) -> dict[str, Any]:
         }
 
 
+# --------------------------------------------------------------------------- restart
+
+
+async def restart_fleet(seed: int) -> dict[str, Any]:
+    """The fleet killed and started again under the running gateway (issue 22: no
+    definitions and no records for ~110 s): how long until records come back."""
+    rng = random.Random(seed)
+    async with Run().up() as run:
+        got: list[float] = []  # wall times of records
+        ready = asyncio.Event()
+
+        async def records() -> None:
+            async with aiomqtt.Client("127.0.0.1", run.port, max_queued_incoming_messages=0) as c:
+                await c.subscribe("aware/data/#", qos=0)
+                ready.set()
+                async for _ in c.messages:
+                    got.append(time.monotonic())
+
+        task = asyncio.create_task(records())
+        await ready.wait()
+        async with aiomqtt.Client("127.0.0.1", run.port) as op:
+            ch = {"attr": "temperature", "group_type": 1, "group_id": "*", "period_s": 2.0}
+            await op.publish("aware/def/group/1", json.dumps(GROUP_ALL), qos=1, retain=True)
+            await op.publish("aware/def/channel/1", json.dumps(ch), qos=1, retain=True)
+        started = time.monotonic()
+        await until(lambda: bool(got), 120, "records")
+        # The peers run a while (a random span): a new fleet would count from 0 behind them.
+        await asyncio.sleep(rng.uniform(20.0, 40.0))
+        uptime = time.monotonic() - started
+        run.procs["fleet"].kill()
+        run.procs["fleet"].wait(10)
+        restarted = time.monotonic()
+        run.spawn("fleet", run.fleet_cmd)
+        await until(lambda: any(w > restarted for w in got), 120, "records after the restart")
+        records_s = min(w for w in got if w > restarted) - restarted
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+            await task
+        joined = "joining it" in run.log("fleet")
+        return {
+            "peers_ahead_s": round(uptime, 1),
+            "records_after_restart_s": round(records_s, 2),
+            "clock_joined": joined,
+            "gateway_alive": run.alive("gateway"),
+            "ok": records_s <= 30.0 and run.alive("gateway"),
+        }
+
+
 # --------------------------------------------------------------------------- main
 
 
@@ -472,13 +527,19 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
                 r = await mqtt_burst(seed, args.count or 20_000, args.bound)
             case "hbn-burst":
                 r = await hbn_burst(seed, args.count or 50_000, args.bound)
+            case "restart-fleet":
+                r = await restart_fleet(seed)
             case _:
                 r = await kill_worker(seed)
         r["seed"] = seed
         print(json.dumps(r), file=sys.stderr, flush=True)
         runs.append(r)
-    keys = ("converged_s", "rate_per_s") if args.attack != "kill-worker" else (
-        "restarted_s", "records_both_stripes_s")  # fmt: skip
+    keys = {
+        "mqtt-burst": ("converged_s", "rate_per_s"),
+        "hbn-burst": ("converged_s", "rate_per_s"),
+        "kill-worker": ("restarted_s", "records_both_stripes_s"),
+        "restart-fleet": ("records_after_restart_s",),
+    }[args.attack]
     return {
         "attack": args.attack,
         "runs": runs,
@@ -489,7 +550,7 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("attack", choices=("mqtt-burst", "hbn-burst", "kill-worker"))
+    ap.add_argument("attack", choices=("mqtt-burst", "hbn-burst", "kill-worker", "restart-fleet"))
     ap.add_argument("--count", type=int, default=None, help="messages in a burst")
     ap.add_argument("--seeds", default="1-3", help="A-B: one run per seed")
     ap.add_argument("--json", type=Path, help="also write the result to this file")
