@@ -25,6 +25,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.zenoh, pytest.mark.mosquitto]
         ("mqtt-burst", "--count", "3000", "--bound", "30"),
         ("hbn-burst", "--count", "5000", "--bound", "30"),
         ("kill-worker",),
+        ("restart-fleet",),
     ],
     ids=lambda a: a[0],
 )
@@ -40,6 +41,9 @@ def test_abuse_benchmark_holds(args: tuple[str, ...], tmp_path: Path) -> None:
     result = json.loads(out.read_text())
     assert result["ok_fraction"] == 1.0
     run = result["runs"][0]
+    if args[0] == "restart-fleet":
+        assert run["clock_joined"] and run["records_after_restart_s"] <= 30.0
+        return
     assert run["fleet_alive"]
     if args[0] != "kill-worker":
         assert run["motes_differing"] == 0 and run["motes_read_back"] == 26
