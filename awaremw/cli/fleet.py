@@ -153,6 +153,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     k.add_argument("id", type=int)
     csub.add_parser("list", help="motes on the air and where they are")
     csub.add_parser("stats", help="counters and timer lag of every fleet process")
+    csub.add_parser("items", help="the definitions every mote holds (version and body)")
     c.set_defaults(func=run_ctl)
 
 
@@ -553,13 +554,15 @@ def run_ctl(args: argparse.Namespace) -> int:
     replies.sort(key=lambda d: str(d.get("fleet")))
     errors = [d for d in replies if not d.get("ok")]
     done = [d for d in replies if d.get("done")]
-    if args.op in ("list", "stats"):
+    if args.op in ("list", "stats", "items"):
         if args.op == "list" and sys.stdout.isatty():
             print("# node\tx (m)\ty (m)\tfleet")  # for a reader; piped output stays bare
         for d in replies:
             if args.op == "list":
                 for nid, (x, y) in sorted(d.get("motes", {}).items(), key=lambda kv: int(kv[0])):
                     print(f"{nid}\t{x:.2f}\t{y:.2f}\t{d.get('fleet')}")
+            elif args.op == "items":
+                print(json.dumps({"fleet": d.get("fleet"), "items": d.get("items", {})}))
             else:
                 print(json.dumps(d.get("snapshot", d)))
         return 0

@@ -22,11 +22,12 @@ import json
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from typing import Any
 
 from awaremw.gateway.schema import (
+    Definition,
     Limits,
     PayloadTooLarge,
     SchemaError,
@@ -276,15 +277,9 @@ class GatewayBridge:
         given, is the payload's size as sent (a transport that did not copy an
         oversize payload passes it empty with its size).
         """
-        if size is not None and size > self.limits.max_payload_bytes:
-            return self._refuse(source, payload, PayloadTooLarge(
-                f"payload of {size} bytes exceeds the limit of {self.limits.max_payload_bytes}"
-            ))  # fmt: skip
-        if len(source) > MAX_TOPIC:
+        if (early := self._precheck(source, size)) is not None:
             # Refused before anything is remembered: a long topic is never stored.
-            return self._refuse(source, payload, TopicTooLong(
-                f"topic of {len(source)} characters exceeds the limit of {MAX_TOPIC}"
-            ))  # fmt: skip
+            return self._refuse(source, payload, early)
         h = payload_hash(payload)
         if retained and self.store.last_seen(source) == h:
             self.stats.replays += 1
@@ -298,6 +293,48 @@ class GatewayBridge:
         if outcome.inject is not None and (w := self._waiting(outcome.inject, source, payload)):
             outcome = Outcome(inject=outcome.inject, error=w)
         return outcome
+
+    def _precheck(self, source: str, size: int | None) -> SchemaError | None:
+        if size is not None and size > self.limits.max_payload_bytes:
+            return PayloadTooLarge(
+                f"payload of {size} bytes exceeds the limit of {self.limits.max_payload_bytes}"
+            )
+        if len(source) > MAX_TOPIC:
+            n = len(source)
+            return TopicTooLong(f"topic of {n} characters exceeds the limit of {MAX_TOPIC}")
+        return None
+
+    def validate(
+        self, rel_topic: str, payload: bytes, *, source: str, size: int | None = None
+    ) -> SchemaError | None:
+        """Why a definition payload is invalid on its own (size, topic, schema), or None.
+
+        Pure (reads only the limits, never the store): a transport's inbox may call it
+        on its own thread, to keep an invalid definition from being replaced by a
+        newer one before :meth:`handle` refuses it. Checks that need the gateway's
+        state (how many are defined) are left to :meth:`handle`.
+        """
+        if (early := self._precheck(source, size)) is not None:
+            return early
+        try:
+            self._parse_definition(rel_topic, payload, (), ())
+        except SchemaError as e:
+            return e
+        return None
+
+    def _parse_definition(
+        self, rel_topic: str, payload: bytes, groups: Collection[int], channels: Collection[int]
+    ) -> Definition:
+        """``def/group/<t>`` or ``def/channel/<id>`` parsed; ``groups``/``channels``: the
+        ids defined already (table sizes)."""
+        parts = rel_topic.split("/")
+        if len(parts) == 3 and parts[:2] == ["def", "group"]:
+            return parse_group_type(parts[2], payload, self.limits, groups)
+        if len(parts) == 3 and parts[:2] == ["def", "channel"]:
+            return parse_channel(parts[2], payload, self.limits, channels)
+        raise UnknownTopic(
+            f"unknown topic {rel_topic!r}; use def/group/<type>, def/channel/<id> or cmd/<name>"
+        )
 
     def _waiting(self, inj: Inject, source: str, payload: bytes) -> ErrorReport | None:
         """A warning when a channel names a group type nobody defined: the channel is
@@ -331,14 +368,12 @@ class GatewayBridge:
 
     def _apply(self, rel_topic: str, payload: bytes) -> Outcome:
         parts = rel_topic.split("/")
-        if len(parts) == 3 and parts[:2] == ["def", "group"]:
-            d = parse_group_type(
-                parts[2], payload, self.limits, self.store.defined_ids(ItemKind.GROUP_TYPE)
-            )
-            return self._store(d.kind, d.item_id, d.body, d.json)
-        if len(parts) == 3 and parts[:2] == ["def", "channel"]:
-            d = parse_channel(
-                parts[2], payload, self.limits, self.store.defined_ids(ItemKind.CHANNEL)
+        if parts[0] == "def":
+            d = self._parse_definition(
+                rel_topic,
+                payload,
+                self.store.defined_ids(ItemKind.GROUP_TYPE),
+                self.store.defined_ids(ItemKind.CHANNEL),
             )
             return self._store(d.kind, d.item_id, d.body, d.json)
         if len(parts) == 2 and parts[0] == "cmd":

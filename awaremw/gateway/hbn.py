@@ -9,9 +9,13 @@ Same contract as MQTT, on key expressions instead of topics:
   group is gone), ``aware/hbn/gateway/status``;
 * refusals are put on ``aware/hbn/errors`` (same JSON as MQTT); a payload
   larger than ``max_payload_bytes`` is not copied out of Zenoh at all (only its
-  size goes to the loop, to be refused as ``payload_too_large``), and at most
-  ``max_pending`` samples wait for the loop (beyond, they are dropped and
-  counted in ``dropped``);
+  size goes to the loop, to be refused as ``payload_too_large``);
+* what arrives waits for the loop in an :class:`~awaremw.gateway.inbox.Inbox`:
+  the newest value per definition key (a burst of puts on one key costs one
+  entry, and the last put always wins), commands in order; at most
+  ``max_definitions`` keys and ``max_commands`` commands wait, and what does
+  not fit is counted in ``dropped`` and reported on ``aware/hbn/errors`` with
+  code ``input_overflow`` (never dropped silently);
 * ``get aware/hbn/**`` (or any narrower selector such as ``aware/hbn/def/**``
   or ``aware/hbn/groups/**``) answers with the current definitions, group
   states and gateway status/stats -- Zenoh's stand-in for retained messages.
@@ -26,21 +30,31 @@ Zenoh thread.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
+import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
 
 import zenoh
 
-from awaremw.gateway.bridge import ErrorReport, Publish
+from awaremw.gateway.bridge import ErrorReport, Publish, RateLimitedLog
+from awaremw.gateway.inbox import (
+    OVERFLOW,
+    Inbox,
+    Incoming,
+    overflow_report,
+)
 
 log = logging.getLogger(__name__)
 
 # (rel_topic, payload, retained, key, size): ``size`` is the payload's size as
 # put; a payload over the limit arrives empty, to be refused by its size alone.
 OnMessage = Callable[[str, bytes, bool, str, int], object]
-MAX_PENDING = 1_000  # samples handed to the loop and not yet handled
+MAX_REPORTS = 1_000  # refusals of the Zenoh threads waiting to be reported by the loop
+HANDLE_SLICE_S = 0.02  # the loop handles the inbox in slices this long (wall seconds)
 
 
 class HbnApi:
@@ -58,7 +72,7 @@ class HbnApi:
         prefix: str = "aware",
         loop: asyncio.AbstractEventLoop | None = None,
         max_payload_bytes: int = 4096,
-        max_pending: int = MAX_PENDING,
+        inbox: Inbox | None = None,
     ) -> None:
         self.session = session
         self.on_message = on_message
@@ -68,12 +82,21 @@ class HbnApi:
         self._decls: list[zenoh.Subscriber[None] | zenoh.Queryable[None]] = []
         self._inputs = (f"{self.base}/def/", f"{self.base}/cmd/")
         self.max_payload_bytes = max_payload_bytes
-        self.max_pending = max_pending
-        self.received = 0
+        self.received = 0  # samples handed to the gateway
         self.queries = 0
-        self.dropped = 0  # samples dropped because max_pending were waiting
-        self._pending = 0  # written on Zenoh threads and the loop: guarded by _lock
+        # Written on Zenoh threads and read on the loop: guarded by _lock.
+        self.inbox = inbox if inbox is not None else Inbox()  # (an empty one is falsy)
+        # Its ``valid`` (if any) runs on Zenoh's threads, under the lock: it must be pure.
+        self._refused: deque[Incoming] = deque()  # bounded by MAX_REPORTS
+        self.unreported = 0  # refusals beyond MAX_REPORTS: counted, summed up in the log
+        self._scheduled = False  # a drain is due on the loop
         self._lock = threading.Lock()
+        self._overflow_log = RateLimitedLog(log)
+
+    @property
+    def dropped(self) -> int:
+        """Samples the gateway could not take (the inbox was full); each reported."""
+        return self.inbox.stats.dropped
 
     def key(self, rel: str) -> str:
         return f"{self.base}/{rel}"
@@ -122,30 +145,72 @@ class HbnApi:
         key = str(sample.key_expr)
         if not key.startswith(self._inputs):
             return  # data, groups, errors: output of this or another gateway
-        with self._lock:
-            if self._pending >= self.max_pending:
-                self.dropped += 1
-                return
-            self._pending += 1
         deleted = sample.kind == zenoh.SampleKind.DELETE
         size = 0 if deleted else len(sample.payload)
         # An oversize payload is not copied out of Zenoh: its size is enough to refuse it.
         payload = b"" if deleted or size > self.max_payload_bytes else sample.payload.to_bytes()
-        rel = key[len(self.base) + 1 :]
-        try:
-            self.loop.call_soon_threadsafe(self._deliver, rel, payload, key, size)
-        except RuntimeError:  # the loop closed while Zenoh was still delivering
-            with self._lock:
-                self._pending -= 1
-
-    def _deliver(self, rel: str, payload: bytes, key: str, size: int) -> None:
+        item = Incoming(key[len(self.base) + 1 :], payload, key, False, size)
         with self._lock:
-            self._pending -= 1
+            refused = self.inbox.put(item)
+            if refused is not None:
+                if len(self._refused) < MAX_REPORTS:
+                    self._refused.append(refused)
+                else:
+                    self.unreported += 1
+            if self._scheduled:
+                return
+            self._scheduled = True
+        # RuntimeError: the loop closed while Zenoh was still delivering.
+        with contextlib.suppress(RuntimeError):
+            self.loop.call_soon_threadsafe(self._drain)
+
+    def _drain(self) -> None:
+        """On the loop: report refusals, then hand the inbox to the gateway for one
+        slice; call again soon if entries are left (Zenoh keeps delivering meanwhile)."""
+        with self._lock:
+            refused, self._refused = self._refused, deque()
+            unreported, self.unreported = self.unreported, 0
+        for r in refused:
+            self._report_overflow(r)
+
+        if unreported:
+            # Beyond MAX_REPORTS waiting reports: one report says how many, not which.
+            self._overflow_log.warning(
+                "input_overflow_more", "Zenoh HBN input full: %d more samples not taken", unreported
+            )
+            summary = ErrorReport(
+                f"{self.base}/**", OVERFLOW, f"{unreported} more samples not taken: inbox full", ""
+            )
+            with contextlib.suppress(zenoh.ZError):
+                self.publish_error(summary)
+        end = time.monotonic() + HANDLE_SLICE_S
+        while True:
+            with self._lock:
+                m = self.inbox.pop()
+                if m is None:
+                    self._scheduled = False
+                    return
+            self._deliver(m)
+            if time.monotonic() >= end:
+                self.loop.call_soon(self._drain)  # the rest in the next slice
+                return
+
+    def _report_overflow(self, m: Incoming) -> None:
+        self._overflow_log.warning(
+            "input_overflow", "Zenoh HBN input full: %s not taken (reported on %s/errors)",
+            m.topic[:200], self.base,
+        )  # fmt: skip
+        try:
+            self.publish_error(overflow_report(m, "the Zenoh HBN inbox", refetched=False))
+        except zenoh.ZError as e:
+            log.debug("overflow report: %s", e)
+
+    def _deliver(self, m: Incoming) -> None:
         self.received += 1
         try:
-            self.on_message(rel, payload, False, key, size)
+            self.on_message(m.rel, m.payload, False, m.topic, m.size or 0)
         except Exception:  # a bug in the handler must not kill the subscription
-            log.exception("handling %s failed", key[:200])
+            log.exception("handling %s failed", m.topic[:200])
 
     def _on_query(self, query: zenoh.Query) -> None:
         self.queries += 1

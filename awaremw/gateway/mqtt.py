@@ -17,7 +17,18 @@ the broker:
   restarted without persistence has lost its retained messages.
 
 Incoming messages on ``<prefix>/def/#`` and ``<prefix>/cmd/#`` are handed to a
-callback with their topic relative to the prefix and their retain flag.
+callback with their topic relative to the prefix and their retain flag. They
+are taken off the connection as fast as they come, into an
+:class:`~awaremw.gateway.inbox.Inbox` (the newest value per definition topic,
+commands in order, both bounded; what does not fit is reported on
+``<prefix>/errors`` with code ``input_overflow``), and handed to the callback
+from there, a slice at a time, so that reading never waits for handling and
+aiomqtt's queue never discards. After a burst of definitions (``reconcile_burst``
+live ones, or any refused), once ``reconcile_quiet_s`` passed without one, the
+bridge subscribes to ``<prefix>/def/#`` again: the broker sends its retained
+definitions once more, so that whatever it dropped on the way (a broker bounds
+what it queues for a client) is applied too. The gateway's definitions then
+equal the broker's retained ones.
 
 The gateway uses a persistent session (MQTT 5 clean start off with a session
 expiry, or 3.1.1 clean session off) so that definitions and deletions sent
@@ -44,7 +55,8 @@ import aiomqtt
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from awaremw.gateway.bridge import Publish
+from awaremw.gateway.bridge import Publish, RateLimitedLog
+from awaremw.gateway.inbox import MAX_COMMANDS, MAX_DEFINITIONS, Inbox, Incoming, overflow_report
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +66,7 @@ OnMessage = Callable[[str, bytes, bool, str], object]  # (rel_topic, payload, re
 STATUS_TOPIC = "gateway/status"
 STATS_TOPIC = "gateway/stats"
 ERRORS_TOPIC = "errors"
+HANDLE_SLICE_S = 0.02  # handling yields to the connection this often (wall seconds)
 MAX_PASSWORD_BYTES = 65_535  # MQTT's binary data: a 16-bit length
 
 
@@ -113,7 +126,11 @@ class MqttSettings:
     drain_timeout_s: float = 2.0  # on stop, how long to try to deliver the backlog
     max_inflight: int = 16  # stream messages awaiting their PUBACK at once
     stats_interval_s: float = 5.0  # gateway/stats at most this often (and on drops)
-    max_incoming: int = 1_000  # received messages queued for the gateway (aiomqtt drops beyond)
+    max_incoming: int = MAX_COMMANDS  # commands waiting to be handled (refused and reported beyond)
+    max_definitions: int = MAX_DEFINITIONS  # distinct definition topics waiting (newest value each)
+    reconcile_burst: int = 32  # live definitions since the last reconcile that make a burst
+    reconcile_quiet_s: float = 1.0  # after a burst, re-read the retained definitions this long
+    # after the last live one
     max_packet_bytes: int = 65_536  # MQTT 5: the broker sends the gateway nothing larger
 
     @classmethod
@@ -173,6 +190,7 @@ class MqttStats:
     resent: int = 0  # in flight when the connection broke: sent again
     received: int = 0
     ignored: int = 0  # messages on topics the gateway did not subscribe to
+    reconciles: int = 0  # times the retained definitions were read again after a burst
     protocol: str = ""
 
     def as_dict(self) -> dict[str, int | str]:
@@ -190,7 +208,12 @@ class _Item:
 class MqttBridge:
     """One resilient MQTT connection for the gateway."""
 
-    def __init__(self, settings: MqttSettings, on_message: OnMessage) -> None:
+    def __init__(
+        self,
+        settings: MqttSettings,
+        on_message: OnMessage,
+        valid: Callable[[Incoming], bool] | None = None,
+    ) -> None:
         self.settings = settings
         self.on_message = on_message
         self.stats = MqttStats()
@@ -210,6 +233,15 @@ class MqttBridge:
         }[settings.protocol]
         self._reported_dropped = 0
         self._last_error = ""
+        # ``valid``: an invalid definition is not coalesced away (it is refused in its turn).
+        self.inbox = Inbox(settings.max_definitions, settings.max_incoming, valid)
+        self._inbox_ready = asyncio.Event()
+        self._burst = asyncio.Event()  # a reconcile is due once definitions go quiet
+        self._live_defs = 0  # live definitions since the last reconcile
+        self._last_def = -math.inf  # monotonic time of the last live definition
+        self._overflow_log = RateLimitedLog(log)
+        self._def_prefix = settings.topic("def/")
+        self._cmd_prefix = settings.topic("cmd/")
 
     # ----------------------------------------------------------------- producer side
 
@@ -240,6 +272,7 @@ class MqttBridge:
                 **self.stats.as_dict(),
                 "buffered": len(self._fifo),
                 "buffer_size": self.settings.buffer_size,
+                "inbox": self.inbox.stats.as_dict(),
             }
         ).encode()
 
@@ -298,7 +331,7 @@ class MqttBridge:
             timeout=s.timeout_s,
             tls_context=self._tls_context(),
             tls_insecure=s.tls_insecure if s.tls else None,
-            max_queued_incoming_messages=s.max_incoming,
+            queue_type=_take_all(self._take),
             **kwargs,  # type: ignore[arg-type]
         )
         # aiomqtt warns above 10 pending calls; our in-flight window is the bound.
@@ -381,10 +414,12 @@ class MqttBridge:
         await client.publish(s.topic(STATUS_TOPIC), b"online", qos=1, retain=True)
         await client.subscribe([(s.topic("def/#"), 1), (s.topic("cmd/#"), 1)])
         self._wakeup.set()
-        reader = asyncio.create_task(self._reader(client))
+        handler = asyncio.create_task(self._handler())
         sender = asyncio.create_task(self._sender(client))
+        reconciler = asyncio.create_task(self._reconciler(client))
+        watcher = asyncio.create_task(_until_disconnected(client))
         stopper = asyncio.create_task(self._stop.wait())
-        tasks = {reader, sender, stopper}
+        tasks = {handler, sender, reconciler, watcher, stopper}
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
@@ -402,23 +437,81 @@ class MqttBridge:
             await client.publish(s.topic(STATS_TOPIC), self.stats_json(), qos=1, retain=True)
             await client.publish(s.topic(STATUS_TOPIC), b"offline", qos=1, retain=True)
 
-    async def _reader(self, client: aiomqtt.Client) -> None:
-        plen = len(self.settings.prefix) + 1
-        inputs = (self.settings.topic("def/"), self.settings.topic("cmd/"))
-        async for m in client.messages:
-            topic = m.topic.value
-            if not topic.startswith(inputs):
-                # Not ours: amqtt 0.12 sends a connecting client the retained
-                # messages of every subscription in the broker (e.g. a viewer's
-                # aware/groups/#), not only of its own.
-                self.stats.ignored += 1
-                continue
-            self.stats.received += 1
-            payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
-            try:
-                self.on_message(topic[plen:], payload, bool(m.retain), topic)
-            except Exception:  # a bug in the handler must not take the connection down
-                log.exception("handling %s failed", topic)
+    def _take(self, m: aiomqtt.Message) -> None:
+        """Every message the connection delivers (on the loop, from aiomqtt's reader):
+        into the inbox, never discarded silently."""
+        topic = m.topic.value
+        s = self.settings
+        if not topic.startswith((self._def_prefix, self._cmd_prefix)):
+            # Not ours: amqtt 0.12 sends a connecting client the retained
+            # messages of every subscription in the broker (e.g. a viewer's
+            # aware/groups/#), not only of its own.
+            self.stats.ignored += 1
+            return
+        self.stats.received += 1
+        payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
+        item = Incoming(topic[len(s.prefix) + 1 :], payload, topic, bool(m.retain))
+        if item.is_definition and not item.retained:
+            self._live_defs += 1
+            self._last_def = time.monotonic()
+            if self._live_defs >= s.reconcile_burst:
+                self._burst.set()
+        refused = self.inbox.put(item)
+        if refused is not None:
+            self._overflow_log.warning(
+                "input_overflow", "MQTT input full: %s not taken (reported on %s)",
+                topic[:200], s.topic(ERRORS_TOPIC),
+            )  # fmt: skip
+            report = overflow_report(refused, "the MQTT inbox", refetched=True)
+            self.publish(Publish(ERRORS_TOPIC, report.to_json()))
+            if refused.is_definition:
+                self._burst.set()  # the broker still retains it: read it again
+        self._inbox_ready.set()
+
+    async def _handler(self) -> None:
+        """Hand the inbox to the gateway, a slice at a time (the connection keeps
+        being read in between, and coalesces what comes meanwhile)."""
+        while True:
+            await self._inbox_ready.wait()
+            await self._let_read()  # what is on the way coalesces before it is handled
+            self._inbox_ready.clear()
+            slice_end = time.monotonic() + HANDLE_SLICE_S
+            while (m := self.inbox.pop()) is not None:
+                try:
+                    self.on_message(m.rel, m.payload, m.retained, m.topic)
+                except Exception:  # a bug in the handler must not take the connection down
+                    log.exception("handling %s failed", m.topic[:200])
+                if time.monotonic() >= slice_end:
+                    await self._let_read()
+                    slice_end = time.monotonic() + HANDLE_SLICE_S
+
+    async def _let_read(self) -> None:
+        """Give the loop to the connection's reader while it takes messages (up to a
+        slice): paho reads one packet per readable event, so a single yield would let
+        one message in per slice, and the backlog would wait in the broker (which
+        bounds it) instead of coalescing here."""
+        end = time.monotonic() + HANDLE_SLICE_S
+        while True:
+            before = self.stats.received + self.stats.ignored
+            for _ in range(2):  # the reader runs in the loop iteration after ours
+                await asyncio.sleep(0)
+            if self.stats.received + self.stats.ignored == before or time.monotonic() >= end:
+                return
+
+    async def _reconciler(self, client: aiomqtt.Client) -> None:
+        """After a burst of definitions, once they went quiet: subscribe again, so the
+        broker sends every retained definition once more (MQTT 3.1.1 and 5 both re-send
+        the retained messages of a repeated subscription)."""
+        s = self.settings
+        while True:
+            await self._burst.wait()
+            while (left := self._last_def + s.reconcile_quiet_s - time.monotonic()) > 0:
+                await asyncio.sleep(left)
+            self._burst.clear()
+            self._live_defs = 0
+            await client.subscribe(s.topic("def/#"), qos=1)
+            self.stats.reconciles += 1
+            log.info("re-read the retained definitions after a burst")
 
     async def _sender(self, client: aiomqtt.Client) -> None:
         last_stats = -math.inf  # publish the stats at once after (re)connecting
@@ -492,6 +585,25 @@ class MqttBridge:
                 # The broker may have had it before the break: the only case in
                 # which a message can arrive twice. Counted.
                 self.stats.resent += 1
+
+
+def _take_all(take: Callable[[aiomqtt.Message], None]) -> type[asyncio.Queue[aiomqtt.Message]]:
+    """aiomqtt's incoming queue class for one bridge: every message goes to ``take``
+    at once (aiomqtt's own queue discards when full). The bridge never reads the
+    queue (``client.messages``): it reads its inbox."""
+
+    class TakeAll(asyncio.Queue[aiomqtt.Message]):
+        def put_nowait(self, item: aiomqtt.Message) -> None:
+            take(item)
+
+    return TakeAll
+
+
+async def _until_disconnected(client: aiomqtt.Client) -> None:
+    """Raise :class:`aiomqtt.MqttError` when the connection breaks. aiomqtt's message
+    iterator does so; it yields nothing here (every message went to the inbox)."""
+    async for _ in client.messages:
+        pass
 
 
 async def _settled(task: asyncio.Task[None]) -> None:

@@ -22,6 +22,8 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,8 +31,16 @@ from typing import Any
 
 import zenoh
 
-from awaremw.gateway.bridge import BridgePolicy, GatewayBridge, Inject, Outcome, Publish
+from awaremw.gateway.bridge import (
+    BridgePolicy,
+    ErrorReport,
+    GatewayBridge,
+    Inject,
+    Outcome,
+    Publish,
+)
 from awaremw.gateway.hbn import HbnApi
+from awaremw.gateway.inbox import Inbox, Incoming
 from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSettings
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore, unwrap, wire_version
@@ -47,6 +57,7 @@ InjectFn = Callable[[int, Inject], None]
 BodyFn = Callable[[int, ItemKind, int], ItemBody | None]
 ClockFn = Callable[[], float]
 STORE_FILE = "gateway.sqlite"
+INJECT_GAP_S = 0.5  # wall seconds between two injections of one definition (the newest wins)
 
 
 @dataclass(frozen=True, slots=True)
@@ -127,6 +138,7 @@ class GatewayService:
                 lambda rel, payload, retained, topic: self.handle(
                     rel, payload, retained=retained, topic=topic, via="mqtt"
                 ),
+                self._valid,
             )
         self._session = zenoh_session
         self.hbn: HbnApi | None = None
@@ -136,7 +148,12 @@ class GatewayService:
         self._tasks: list[asyncio.Task[None]] = []
         self.injected = 0
         self.inject_failures = 0
-        self.handled = asyncio.Event()  # set after every payload handled or version learned
+        self._refresh_due = False
+        # Pacing of definition injections (bounded by the item ids: 255 + 256 keys).
+        self._last_inject: dict[tuple[ItemKind, int], float] = {}
+        self._deferred: dict[tuple[ItemKind, int], asyncio.TimerHandle] = {}
+        # Set after every payload handled, version learned or paced injection made.
+        self.handled = asyncio.Event()
         self.delivered = asyncio.Event()  # set after every record or report from the WSN
 
     # ----------------------------------------------------------------- lifecycle
@@ -161,9 +178,10 @@ class GatewayService:
                 ),
                 prefix=self.settings.prefix,
                 max_payload_bytes=self.settings.max_payload_bytes,
+                inbox=Inbox(valid=self._valid),
             )
             self.hbn.start()
-            self._refresh_hbn()
+            self._refresh_now()
             self.hbn.publish(Publish(STATUS_TOPIC, b"online", retain=True))
         if self.mqtt is not None:
             self._tasks.append(asyncio.create_task(self.mqtt.run(), name="gateway-mqtt"))
@@ -177,6 +195,9 @@ class GatewayService:
         )
 
     async def stop(self) -> None:
+        for handle in self._deferred.values():  # the store has them: injected at next start
+            handle.cancel()
+        self._deferred.clear()
         if self.mqtt is not None:
             self.mqtt.stop()
         for t in self._tasks:
@@ -219,22 +240,60 @@ class GatewayService:
             return Outcome(replay=True)
         out = self.bridge.handle(rel, payload, source=topic or rel, retained=retained, size=size)
         if out.inject is not None:
-            self._inject_all(out.inject)
+            self._inject_paced(out.inject)
             self._refresh_hbn()
         if out.error is not None:
-            err = Publish("errors", out.error.to_json())
-            if via == "mqtt" and self.mqtt is not None:
-                self.mqtt.publish(err)
-            elif via == "hbn" and self.hbn is not None:
-                self.hbn.publish_error(out.error)
+            self._report(out.error, via)
         self.handled.set()
         return out
+
+    def _valid(self, m: Incoming) -> bool:
+        """Whether a waiting definition is valid on its own (the inbox does not let a
+        newer one replace an invalid one, so that it is refused in its turn). Pure:
+        the HBN inbox calls it on Zenoh's threads."""
+        return self.bridge.validate(m.rel, m.payload, source=m.topic, size=m.size) is None
+
+    def _report(self, error: ErrorReport, via: str) -> None:
+        """An error report on the errors topic of the transport it concerns."""
+        if via == "mqtt" and self.mqtt is not None:
+            self.mqtt.publish(Publish("errors", error.to_json()))
+        elif via == "hbn" and self.hbn is not None:
+            self.hbn.publish_error(error)
 
     def define_initial(self, definitions: Iterable[tuple[str, bytes]]) -> list[Outcome]:
         """Apply definitions that come with the deployment (as if published live)."""
         return [
             self.handle(rel, p, topic=f"deployment:{rel}", via="local") for rel, p in definitions
         ]
+
+    def _inject_paced(self, inj: Inject) -> None:
+        """Inject a new definition, at most once per ``INJECT_GAP_S`` per item: in a
+        burst the newest version goes on the radio at the end of the gap (the motes
+        would only pass superseded versions around, and the last one would queue
+        behind them). Commands are events: injected at once."""
+        if inj.kind is ItemKind.COMMAND:
+            self._inject_all(inj)
+            return
+        key = (inj.kind, inj.item_id)
+        if key in self._deferred:
+            return  # the deferred injection takes the newest version from the store
+        now = time.monotonic()
+        wait = self._last_inject.get(key, -math.inf) + INJECT_GAP_S - now
+        if wait <= 0:
+            self._last_inject[key] = now
+            self._inject_all(inj)
+            return
+        loop = asyncio.get_running_loop()
+        self._deferred[key] = loop.call_later(wait, self._inject_deferred, key)
+
+    def _inject_deferred(self, key: tuple[ItemKind, int]) -> None:
+        del self._deferred[key]
+        item = self.bridge.store.get(*key)
+        if item is None:
+            return
+        self._last_inject[key] = time.monotonic()
+        self._inject_all(Inject(item.kind, item.item_id, item.version, item.body))
+        self.handled.set()
 
     def _inject_all(self, inj: Inject) -> None:
         for node in self.roots:
@@ -356,10 +415,21 @@ class GatewayService:
                 "received": self.hbn.received,
                 "dropped": self.hbn.dropped,
                 "queries": self.hbn.queries,
+                "inbox": self.hbn.inbox.stats.as_dict(),
             }
         return out
 
     def _refresh_hbn(self) -> None:
+        """Renew the queryable's snapshot once the loop is free: a burst of
+        definitions makes one snapshot, not one per definition (each is a JSON
+        dump of every definition and group)."""
+        if self.hbn is None or self._refresh_due:
+            return
+        self._refresh_due = True
+        asyncio.get_running_loop().call_soon(self._refresh_now)
+
+    def _refresh_now(self) -> None:
+        self._refresh_due = False
         if self.hbn is not None:
             self.hbn.set_state(self.state())
 

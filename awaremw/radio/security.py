@@ -183,6 +183,13 @@ class FrameGuard:
         counters.refused += 1
         self.refused.count(reason, f"frame from {src} at node {rid}")
 
+    def resume(self, node_id: int, counter: int) -> None:
+        """``node_id`` goes on counting above ``counter`` (a mote restarted in a new
+        process: its counter is in flash, not reset)."""
+        if not 0 <= counter <= MAX_COUNTER:
+            raise ValueError(f"frame counter {counter} outside 0..{MAX_COUNTER}")
+        self._tx[node_id] = max(self._tx.get(node_id, 0), counter)
+
     def counter_of(self, node_id: int) -> int:
         """The last frame counter ``node_id`` used here (0: none yet)."""
         return self._tx.get(node_id, 0)

@@ -344,6 +344,9 @@ class ZenohMedium:
         self.links: dict[tuple[int, int], int] | None = None
         # A capture (awaremw.radio.capture): frames on the air here, local receptions.
         self.tap: RadioTap | None = None
+        # Told how far ahead (emulated s) each frame refused as early starts: a
+        # process started under running peers learns their time origin from it.
+        self.on_early: Callable[[float], None] | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -576,6 +579,8 @@ class ZenohMedium:
         if start > now + self.clock.emulated_seconds(EARLY_LIMIT_S):
             self.stats.early += 1
             self.rejected.count("early", f"frame of {env.src} starts at {start:.3f}, now {now:.3f}")
+            if self.on_early is not None:
+                self.on_early(start - now)
             return
         end = linklayer.airtime_end(self.preset, start, len(env.frame))
         f = None

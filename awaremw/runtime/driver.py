@@ -110,6 +110,7 @@ class MoteRunner:
 
     __slots__ = (
         "_armed",
+        "_boot_t",
         "_fire_count",
         "_fire_t",
         "_handle",
@@ -156,6 +157,7 @@ class MoteRunner:
         self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
         self._fire_t = -math.inf
         self._fire_count = 0
+        self._boot_t: float | None = None  # emulated boot time while waiting to boot
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -189,6 +191,7 @@ class MoteRunner:
         if t <= now:
             self.start()
             return
+        self._boot_t = t
         self._handle = self.loop.call_at(self.clock.to_monotonic(t), self._boot)
 
     def _boot(self) -> None:
@@ -224,6 +227,24 @@ class MoteRunner:
         now = self.clock.now()
         fn(self.core, now)
         self._after_guarded(now)
+
+    def rearm(self) -> None:
+        """Arm the timer again after the clock was re-anchored (its loop instant
+        was computed on the old origin); a mote waiting to boot waits for its boot
+        time on the new origin."""
+        if self.stopped:
+            return
+        if not self.alive:
+            if self._handle is not None and self._boot_t is not None:
+                self._handle.cancel()
+                self._handle = None
+                self.start_at(self._boot_t)
+            return
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+        self._armed = None
+        self._after_guarded(self.clock.now())
 
     # ------------------------------------------------------------------ last guards
 

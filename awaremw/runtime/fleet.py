@@ -33,6 +33,7 @@ import gc
 import logging
 import math
 import multiprocessing.connection
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -47,6 +48,7 @@ from awaremw.radio.model import RadioModel
 from awaremw.radio.zenoh_medium import MacSettings, ZenohMedium
 from awaremw.runtime.deployment import Deployment
 from awaremw.runtime.driver import EventHook, LagStats
+from awaremw.runtime.fleet_clock import ClockSync
 from awaremw.runtime.fleet_control import MAX_CONTROL_BYTES, ControlService
 from awaremw.runtime.fleet_guard import FleetError, LoopGuard
 from awaremw.runtime.fleet_motes import (
@@ -69,9 +71,12 @@ from awaremw.runtime.partition import (
 from awaremw.runtime.router import EmbeddedRouter
 from awaremw.runtime.workers import (
     LaunchError,
+    RestartBudget,
+    Resume,
     WorkerParams,
     WorkerPool,
     WorkerResult,
+    resume_counters,
 )
 from awaremw.runtime.zenoh_session import (
     SessionSettings,
@@ -113,6 +118,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+COUNTERS_EVERY_S = 1.0  # a secured worker without progress reports its frame counters this often
+_TOTALS = ("frames_tx", "frames_rx", "unicast_ok", "unicast_failed", "malformed")
+
 
 # --------------------------------------------------------------------------- Fleet
 
@@ -153,6 +161,7 @@ class Fleet:
         self.stats = FleetStats(s.name, self.clock, self.lag, self._counters, self.motes.on_air)
         self.control = ControlService(s.name, s.prefix, self.motes, self.stats)
         self._guard = LoopGuard(s.name)
+        self.clock_sync = ClockSync(s.name, self.clock, self._rearm)
         self._session = session
         self._own_session = session is None
         self._medium: ZenohMedium | None = None
@@ -248,6 +257,7 @@ class Fleet:
         medium.open()
         if s.track_links:
             medium.links = {}
+        medium.on_early = self.clock_sync.on_early
         self.motes.attach(medium)
         self._prime(medium)
         self.control.bind(medium, loop)
@@ -276,6 +286,15 @@ class Fleet:
         self.started = True
         self.clock.restart(time.time() if start_wall is None else start_wall)
         self.motes.start()
+        self.clock_sync.activate()
+
+    def _rearm(self, jump: float) -> None:
+        """The clock moved ``jump`` emulated seconds forward (:class:`ClockSync`):
+        every mote's timer is armed again on the new origin."""
+        for r in list(self.motes.runners.values()):
+            r.rearm()
+        if self.lag is not None:
+            self.lag.clear()  # the re-armed timers fire "late" by the jump, once
 
     async def aclose(self) -> None:
         if self._closed:
@@ -372,6 +391,7 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
     progress: asyncio.Task[None] | None = None
     try:
         await fleet.setup()
+        _resume(fleet, p.resume)
         if p.plugin is not None:
             p.plugin.setup(fleet)
         conn.send(("ready", len(fleet.runners)))
@@ -385,8 +405,12 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
                         fleet.lag.clear()
                     if p.plugin is not None:
                         p.plugin.started(fleet)
-                    if p.progress_s:
-                        progress = asyncio.create_task(_report(fleet, conn, p.progress_s))
+                    secured = fleet.medium.guard is not None
+                    if p.progress_s or secured:
+                        every = p.progress_s or COUNTERS_EVERY_S
+                        progress = asyncio.create_task(
+                            _report(fleet, conn, every, bool(p.progress_s), secured)
+                        )
                 case "lagreset":
                     if fleet.lag is not None:
                         fleet.lag.clear()
@@ -430,11 +454,34 @@ async def _worker(p: WorkerParams, conn: multiprocessing.connection.Connection) 
             conn.send(("result", result))
 
 
-async def _report(fleet: Fleet, conn: multiprocessing.connection.Connection, every: float) -> None:
+def _resume(fleet: Fleet, r: Resume) -> None:
+    """A restarted worker goes on from its dead incarnations (see :class:`Resume`)."""
+    fleet.control.restarts = r.restarts
+    fleet.stats.base = dict(r.base)
+    guard = fleet.medium.guard
+    if guard is not None:
+        for node, counter in r.frame_counters.items():
+            guard.resume(node, counter)
+
+
+async def _report(
+    fleet: Fleet,
+    conn: multiprocessing.connection.Connection,
+    every: float,
+    progress: bool,
+    counters: bool,
+) -> None:
+    """Every ``every`` wall seconds: a progress snapshot, and the motes' frame
+    counters on a secured radio (what a restart goes on from)."""
+    guard = fleet.medium.guard
     while True:
         await asyncio.sleep(every)
         with contextlib.suppress(OSError, BrokenPipeError):
-            conn.send(("progress", fleet.stats.snapshot()))
+            if progress:
+                conn.send(("progress", fleet.stats.snapshot()))
+            if counters and guard is not None:
+                ids = list(fleet.runners)
+                conn.send(("counters", (fleet.now(), {i: guard.counter_of(i) for i in ids})))
 
 
 # --------------------------------------------------------------------------- launcher
@@ -471,9 +518,15 @@ class FleetLauncher:
         self.endpoint = ""
         self.start_wall = 0.0
         self.results: list[WorkerResult] = []
+        self.failures: list[WorkerResult] = []  # results of workers that stopped on their own
         self.motes_per_worker: list[int] = []
         self._pool: WorkerPool | None = None
         self._progress: dict[str, FleetSnapshot] = {}
+        self._last: dict[int, FleetSnapshot] = {}  # each worker's latest snapshot
+        # Each worker's last report on a secured radio: (emulated t, {node: frame counter}).
+        self.frame_counters: dict[int, tuple[float, dict[int, int]]] = {}
+        self._budget = RestartBudget(settings.max_restarts, settings.restart_window_s)
+        self.restarts: dict[int, int] = {}  # worker index -> times it was started again
         self._failed: str | None = None
 
     @property
@@ -539,14 +592,19 @@ class FleetLauncher:
         pool.send_all("start", self.start_wall)
 
     def _on_message(self, k: int, kind: str, arg: Any) -> bool:
-        """Progress is merged here (consumed); a failed result is noted."""
+        """Progress and frame counters are kept here (consumed); a failed result is
+        noted when failed workers are not restarted."""
         if kind == "progress":
+            self._last[k] = arg
             self._progress[arg.name] = arg
             if self.on_progress is not None and len(self._progress) == len(self.pool):
                 self.on_progress(merge_snapshots(self._progress.values()))
                 self._progress.clear()
             return True
-        if kind == "result" and arg.error:
+        if kind == "counters":
+            self.frame_counters[k] = arg
+            return True
+        if kind == "result" and arg.error and not self._budget.enabled:
             self._failed = f"worker {arg.name}: {arg.error}"
         return False
 
@@ -562,7 +620,13 @@ class FleetLauncher:
         return k, kind, arg
 
     async def run(self, duration: float | None = None) -> None:
-        """Wait until emulated time ``duration`` (forever if None) or a worker fails."""
+        """Wait until emulated time ``duration`` (forever if None).
+
+        A worker that dies (killed, crashed, failed) is started again with its
+        motes (:meth:`_restart`); the others go on. Only a worker that keeps
+        dying (more than ``settings.max_restarts`` times within
+        ``settings.restart_window_s``) ends the run with :class:`LaunchError`.
+        """
         while True:
             if self._failed:
                 raise LaunchError(self._failed)
@@ -573,10 +637,41 @@ class FleetLauncher:
                 k, kind, arg = await self.pool.next(min(left, 3600.0))
             except TimeoutError:
                 continue
-            if kind == "gone":
-                raise LaunchError(f"worker w{k} exited unexpectedly")
-            if kind == "result":
-                raise LaunchError(f"worker {arg.name} stopped: {arg.error or 'no reason'}")
+            match kind:
+                case "gone":
+                    await self._restart(k)
+                case "result":  # a worker that stopped on its own; its pipe closes next
+                    self.failures.append(arg)
+                    if not self._budget.enabled:
+                        raise LaunchError(f"worker {arg.name} stopped: {arg.error or 'no reason'}")
+                    log.warning("worker %s stopped: %s", arg.name, arg.error or "no reason")
+                case "ready":  # a restarted worker: on the launcher's emulated time
+                    self.pool.send(k, "start", self.start_wall)
+                    log.warning("worker w%d restarted with %d motes", k, int(arg))
+
+    async def _restart(self, k: int) -> None:
+        """Start worker ``k`` again after it died: same motes, booted now as after a
+        power cycle, frame counters and figures going on (:class:`Resume`)."""
+        proc = self.pool.procs[k]
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            await asyncio.to_thread(proc.wait, 5.0)  # its pipe closed first: reap it
+        code = proc.poll()
+        name = f"w{k}"
+        if not self._budget.allow(k, time.monotonic()):
+            raise LaunchError(
+                f"worker {name} exited unexpectedly (exit code {code}) more than "
+                f"{self._budget.limit} times in {self._budget.window_s:g} s; giving up"
+            )
+        self.restarts[k] = n = self.restarts.get(k, 0) + 1
+        last = self._last.get(k)
+        base = {} if last is None else {f: getattr(last, f) for f in _TOTALS}
+        t, counters = self.frame_counters.get(k, (self.now(), {}))
+        resume = Resume(n, resume_counters(counters, self.now() - t), base)
+        log.warning(
+            "worker %s exited unexpectedly (exit code %s); starting it again (restart %d)",
+            name, code, n,
+        )  # fmt: skip
+        self.pool.respawn(k, resume)
 
     def reset_lag(self) -> None:
         """Workers drop the timer-lag samples taken so far (end of a warm-up)."""

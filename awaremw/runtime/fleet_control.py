@@ -1,5 +1,5 @@
 """A fleet's control service: the Zenoh queryable ``<prefix>/ctl/fleet/<name>``
-behind ``awaremw fleet-ctl add|kill|list|stats`` (see ``docs/runtime.md``).
+behind ``awaremw fleet-ctl add|kill|list|stats|items`` (see ``docs/runtime.md``).
 
 Requests arrive on a Zenoh thread and are answered on the event loop; a bad
 request gets an answer with ``ok: false``, never an exception.
@@ -17,6 +17,8 @@ from typing import Any
 
 import zenoh
 
+from awaremw.protocol.frames import ItemKind
+from awaremw.protocol.mote import AwareMote
 from awaremw.radio.zenoh_medium import ZenohMedium
 from awaremw.runtime.deployment import DeploymentError, NodeSpec, parse_deployment
 from awaremw.runtime.fleet_motes import FleetMotes
@@ -25,6 +27,11 @@ from awaremw.runtime.fleet_stats import FleetStats
 log = logging.getLogger(__name__)
 
 MAX_CONTROL_BYTES = 64 * 1024  # a control request is a few hundred bytes
+_KIND_NAMES = {
+    ItemKind.GROUP_TYPE: "group",
+    ItemKind.CHANNEL: "channel",
+    ItemKind.COMMAND: "command",
+}
 
 
 class ControlService:
@@ -43,6 +50,7 @@ class ControlService:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._queryable: zenoh.Queryable[None] | None = None
         self._closed = False
+        self.restarts = 0  # times the launcher started this worker again (in stats)
 
     def bind(self, medium: ZenohMedium, loop: asyncio.AbstractEventLoop) -> None:
         """Where faults are counted (the medium's fault log) and requests answered."""
@@ -68,7 +76,8 @@ class ControlService:
         """Handle one control request (JSON). Bad requests are answered, never raised.
 
         ``{"op": "add", "node": {<a [[nodes]] entry>}}``,
-        ``{"op": "kill", "id": N}``, ``{"op": "list"}``, ``{"op": "stats"}``.
+        ``{"op": "kill", "id": N}``, ``{"op": "list"}``, ``{"op": "stats"}``,
+        ``{"op": "items"}`` (each mote's definitions: a read-back).
         Replies carry ``fleet``, ``ok``, ``done`` (this fleet acted) and
         ``error`` or data.
         """
@@ -91,12 +100,17 @@ class ControlService:
                 return {**base, "ok": True, "done": True, "t": t, "motes": motes}
             case "stats":
                 snap = self.stats.snapshot().as_dict()
+                snap["restarts"] = self.restarts
+                snap["pid"] = os.getpid()
                 if self._medium is not None:  # remote garbage dropped, bugs contained
                     snap["rejected"] = self._medium.rejected.as_dict()
                     snap["faults"] = self._medium.faults.as_dict()
                     guard = self._medium.guard  # secured radio: frames refused, by reason
                     snap["refused"] = None if guard is None else guard.refused.as_dict()
                 return {**base, "ok": True, "done": True, "snapshot": snap}
+            case "items":
+                return {**base, "ok": True, "done": True, "t": self.stats.clock.now(),
+                        "items": self._items()}  # fmt: skip
             case "kill":
                 nid = req.get("id")
                 if not isinstance(nid, int) or isinstance(nid, bool):
@@ -106,6 +120,22 @@ class ControlService:
                 return {**base, **self._add(req.get("node"))}
             case op:
                 return {**base, "ok": False, "done": False, "error": f"unknown op {op!r}"}
+
+    def _items(self) -> dict[str, dict[str, list[Any]]]:
+        """What each middleware mote on the air holds: ``{"<id>": {"channel/3":
+        [version, wire body or None (deleted)]}}`` (group types as ``group/<t>``,
+        command slots as ``command/<slot>``)."""
+        out: dict[str, dict[str, list[Any]]] = {}
+        for nid, core in self.motes.cores.items():
+            if not isinstance(core, AwareMote):
+                continue
+            out[str(nid)] = {
+                f"{_KIND_NAMES[kind]}/{item_id}": [
+                    item.version, None if item.body is None else item.body.to_wire()
+                ]
+                for (kind, item_id), item in sorted(core.dissemination.items.items())
+            }  # fmt: skip
+        return out
 
     def parse_node(self, entry: object) -> NodeSpec:
         """Validate one ``[[nodes]]``-style entry against the deployment's area and radio."""

@@ -95,6 +95,9 @@ class LauncherSettings:
     secured with it (as :attr:`FleetSettings.security`). ``plugin``: a
     :class:`WorkerPlugin` each worker runs a copy of
     (pickled to it) beside its fleet (benchmarks: tallies, injections).
+    ``max_restarts``: a worker that dies is started again, at most this many
+    times within ``restart_window_s`` wall seconds (then the run fails); 0: a
+    dead worker fails the run at once.
     """
 
     processes: int = 1
@@ -114,8 +117,12 @@ class LauncherSettings:
     worker_config_file: str | None = None
     security: RadioSecurity | None = None
     plugin: WorkerPlugin | None = None
+    max_restarts: int = 5
+    restart_window_s: float = 600.0
 
     def __post_init__(self) -> None:
+        if self.max_restarts < 0:
+            raise ValueError("max_restarts must be >= 0")
         if self.processes < 1:
             raise ValueError("processes must be >= 1")
         object.__setattr__(self, "connect", _endpoints(self.connect))

@@ -76,6 +76,8 @@ class FleetStats:
         self._counters = counters
         self._on_air = on_air
         self._lag_mark = 0
+        # Totals of earlier incarnations of this worker (a restarted one goes on from them).
+        self.base: dict[str, int] = {}
 
     def snapshot(self) -> FleetSnapshot:
         """Totals so far; lag percentiles over the samples since the last snapshot."""
@@ -87,15 +89,16 @@ class FleetStats:
             recent = self.lag.since(self._lag_mark)  # bounded: LagStats keeps a ring
             self._lag_mark = self.lag.count
             p50, p99 = percentile(recent, 50), percentile(recent, 99)
+        b = self.base
         return FleetSnapshot(
             name=self.name,
             t=self.clock.now(),
             motes=self._on_air(),
-            frames_tx=tot.frames_tx,
-            frames_rx=tot.frames_rx,
-            unicast_ok=tot.unicast_ok,
-            unicast_failed=tot.unicast_failed,
-            malformed=tot.malformed,
+            frames_tx=tot.frames_tx + b.get("frames_tx", 0),
+            frames_rx=tot.frames_rx + b.get("frames_rx", 0),
+            unicast_ok=tot.unicast_ok + b.get("unicast_ok", 0),
+            unicast_failed=tot.unicast_failed + b.get("unicast_failed", 0),
+            malformed=tot.malformed + b.get("malformed", 0),
             lag_p50_ms=p50,
             lag_p99_ms=p99,
         )

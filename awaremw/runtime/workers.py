@@ -1,19 +1,22 @@
 """Supervision of a launcher's worker processes: real subprocesses (not
 multiprocessing's spawn, which re-imports the parent's ``__main__``), each
 talking to the parent over one end of a socket pair; their messages gathered
-into one queue on the parent's loop; joined (or terminated) on close."""
+into one queue on the parent's loop; a dead one started again in its place
+(:meth:`WorkerPool.respawn`); joined (or terminated) on close."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import logging
+import math
 import multiprocessing.connection
 import socket
 import subprocess
 import sys
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from awaremw.protocol.core import MoteCore
@@ -33,6 +36,24 @@ class LaunchError(RuntimeError):
 
 
 @dataclass(frozen=True)
+class Resume:
+    """What a restarted worker carries over from the incarnations before it.
+
+    ``restarts``: how many times this worker was started again. ``frame_counters``:
+    the radio security frame counter each of its motes goes on from (the last one
+    it reported, plus a margin for the frames it may have sent since), so that
+    neighbours do not refuse a restarted mote's frames as replays -- a real mote
+    keeps that counter in flash across a power cycle. ``base``: the counter
+    totals of the dead incarnations (frames, unicasts), added to the new one's
+    snapshots so that the fleet's figures go on from where they were.
+    """
+
+    restarts: int = 0
+    frame_counters: dict[int, int] = field(default_factory=dict)
+    base: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class WorkerParams:
     """Everything a worker process needs (pickled to it)."""
 
@@ -43,6 +64,7 @@ class WorkerParams:
     exclude_kinds: frozenset[str] = frozenset()
     progress_s: float | None = None
     plugin: WorkerPlugin | None = None
+    resume: Resume = field(default_factory=Resume)
 
     @property
     def name(self) -> str:
@@ -70,6 +92,44 @@ def lost(name: str) -> WorkerResult:
 
 Message = tuple[int, str, Any]  # (worker index, kind, argument)
 
+# A bound on the frames one mote can put on the air in an emulated second: the
+# smallest frame with its ACK and CSMA backoff takes more than 0.5 ms at 250 kb/s.
+MAX_FRAMES_PER_S = 2_000
+
+
+def resume_counters(reported: dict[int, int], since_s: float) -> dict[int, int]:
+    """The frame counters a restarted worker's motes go on from: the last ones
+    reported, ``since_s`` emulated seconds before the worker died, plus the most
+    frames a mote could have sent since (a gap in the counters is harmless, a
+    reused counter would be refused as a replay)."""
+    margin = math.ceil((max(since_s, 0.0) + 1.0) * MAX_FRAMES_PER_S)
+    return {node: c + margin for node, c in reported.items() if c > 0}
+
+
+class RestartBudget:
+    """At most ``limit`` restarts of one worker within ``window_s`` wall seconds:
+    a worker that keeps dying at once (a bug in its setup) is not started forever.
+    ``limit`` 0: never restart."""
+
+    def __init__(self, limit: int, window_s: float) -> None:
+        self.limit = limit
+        self.window_s = window_s
+        self._times: dict[int, deque[float]] = {}  # bounded: ``limit`` per worker
+
+    @property
+    def enabled(self) -> bool:
+        return self.limit > 0
+
+    def allow(self, k: int, now: float) -> bool:
+        """Whether worker ``k`` may be restarted at ``now`` (and count it if so)."""
+        times = self._times.setdefault(k, deque())
+        while times and now - times[0] > self.window_s:
+            times.popleft()
+        if len(times) >= self.limit:
+            return False
+        times.append(now)
+        return True
+
 
 class WorkerPool:
     """The worker processes of one launcher and the messages they send.
@@ -81,6 +141,7 @@ class WorkerPool:
 
     def __init__(self, on_message: Callable[[int, str, Any], bool] | None = None) -> None:
         self.procs: list[subprocess.Popen[bytes]] = []
+        self.params: list[WorkerParams] = []  # what each worker was last started with
         self._conns: list[multiprocessing.connection.Connection] = []
         self._msgs: asyncio.Queue[Message] = asyncio.Queue()
         self._others = 0  # queued messages not in _ESSENTIAL: bounded by MAX_PENDING
@@ -92,6 +153,31 @@ class WorkerPool:
     def spawn(self, params: WorkerParams) -> int:
         """Start one worker process and send it ``params``; its index."""
         k = len(self.procs)
+        proc, conn = self._start(k, params)
+        self.procs.append(proc)
+        self.params.append(params)
+        self._conns.append(conn)
+        return k
+
+    def respawn(self, k: int, resume: Resume) -> subprocess.Popen[bytes]:
+        """Start worker ``k`` again (after it died) with its parameters and ``resume``;
+        its messages keep the index ``k``. The old process is reaped (or killed, if
+        it is somehow still there) so that no zombie is left."""
+        old, conn = self.procs[k], self._conns[k]
+        with contextlib.suppress(OSError, ValueError):
+            asyncio.get_running_loop().remove_reader(conn.fileno())
+        conn.close()
+        if old.poll() is None:
+            old.kill()
+            old.wait()
+        params = replace(self.params[k], resume=resume)
+        proc, conn = self._start(k, params)
+        self.procs[k], self._conns[k], self.params[k] = proc, conn, params
+        return proc
+
+    def _start(
+        self, k: int, params: WorkerParams
+    ) -> tuple[subprocess.Popen[bytes], multiprocessing.connection.Connection]:
         psock, csock = socket.socketpair()
         proc = subprocess.Popen(
             [sys.executable, "-c", WORKER_CMD, str(csock.fileno())],
@@ -99,17 +185,19 @@ class WorkerPool:
         )
         csock.close()
         conn = multiprocessing.connection.Connection(psock.detach())
-        self.procs.append(proc)
-        self._conns.append(conn)
         conn.send(params)
-        asyncio.get_running_loop().add_reader(conn.fileno(), self._readable, k)
-        return k
+        asyncio.get_running_loop().add_reader(conn.fileno(), self._readable, k, conn)
+        return proc, conn
+
+    def send(self, k: int, kind: str, arg: object = None) -> None:
+        """Send ``(kind, arg)`` to worker ``k`` if it still listens."""
+        with contextlib.suppress(OSError):
+            self._conns[k].send((kind, arg))
 
     def send_all(self, kind: str, arg: object = None) -> None:
         """Send ``(kind, arg)`` to every worker still listening."""
-        for c in self._conns:
-            with contextlib.suppress(OSError):
-                c.send((kind, arg))
+        for k in range(len(self._conns)):
+            self.send(k, kind, arg)
 
     async def next(self, timeout: float) -> Message:
         """The next queued message; TimeoutError after ``timeout`` wall seconds."""
@@ -154,8 +242,7 @@ class WorkerPool:
                     p.kill()
                     await asyncio.to_thread(p.wait)
 
-    def _readable(self, k: int) -> None:
-        conn = self._conns[k]
+    def _readable(self, k: int, conn: multiprocessing.connection.Connection) -> None:
         try:
             kind, arg = conn.recv()
         except (EOFError, OSError):
