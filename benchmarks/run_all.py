@@ -612,9 +612,15 @@ def brief_markdown(report: dict[str, Any], rows: Sequence[Row] = ROWS) -> str:
         lines.append(f"| {row.label} | {cell.replace('|', '/')} | {row.target} |")
     m = report.get("machine", {})
     lines.append("")
+    again = [
+        f"{', '.join(g['rows'])} re-measured {g['machine'].get('started_utc', '?')} (load "
+        f"{g['machine'].get('loadavg_start', '?')}, wall-clock figures slower for it)"
+        for g in report.get("merges", [])
+    ]
     lines.append(
-        f"Measured {m.get('started_utc', '?')} on {m.get('cores', '?')} cores; every row, its "
-        "command and the machine: [docs/figures.md](docs/figures.md)."
+        f"Measured {m.get('started_utc', '?')} on {m.get('cores', '?')} cores"
+        + "".join(f"; {a}" for a in again)
+        + "; every row, its command and the machine: [docs/figures.md](docs/figures.md)."
     )
     return "\n".join(lines) + "\n"
 
