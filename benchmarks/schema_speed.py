@@ -86,7 +86,7 @@ COMMAND_OK = [
 ]
 COMMAND_BAD = [
     j({"target": {"robot": 3}}),  # unknown_target
-    j({"target": {"node": 40000}}),  # unknown_target
+    j({"target": {"node": 65534}}),  # unknown_target
     j({"target": "all", "args": {"a": {"b": 1}}}),  # wrong_type
     j({"target": "all", "args": {str(i): i for i in range(9)}}),  # bad_command
     j({"target": "all", "args": [1]}),  # wrong_type

@@ -40,6 +40,8 @@ SKIP: dict[tuple[str, str], str] = {
     "machine",
     ("security.md", "mqtts://operator:PW@broker.lan"): "a TLS broker named broker.lan with "
     "DIR's certificates; tests/test_mqtt_tls.py runs these against Mosquitto",
+    ("hosts.md", "awaremw keys init secrets/"): "three hosts (HOST_A, HOST_B, HOST_C "
+    "placeholders); tests/test_netns.py runs these lines on three network namespaces",
 }
 
 # Arguments of Python blocks that read sys.argv: (document, first line) -> argv.
