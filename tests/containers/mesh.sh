@@ -58,7 +58,9 @@ build_project_image
 compose_down "$FILE" "$PROJECT"   # leftovers of an interrupted run
 
 # Which site (1-3) runs each mote: the fleet's own partition of the deployment.
-PARTS="$("$ENGINE" run --rm --network none --entrypoint python3 "$AWAREMW_IMAGE" -c '
+# (--workdir /: in /app the source tree would shadow the installed package, whose
+# shipped deployments come from nodes/ through the wheel.)
+PARTS="$("$ENGINE" run --rm --network none --workdir / --entrypoint python3 "$AWAREMW_IMAGE" -c '
 import json, sys
 from awaremw.runtime.deployment import load
 from awaremw.runtime.partition import stripes
