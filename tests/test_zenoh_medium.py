@@ -499,7 +499,7 @@ async def test_tap_reports_every_attempt_and_reception_across_processes(router: 
     assert lost_total > 0
 
 
-def test_channel_polls_thin_out_on_a_slowed_clock_within_the_envelope_budget() -> None:
+def test_channel_polls_keep_their_cadence_on_a_slowed_clock() -> None:
     """Speed 1 and above: polls every 1 ms after traffic, at most 4 ms apart. A
     slowed clock polls less often (each wake-up of the loop costs CPU), but
     never later than half the wall time a remote frame's envelope has before
@@ -508,13 +508,7 @@ def test_channel_polls_thin_out_on_a_slowed_clock_within_the_envelope_budget() -
     from awaremw.radio.zenoh_medium import CHANNEL_POLL_MAX_S, CHANNEL_POLL_MIN_S, poll_bounds
 
     shortest, guard = CC2420.airtime_s(0), 0.01
-    for speed in (1.0, 2.0, 20.0):
+    # The same cadence at every speed: a slowed clock must not let a remote frame
+    # reach the Air after a local assessment that overlaps it.
+    for speed in (20.0, 2.0, 1.0, 0.5, 0.1, 0.05, 0.01):
         assert poll_bounds(speed, shortest, guard) == (CHANNEL_POLL_MIN_S, CHANNEL_POLL_MAX_S)
-    last = (CHANNEL_POLL_MIN_S, CHANNEL_POLL_MAX_S)
-    for speed in (0.5, 0.2, 0.1, 0.05, 0.01):
-        lo, hi = poll_bounds(speed, shortest, guard)
-        budget = shortest / speed + guard
-        assert lo <= hi <= max(CHANNEL_POLL_MAX_S, budget / 2)
-        assert lo >= last[0] and hi >= last[1]  # fewer polls the slower the clock
-        last = (lo, hi)
-    assert last[0] > 4 * CHANNEL_POLL_MIN_S  # at 0.01 x, far fewer wake-ups
