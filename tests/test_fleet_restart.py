@@ -188,9 +188,21 @@ def test_clock_sync_moves_only_on_agreeing_evidence_and_only_forward() -> None:
     wall[0] += 10  # ...and the evidence goes stale
     sync.on_early(80.0)
     sync.on_early(30.0)  # peers that disagree
-    sync.on_early(80.0)
     assert not jumps and clock.start_wall == origin
+    # Envelopes that all carry one fixed time (a fuzzer's): the origin they imply
+    # drifts with the wall clock, so they never agree for MIN_SPAN_S.
+    wall[0] += 10
+    for k in range(12):
+        wall[0] += 0.2
+        sync.on_early(500.0 - 2.0 * 0.2 * k)  # the same envelope time, 0.2 s later each
+    assert not jumps and clock.start_wall == origin
+    # A running peer: the same lead, frame after frame, over more than a second.
+    wall[0] += 10
     for _ in range(3):
+        sync.on_early(80.0)
+        assert not jumps  # agreeing, but not yet for a second
+    for _ in range(3):
+        wall[0] += 0.4
         sync.on_early(80.0)
     assert jumps == [pytest.approx(80.0)] and sync.jumps == 1
     assert clock.start_wall == pytest.approx(origin - 40.0)  # 80 emulated s at x2

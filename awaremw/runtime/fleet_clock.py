@@ -33,6 +33,12 @@ log = logging.getLogger(__name__)
 CONFIRM = 3  # early frames that must agree before the clock moves
 AGREE_S = 0.5  # wall seconds within which their implied origins agree
 WINDOW_S = 5.0  # wall seconds an early frame counts as evidence
+# The agreeing frames must span this much wall time: a running peer's frames
+# keep implying the same origin as time goes on, while envelopes that all carry
+# one fixed time (a fuzzer's, a replay burst) imply an origin that drifts with
+# the wall clock, and never agree for this long (they moved a fleet 18 h ahead).
+MIN_SPAN_S = 1.0
+MAX_EVIDENCE = 256  # early frames remembered (a flood of them is bounded)
 
 
 class ClockSync:
@@ -58,7 +64,7 @@ class ClockSync:
         self.wall = wall
         self.active = False
         self.jumps = 0
-        self._seen: deque[tuple[float, float]] = deque(maxlen=CONFIRM)  # (wall, origin)
+        self._seen: deque[tuple[float, float]] = deque(maxlen=MAX_EVIDENCE)  # (wall, origin)
 
     def activate(self) -> None:
         self.active = True
@@ -75,12 +81,10 @@ class ClockSync:
         seen.append((now, origin))
         while seen and now - seen[0][0] > WINDOW_S:
             seen.popleft()
-        if len(seen) < CONFIRM:
+        agree = [(w, o) for w, o in seen if abs(o - origin) <= AGREE_S]
+        if len(agree) < CONFIRM or agree[-1][0] - agree[0][0] < MIN_SPAN_S:
             return
-        origins = [o for _, o in seen]
-        if max(origins) - min(origins) > AGREE_S:
-            return
-        target = min(origins)
+        target = min(o for _, o in agree)
         seen.clear()
         if target >= self.clock.start_wall:
             return
