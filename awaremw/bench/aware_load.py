@@ -62,6 +62,7 @@ from awaremw.protocol.frames import (
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.deployment import Deployment, parse_deployment
 from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.world.mobility import square_loop
 
 if TYPE_CHECKING:
     from awaremw.runtime.fleet import Fleet
@@ -159,19 +160,12 @@ def fire_loops(grid: Field, duration: float) -> list[dict[str, Any]]:
         a, b = n % k, n // k
         cx, cy = w * (a + 0.5) / k, h * (b + 0.5) / k
         r = LOOP_FRACTION * min(w, h) / k
-        corners = [(cx - r, cy - r), (cx + r, cy - r), (cx + r, cy + r), (cx - r, cy + r)]
-        leg = 2 * r / OBJECT_SPEED_MPS
-        keys: list[dict[str, Any]] = []
-        t, c = 0.0, 0
-        while True:
-            x, y = corners[c % 4]
-            key: dict[str, Any] = {"t": t, "x": x, "y": y}
-            if not keys:
-                key |= {"radius": FIRE_RADIUS_M, "peak": FIRE_PEAK_C}
-            keys.append(key)
-            if t >= duration:
-                break
-            t, c = t + leg, c + 1
+        legs = max(0, math.ceil(duration * OBJECT_SPEED_MPS / (2 * r)))  # to cover duration
+        keys: list[dict[str, Any]] = [
+            {"t": t, "x": x, "y": y}
+            for t, x, y in square_loop(cx, cy, r, OBJECT_SPEED_MPS, 0, legs + 1)
+        ]
+        keys[0] |= {"radius": FIRE_RADIUS_M, "peak": FIRE_PEAK_C}
         fires.append({"name": f"fire-{n}", "edge": 4.0, "keyframes": keys})
     return fires
 

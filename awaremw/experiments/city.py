@@ -27,6 +27,7 @@ from typing import Any
 from awaremw.experiments import metrics as M
 from awaremw.experiments import objects as O
 from awaremw.experiments.metrics import RunResult
+from awaremw.world.mobility import square_loop
 
 IDEAL_IDS = 9  # one group id per fire (group type 1)
 
@@ -199,18 +200,15 @@ variation = 0.5
 """
     )
     loop = FIRE_LOOP * dist
-    leg = 2 * loop  # s per side at 1 m/s
     for b in range(districts):
         for a in range(districts):
             k = b * districts + a
             cx, cy = dist * (a + 0.5), dist * (b + 0.5)
-            corners = [(cx - loop, cy - loop), (cx + loop, cy - loop),
-                       (cx + loop, cy + loop), (cx - loop, cy + loop)]  # fmt: skip
             keys = []
-            for i in range(9):  # each fire starts at another corner: they do not move in step
-                x, y = corners[(k + i) % 4]
+            # Each fire starts at another corner: they do not move in step.
+            for i, (t, x, y) in enumerate(square_loop(cx, cy, loop, 1.0, k, 9)):
                 extra = ", radius = 25.0, peak = 80.0" if i == 0 else ""
-                keys.append(f"    {{ t = {i * leg:g}, x = {x:.1f}, y = {y:.1f}{extra} }},")
+                keys.append(f"    {{ t = {t:g}, x = {x:.1f}, y = {y:.1f}{extra} }},")
             out.append(
                 f'[[world.fires]]\nname = "fire-{k}"\nedge = 4.0\nkeyframes = [\n'
                 + "\n".join(keys)

@@ -108,3 +108,16 @@ class Path:
             return bx, by
         f = (tau - t0) / (t1 - t0)
         return ax + (bx - ax) * f, ay + (by - ay) * f
+
+
+def square_loop(
+    cx: float, cy: float, half: float, speed_mps: float, first_corner: int, corners: int
+) -> list[tuple[float, float, float]]:
+    """``corners`` keyframes ``(t, x, y)`` of an object looping anticlockwise around
+    ``(cx, cy)`` on a square of half-side ``half`` at ``speed_mps``, from corner
+    ``first_corner`` (0: lower left, then lower right, upper right, upper left)
+    at t = 0: the fires of the large fields (bench aware workload, city.toml)."""
+    square = ((cx - half, cy - half), (cx + half, cy - half),
+              (cx + half, cy + half), (cx - half, cy + half))  # fmt: skip
+    leg = 2 * half / speed_mps
+    return [(i * leg, *square[(first_corner + i) % 4]) for i in range(corners)]
