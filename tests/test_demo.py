@@ -112,6 +112,31 @@ async def test_demo_on_a_users_broker_inherits_none_of_its_definitions(
     assert seven.messages == []
 
 
+async def test_demo_on_its_own_broker_takes_a_definition_made_before_its_gateway(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The demo's embedded broker starts empty, so a definition retained on it
+    before the gateway subscribed (a dashboard's first click) is this run's: the
+    gateway takes it, and the channel on it delivers (records on channel 7)."""
+    import aiomqtt
+
+    from awaremw.cli.demo import run_demo
+    from awaremw.gateway.broker import EmbeddedBroker
+
+    every = {"conditions": [{"attr": "x", "op": ">", "value": -1}]}
+    chan = {"attr": "x", "group_type": 7, "group_id": "*", "period_s": 1.0, "agg": "count"}
+    async with EmbeddedBroker(port=0, anonymous=True) as broker:
+        async with aiomqtt.Client(broker.host, broker.port, identifier="first-click") as c:
+            for topic, body in (("aware/def/group/7", every), ("aware/def/channel/7", chan)):
+                await c.publish(topic, json.dumps(body), qos=1, retain=True)
+        async with Collector(broker.url, "aware/data/7/#", protocol="3.1.1") as seven:
+            summary = await run_demo(
+                load_scenario("romeo4r"), 30.0, 10.0, broker.url, True, fresh_broker=True
+            )
+            await seven.wait_for(lambda ms: len(ms) >= 1)
+    assert not summary["errors"], capsys.readouterr().out[-3000:]
+
+
 def test_demo_runs_the_large_deployment(tmp_path: Path) -> None:
     """``awaremw demo --deployment large``: 1,026 motes in real time over Zenoh, the
     robot's group forms and its records reach the robot's client over MQTT."""

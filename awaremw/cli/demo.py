@@ -272,6 +272,7 @@ async def run_demo(
     mqtt_port: int | None = 0,
     mqtt_anonymous: bool = False,
     web: str | None = None,
+    fresh_broker: bool = False,
 ) -> dict[str, Any]:
     """Run the demo; returns the summary figures.
 
@@ -289,7 +290,7 @@ async def run_demo(
             print(f"embedded MQTT broker: mqtt://{broker.host}:{broker.port} {account}",
                   flush=True)  # fmt: skip
             return await run_demo(sc, duration, speed, broker.url, plain, robot_mqtt, secrets,
-                                  web=web)  # fmt: skip
+                                  web=web, fresh_broker=True)  # fmt: skip
     from awaremw.experiments import metrics as M
     from awaremw.experiments.client import Received
     from awaremw.experiments.realtime import RealtimeRun, RealtimeSettings, RunHooks
@@ -331,7 +332,8 @@ async def run_demo(
 
     run = RealtimeRun(
         sc,
-        RealtimeSettings(speed=speed, mqtt=mqtt, robot_mqtt=robot_mqtt, secrets=secrets),
+        RealtimeSettings(speed=speed, mqtt=mqtt, fresh_broker=fresh_broker,
+                         robot_mqtt=robot_mqtt, secrets=secrets),
         hooks=RunHooks(on_tick=tick, on_event=event, on_record=record),
     )
     end = sc.duration if duration is None else duration

@@ -61,6 +61,10 @@ class RealtimeSettings:
 
     speed: float = 1.0
     mqtt: str | None = None  # broker URL; None: start the embedded broker
+    # The broker at ``mqtt`` was started empty for this run (the demo's embedded
+    # one): every retained definition on it is this run's, even one published
+    # before the gateway subscribed (a dashboard's first click).
+    fresh_broker: bool = False
     robot_mqtt: str | None = None  # the client's own account (default: mqtt's)
     prefix: str = "aware"
     sample_dt: float = 0.5  # emulated seconds between ticks (RSSI samples, views)
@@ -206,6 +210,7 @@ class RealtimeRun:
         started = time.monotonic()
         async with contextlib.AsyncExitStack() as stack:
             url = self.settings.mqtt
+            fresh = self.settings.fresh_broker or url is None
             if url is None:
                 broker = await stack.enter_async_context(EmbeddedBroker())
                 url = broker.url
@@ -251,9 +256,10 @@ class RealtimeRun:
             self.fleets = list(fleets)
             gw_fleet = next(f for f in fleets if f.name == "gateway")
             # A run starts from its scenario, never from what a broker retained before
-            # (its own definitions only: they may be retained before the gateway subscribes).
-            own = definition_payloads(sc.group_json, sc.channel_json)
-            gw_settings = GatewaySettings(prefix=self.prefix, retained_only=frozenset(own))
+            # it: on a broker it did not start, of the retained definitions it takes
+            # only its own (they may be retained before the gateway subscribes).
+            own = None if fresh else frozenset(definition_payloads(sc.group_json, sc.channel_json))
+            gw_settings = GatewaySettings(prefix=self.prefix, retained_only=own)
             svc = attach_to_fleet(gw_fleet, settings=gw_settings, mqtt=gw_mqtt, hbn=True)
             await stack.enter_async_context(svc)
             for f in fleets:

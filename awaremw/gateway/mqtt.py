@@ -411,8 +411,9 @@ class MqttBridge:
 
     async def _serve(self, client: aiomqtt.Client) -> None:
         s = self.settings
-        await client.publish(s.topic(STATUS_TOPIC), b"online", qos=1, retain=True)
         await client.subscribe([(s.topic("def/#"), 1), (s.topic("cmd/#"), 1)])
+        # Online once subscribed: a definition published after "online" is heard live.
+        await client.publish(s.topic(STATUS_TOPIC), b"online", qos=1, retain=True)
         self._wakeup.set()
         handler = asyncio.create_task(self._handler())
         sender = asyncio.create_task(self._sender(client))
