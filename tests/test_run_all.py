@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -102,10 +103,12 @@ def test_median_run_is_one_whole_run() -> None:
 def test_quick_session_writes_every_row_with_its_median_run(tmp_path: Path) -> None:
     ra = _run_all()
     out = tmp_path / "results.json"
-    p = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks/run_all.py"), "--quick", "--out", str(out)],
-        capture_output=True, text=True, timeout=600, check=False, cwd=tmp_path,
-    )  # fmt: skip
+    argv = [sys.executable, str(ROOT / "benchmarks/run_all.py"), "--quick", "--out", str(out)]
+    # CI builds the compiled build once, before the tests; the session reuses it.
+    if os.environ.get("AWAREMW_COMPILED_SITE"):
+        argv += ["--compiled", os.environ["AWAREMW_COMPILED_SITE"]]
+    p = subprocess.run(argv, capture_output=True, text=True, timeout=600, check=False,
+                       cwd=tmp_path)  # fmt: skip
     assert p.returncode == 0, p.stderr[-3000:]
     report = json.loads(out.read_text())
     assert report["quick"] is True and report["repeat"] == 1
