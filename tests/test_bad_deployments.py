@@ -18,7 +18,7 @@ BAD = {
              "unknown kind 'drone'"),
     "world": ("area = [10, 10]\n[world]\nfires = 3\n" + NODE, "fires"),
     "middleware": ('area = [10, 10]\n[middleware]\nhello_period = "x"\n' + NODE,
-                   "node 1: middleware setting 'hello_period': expected float | null, got str"),
+                   "node 1: middleware setting 'hello_period': must be a number, got 'x'"),
     "noise": ("area = [10, 10]\n" + NODE + "noise = 3\n", "node 1: 'noise' must be a table"),
     "binary": (b"\xff\xfe", "not UTF-8"),
 }  # fmt: skip
@@ -57,10 +57,10 @@ def test_middleware_overrides_are_type_checked() -> None:
     c = MiddlewareConfig().with_overrides({"hello_period": 2, "drip_k": 3, "is_root": True})
     assert (c.hello_period, c.drip_k, c.is_root) == (2.0, 3, True)
     for key, value, why in (
-        ("drip_k", 2.5, "expected int, got float"),
-        ("drip_k", True, "expected int, got bool"),
-        ("is_root", 1, "expected bool, got int"),
-        ("check_period", "1", "expected float, got str"),
+        ("drip_k", 2.5, "must be an integer, got 2.5"),
+        ("drip_k", True, "must be an integer, got True"),
+        ("is_root", 1, "must be true or false, got 1"),
+        ("check_period", "1", "must be a number, got '1'"),
     ):
         with pytest.raises(ValueError, match=f"^middleware setting '{key}': {why}$"):
             MiddlewareConfig().with_overrides({key: value})

@@ -199,7 +199,7 @@ def test_grid_jitter_is_seeded(tmp_path: Path) -> None:
         (
             HEAD,
             '[[nodes]]\nid = 1\nkind = "tmote"\nposition = [1, 1, 1]\n',
-            "nodes[0] (id 1): 'position' must be [x, y] in metres, got [1, 1, 1]",
+            "nodes[0] (id 1): 'position' must be an array of length 2, got [1, 1, 1]",
         ),
         (
             HEAD,

@@ -155,13 +155,16 @@ def test_fields_are_finite_and_in_range(x: float, y: float, t: float) -> None:
     ("table", "needle"),
     [
         ({"ambient_temperature": "hot"}, "world.ambient_temperature"),
-        ({"fires": {"x": 1}}, "array of tables"),
+        ({"fires": {"x": 1}}, r"world.fires: must be an array, got \{'x': 1\}"),
         ({"fires": [{"keyframes": []}]}, "keyframes"),
-        ({"fires": [{"keyframes": [{"x": 1, "y": 1, "peak": 3}]}]}, "needs t"),
+        (
+            {"fires": [{"keyframes": [{"x": 1, "y": 1, "peak": 3}]}]},
+            r"world.fires\[0\].keyframes\[0\]: missing key 't'",
+        ),
         ({"fires": [{"keyframes": [{"t": 0, "x": 1, "peak": 3}]}]}, "needs y"),
         (
             {"fires": [{"name": "f", "keyframes": [{"t": 0, "x": 1, "y": 1, "peak": 3, "z": 1}]}]},
-            "unknown keys z",
+            r"world.fires\[0\].keyframes\[0\]: unknown key 'z'",
         ),
         (
             {

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
-import msgspec
+from awaremw.protocol.validation import Invalid, convert
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,10 +107,6 @@ class MiddlewareConfig:
         if unknown:
             raise ValueError(f"unknown middleware settings: {', '.join(unknown)}")
         try:
-            return msgspec.convert({**values, **overrides}, MiddlewareConfig, strict=True)
-        except msgspec.ValidationError as e:
-            what, _, where = str(e).partition(" - at `$.")
-            key = where.rstrip("`") or "?"
-            raise ValueError(
-                f"middleware setting {key!r}: {what.replace('`', '').lower()}"
-            ) from None
+            return convert({**values, **overrides}, MiddlewareConfig)
+        except Invalid as e:
+            raise ValueError(f"middleware setting {e.path!r}: {e.why}") from None

@@ -15,55 +15,86 @@ from __future__ import annotations
 
 import math
 import random
+import sys
 import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path as FsPath
-from typing import Any
+from typing import Annotated, Any, TypeVar
+
+from msgspec import Meta, Struct
 
 from awaremw.protocol.frames import MAX_NODE_ID
+from awaremw.protocol.validation import Finite, Invalid, convert
 from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
 from awaremw.radio.model import PRESETS, RadioModel, RadioPreset
 from awaremw.world.mobility import Mobility, Path, Static
 
 Point = tuple[float, float]
+T = TypeVar("T")
 
 DEFAULT_RADIO = "cc2420"
 
-# The keys a deployment file may have (docs/deployments.md lists each; a test
-# holds the two equal): top-level values, raw tables, node and grid entries.
-TOP_KEYS = frozenset({
-    "name", "description", "radio", "seed", "tx_power_dbm", "area", "nodes", "grid", "mac",
-    "collisions",
-})  # fmt: skip
+# The shapes of a deployment file (docs/deployments.md lists each key; a test
+# holds the two equal). A key of a node or grid entry not named here is kept in
+# ``extra`` for the node kind; a top-level key not named here must be a table.
+_Point = tuple[Finite, Finite]
+_Name = Annotated[str, Meta(min_length=1)]
+_NonNeg = Annotated[float, Meta(ge=0, le=sys.float_info.max)]
+_Positive = Annotated[float, Meta(gt=0, le=sys.float_info.max)]
+_Raw = dict[str, Any] | list[Any] | None
+
+
+class _File(Struct):
+    area: tuple[_Positive, _Positive]  # (width, height) in m
+    name: _Name | None = None
+    description: str = ""
+    radio: _Name = DEFAULT_RADIO
+    seed: int = 0
+    tx_power_dbm: Finite | None = None  # None: the preset's
+    mac: _Name = "csma"
+    collisions: _Name = "sinr"
+    nodes: list[dict[str, Any]] = []
+    grid: list[dict[str, Any]] = []
+    world: dict[str, Any] = {}
+    middleware: dict[str, Any] = {}
+    groups: _Raw = None
+    channels: _Raw = None
+
+
+class _Mote(Struct, kw_only=True):  # what a node and a grid entry share
+    kind: _Name
+    tx_power_dbm: Finite | None = None
+    battery_mj: _Positive | None = None
+    boot_s: _NonNeg = 0.0
+
+
+class _Node(_Mote):
+    id: int
+    position: _Point | None = None
+    path: Annotated[list[_Point], Meta(min_length=1)] | None = None
+    speed_mps: _Positive = 1.0
+    start_s: _NonNeg = 0.0
+    loop: bool = False
+    pause_s: _NonNeg = 0.0
+
+
+class _Grid(_Mote):
+    # Plain floats: msgspec 0.22 corrupts memory on a constrained float in a union with a tuple.
+    spacing: float | tuple[float, float]
+    cols: Annotated[int, Meta(ge=1)]
+    rows: Annotated[int, Meta(ge=1)]
+    first_id: int
+    origin: _Point = (0.0, 0.0)
+    jitter_m: _NonNeg = 0.0
+
+
 RAW_TABLES = ("world", "groups", "channels", "middleware")
-NODE_KEYS = frozenset({
-    "id",
-    "kind",
-    "position",
-    "path",
-    "speed_mps",
-    "start_s",
-    "loop",
-    "pause_s",
-    "tx_power_dbm",
-    "battery_mj",
-    "boot_s",
-})
+TOP_KEYS = frozenset(_File.__struct_fields__) - set(RAW_TABLES)
+NODE_KEYS = frozenset(_Node.__struct_fields__)
+GRID_KEYS = frozenset(_Grid.__struct_fields__)
 _PATH_ONLY = ("speed_mps", "start_s", "loop", "pause_s")
-GRID_KEYS = frozenset({
-    "origin",
-    "spacing",
-    "cols",
-    "rows",
-    "first_id",
-    "kind",
-    "jitter_m",
-    "tx_power_dbm",
-    "battery_mj",
-    "boot_s",
-})
 
 
 class DeploymentError(ValueError):
@@ -224,67 +255,11 @@ class _Parser:
     def _fail(self, where: str, what: str) -> DeploymentError:
         return DeploymentError(f"{self.file}: {where}: {what}" if where else f"{self.file}: {what}")
 
-    # ------------------------------------------------------------ typed getters
-
-    def _number(
-        self, where: str, t: Mapping[str, Any], key: str, default: float | None = None
-    ) -> float:
-        if key not in t:
-            if default is None:
-                raise self._fail(where, f"missing key {key!r}")
-            return default
-        v = t[key]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise self._fail(where, f"{key!r} must be a number, got {v!r}")
-        return float(v)
-
-    def _opt_number(self, where: str, t: Mapping[str, Any], key: str) -> float | None:
-        return self._number(where, t, key) if key in t else None
-
-    def _integer(
-        self, where: str, t: Mapping[str, Any], key: str, default: int | None = None
-    ) -> int:
-        if key not in t:
-            if default is None:
-                raise self._fail(where, f"missing key {key!r}")
-            return default
-        v = t[key]
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise self._fail(where, f"{key!r} must be an integer, got {v!r}")
-        return v
-
-    def _string(
-        self, where: str, t: Mapping[str, Any], key: str, default: str | None = None
-    ) -> str:
-        if key not in t:
-            if default is None:
-                raise self._fail(where, f"missing key {key!r}")
-            return default
-        v = t[key]
-        if not isinstance(v, str) or not v:
-            raise self._fail(where, f"{key!r} must be a non-empty string, got {v!r}")
-        return v
-
-    def _boolean(self, where: str, t: Mapping[str, Any], key: str, default: bool) -> bool:
-        v = t.get(key, default)
-        if not isinstance(v, bool):
-            raise self._fail(where, f"{key!r} must be true or false, got {v!r}")
-        return v
-
-    def _point(self, where: str, v: Any, what: str) -> Point:
-        if (
-            not isinstance(v, list)
-            or len(v) != 2
-            or any(isinstance(c, bool) or not isinstance(c, int | float) for c in v)
-            or not all(math.isfinite(c) for c in v)
-        ):
-            raise self._fail(where, f"{what} must be [x, y] in metres, got {v!r}")
-        return float(v[0]), float(v[1])
-
-    def _table(self, where: str, v: Any) -> Mapping[str, Any]:
-        if not isinstance(v, dict):
-            raise self._fail(where, f"must be a table, got {type(v).__name__}")
-        return v
+    def _convert(self, where: str, doc: Any, type_: type[T]) -> T:
+        try:
+            return convert(doc, type_)
+        except Invalid as e:
+            raise self._fail(where, f"{e.path!r} {e.why}" if e.path else e.why) from None
 
     # ------------------------------------------------------------ checks
 
@@ -316,61 +291,36 @@ class _Parser:
                 "addresses; 0xFFFE and 0xFFFF are reserved)",
             )
 
-    def _check_battery(self, where: str, mj: float | None) -> None:
-        if mj is not None and not mj > 0:
-            raise self._fail(where, f"'battery_mj' must be > 0, got {mj:g}")
-
-    def _check_nonneg(self, where: str, key: str, v: float) -> None:
-        if v < 0:
-            raise self._fail(where, f"{key!r} must be >= 0, got {v:g}")
+    def _check_mote(self, where: str, m: _Mote) -> None:
+        self._check_kind(where, m.kind)
+        self._check_power(where, m.tx_power_dbm)
 
     # ------------------------------------------------------------ parse
 
     def parse(self) -> Deployment:
         d = self.data
-        extra: dict[str, Any] = {}
-        for k, v in d.items():
-            if k in TOP_KEYS or k in RAW_TABLES:
-                continue
-            if isinstance(v, dict):
-                extra[k] = v
-            else:
-                raise self._fail("", f"unknown key {k!r}")
-        default_name = self.path.stem if self.path is not None else "deployment"
-        name = self._string("", d, "name", default_name)
-        description = d.get("description", "")
-        if not isinstance(description, str):
-            raise self._fail("", "'description' must be a string")
-        radio = self._string("", d, "radio", DEFAULT_RADIO)
-        if radio not in PRESETS:
-            raise self._fail("", f"unknown radio preset {radio!r} (known: {', '.join(PRESETS)})")
-        self.preset = PRESETS[radio]
-        seed = self._integer("", d, "seed", 0)
-        mac = self._string("", d, "mac", "csma")
-        if mac not in MAC_KINDS:
-            raise self._fail("", f"unknown mac {mac!r} (known: {', '.join(MAC_KINDS)})")
-        collisions = self._string("", d, "collisions", "sinr")
-        if collisions not in COLLISION_MODES:
-            raise self._fail(
-                "", f"unknown collisions {collisions!r} (known: {', '.join(COLLISION_MODES)})"
-            )
-        tx_power = self._number("", d, "tx_power_dbm", self.preset.tx_power_dbm)
-        self._check_power("", tx_power)
         if "area" not in d:
             raise self._fail("", "missing key 'area' ([width, height] in metres)")
-        self.area = self._point("", d["area"], "'area'")
-        if not (self.area[0] > 0 and self.area[1] > 0):
-            raise self._fail("", f"'area' must be positive, got {d['area']!r}")
-        self.seed = seed
-
-        raw: dict[str, Any] = {}
-        for key in RAW_TABLES:
-            v = d.get(key)
-            if v is not None and not isinstance(v, dict | list):
-                raise self._fail("", f"{key!r} must be a table or an array of tables")
-            if key in ("world", "middleware") and v is not None and not isinstance(v, dict):
-                raise self._fail("", f"{key!r} must be a table ([{key}])")
-            raw[key] = v
+        f = self._convert("", d, _File)
+        extra: dict[str, Any] = {}
+        for k, v in d.items():
+            if k in _File.__struct_fields__:
+                continue
+            if not isinstance(v, dict):
+                raise self._fail("", f"unknown key {k!r}")
+            extra[k] = v
+        if f.radio not in PRESETS:
+            raise self._fail("", f"unknown radio preset {f.radio!r} (known: {', '.join(PRESETS)})")
+        self.preset = PRESETS[f.radio]
+        if f.mac not in MAC_KINDS:
+            raise self._fail("", f"unknown mac {f.mac!r} (known: {', '.join(MAC_KINDS)})")
+        if f.collisions not in COLLISION_MODES:
+            raise self._fail(
+                "", f"unknown collisions {f.collisions!r} (known: {', '.join(COLLISION_MODES)})"
+            )
+        tx_power = self.preset.tx_power_dbm if f.tx_power_dbm is None else f.tx_power_dbm
+        self._check_power("", tx_power)
+        self.area, self.seed = f.area, f.seed
 
         specs: dict[int, tuple[NodeSpec, str]] = {}
 
@@ -379,150 +329,100 @@ class _Parser:
                 raise self._fail(where, f"duplicate id {spec.id} (also {specs[spec.id][1]})")
             specs[spec.id] = (spec, where.split(" (")[0])
 
-        nodes = d.get("nodes", [])
-        if not isinstance(nodes, list):
-            raise self._fail("", "'nodes' must be an array of tables ([[nodes]])")
-        for i, entry in enumerate(nodes):
+        for i, entry in enumerate(f.nodes):
             spec, where = self._node(i, entry)
             put(spec, where)
-        grids = d.get("grid", [])
-        if not isinstance(grids, list):
-            raise self._fail("", "'grid' must be an array of tables ([[grid]])")
-        for i, entry in enumerate(grids):
+        for i, entry in enumerate(f.grid):
             for spec, where in self._grid(i, entry):
                 put(spec, where)
         if not specs:
             raise self._fail("", "no nodes (add [[nodes]] or [[grid]] entries)")
 
         return Deployment(
-            name=name,
-            area=self.area,
-            radio=radio,
-            seed=seed,
+            name=f.name or (self.path.stem if self.path is not None else "deployment"),
+            area=f.area,
+            radio=f.radio,
+            seed=f.seed,
             tx_power_dbm=tx_power,
             nodes=tuple(s for _, (s, _) in sorted(specs.items())),
-            world=raw["world"] or {},
-            groups=raw["groups"],
-            channels=raw["channels"],
-            middleware=raw["middleware"] or {},
-            description=description,
+            world=f.world,
+            groups=f.groups,
+            channels=f.channels,
+            middleware=f.middleware,
+            description=f.description,
             extra=extra,
             path=self.path,
-            mac=mac,
-            collisions=collisions,
+            mac=f.mac,
+            collisions=f.collisions,
         )
 
-    def _node(self, i: int, entry: Any) -> tuple[NodeSpec, str]:
-        where = f"nodes[{i}]"
-        t = self._table(where, entry)
-        node_id = self._integer(where, t, "id")
-        where = f"nodes[{i}] (id {node_id})"
-        self._check_id(where, node_id)
-        kind = self._string(where, t, "kind")
-        self._check_kind(where, kind)
-        has_pos, has_path = "position" in t, "path" in t
-        if has_pos == has_path:
-            raise self._fail(where, "give exactly one of 'position' or 'path'")
-        path: tuple[Point, ...] | None = None
-        if has_path:
-            raw = t["path"]
-            if not isinstance(raw, list) or not raw:
-                raise self._fail(where, "'path' must be a non-empty array of [x, y] waypoints")
-            path = tuple(self._point(where, p, f"path[{k}]") for k, p in enumerate(raw))
-            for k, p in enumerate(path):
+    def _node(self, i: int, t: dict[str, Any]) -> tuple[NodeSpec, str]:
+        ident = t.get("id")
+        where = f"nodes[{i}] (id {ident})" if type(ident) is int else f"nodes[{i}]"
+        n = self._convert(where, t, _Node)
+        self._check_id(where, n.id)
+        self._check_mote(where, n)
+        if n.path is not None and n.position is None:
+            for k, p in enumerate(n.path):
                 self._check_inside(where, p, f"path[{k}]")
-            position = path[0]
-        else:
+            position, path = n.path[0], tuple(n.path)
+        elif n.position is not None and n.path is None:
             for key in _PATH_ONLY:
                 if key in t:
                     raise self._fail(where, f"{key!r} only makes sense with a 'path'")
-            position = self._point(where, t["position"], "'position'")
-            self._check_inside(where, position, "position")
-        speed = self._number(where, t, "speed_mps", 1.0)
-        if not speed > 0:
-            raise self._fail(where, f"'speed_mps' must be > 0, got {speed:g}")
-        start_s = self._number(where, t, "start_s", 0.0)
-        pause_s = self._number(where, t, "pause_s", 0.0)
-        boot_s = self._number(where, t, "boot_s", 0.0)
-        for key, v in (("start_s", start_s), ("pause_s", pause_s), ("boot_s", boot_s)):
-            self._check_nonneg(where, key, v)
-        loop = self._boolean(where, t, "loop", False)
-        tx_power = self._opt_number(where, t, "tx_power_dbm")
-        self._check_power(where, tx_power)
-        battery = self._opt_number(where, t, "battery_mj")
-        self._check_battery(where, battery)
-        extra = {k: v for k, v in t.items() if k not in NODE_KEYS}
+            self._check_inside(where, n.position, "position")
+            position, path = n.position, None
+        else:
+            raise self._fail(where, "give exactly one of 'position' or 'path'")
         spec = NodeSpec(
-            id=node_id,
-            kind=kind,
+            id=n.id,
+            kind=n.kind,
             position=position,
             path=path,
-            speed_mps=speed,
-            start_s=start_s,
-            loop=loop,
-            pause_s=pause_s,
-            tx_power_dbm=tx_power,
-            battery_mj=battery,
-            boot_s=boot_s,
-            extra=extra,
+            speed_mps=n.speed_mps,
+            start_s=n.start_s,
+            loop=n.loop,
+            pause_s=n.pause_s,
+            tx_power_dbm=n.tx_power_dbm,
+            battery_mj=n.battery_mj,
+            boot_s=n.boot_s,
+            extra={k: v for k, v in t.items() if k not in NODE_KEYS},
         )
         return spec, where
 
-    def _grid(self, i: int, entry: Any) -> list[tuple[NodeSpec, str]]:
-        where = f"grid[{i}]"
-        t = self._table(where, entry)
-        origin = self._point(where, t["origin"], "'origin'") if "origin" in t else (0.0, 0.0)
-        if "spacing" not in t:
-            raise self._fail(where, "missing key 'spacing'")
-        sp = t["spacing"]
-        if isinstance(sp, list):
-            spacing = self._point(where, sp, "'spacing'")
-        else:
-            s = self._number(where, t, "spacing")
-            spacing = (s, s)
-        if not (spacing[0] > 0 and spacing[1] > 0):
-            raise self._fail(where, f"'spacing' must be > 0, got {sp!r}")
-        cols = self._integer(where, t, "cols")
-        rows = self._integer(where, t, "rows")
-        if cols < 1 or rows < 1:
-            raise self._fail(where, f"'cols' and 'rows' must be >= 1, got {cols} x {rows}")
-        first = self._integer(where, t, "first_id")
-        last = first + cols * rows - 1
-        where = f"grid[{i}] (ids {first}..{last})"
-        self._check_id(where, first)
+    def _grid(self, i: int, t: dict[str, Any]) -> list[tuple[NodeSpec, str]]:
+        g = self._convert(f"grid[{i}]", t, _Grid)
+        spacing = g.spacing if isinstance(g.spacing, tuple) else (g.spacing, g.spacing)
+        if not all(0 < s < math.inf for s in spacing):
+            raise self._fail(f"grid[{i}]", f"'spacing' must be > 0, got {t['spacing']!r}")
+        last = g.first_id + g.cols * g.rows - 1
+        where = f"grid[{i}] (ids {g.first_id}..{last})"
+        self._check_id(where, g.first_id)
         self._check_id(where, last)
-        kind = self._string(where, t, "kind")
-        self._check_kind(where, kind)
-        jitter = self._number(where, t, "jitter_m", 0.0)
-        self._check_nonneg(where, "jitter_m", jitter)
-        tx_power = self._opt_number(where, t, "tx_power_dbm")
-        self._check_power(where, tx_power)
-        battery = self._opt_number(where, t, "battery_mj")
-        self._check_battery(where, battery)
-        boot_s = self._number(where, t, "boot_s", 0.0)
-        self._check_nonneg(where, "boot_s", boot_s)
+        self._check_mote(where, g)
         extra = {k: v for k, v in t.items() if k not in GRID_KEYS}
         # Jitter from the deployment's seed and the grid's index: the same
         # positions in every process that loads the file.
         rng = random.Random(self.seed * 1_000_003 + i)
         w, h = self.area
+        jitter = g.jitter_m
         out: list[tuple[NodeSpec, str]] = []
-        for r in range(rows):
-            for c in range(cols):
-                node_id = first + r * cols + c
-                x = origin[0] + c * spacing[0]
-                y = origin[1] + r * spacing[1]
+        for r in range(g.rows):
+            for c in range(g.cols):
+                node_id = g.first_id + r * g.cols + c
+                x = g.origin[0] + c * spacing[0]
+                y = g.origin[1] + r * spacing[1]
                 self._check_inside(where, (x, y), f"position of id {node_id}")
                 if jitter:
                     x = min(w, max(0.0, x + rng.uniform(-jitter, jitter)))
                     y = min(h, max(0.0, y + rng.uniform(-jitter, jitter)))
                 spec = NodeSpec(
                     id=node_id,
-                    kind=kind,
+                    kind=g.kind,
                     position=(x, y),
-                    tx_power_dbm=tx_power,
-                    battery_mj=battery,
-                    boot_s=boot_s,
+                    tx_power_dbm=g.tx_power_dbm,
+                    battery_mj=g.battery_mj,
+                    boot_s=g.boot_s,
                     extra=extra,
                 )
                 out.append((spec, f"{where}: id {node_id}"))

@@ -27,9 +27,13 @@ import hashlib
 import itertools
 import math
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Annotated, Any, NamedTuple
+
+from msgspec import Meta, Struct
+
+from awaremw.protocol.validation import Finite, Invalid, convert
 
 FIELDS = ("temperature", "humidity", "light", "gas")
 
@@ -390,83 +394,72 @@ class World:
     def from_table(cls, table: Mapping[str, Any] | None, seed: int = 0) -> World:
         """Build a world from a deployment's ``[world]`` table (None: all ambient)."""
         t = dict(table or {})
-        known_scalars = {
-            "ambient_temperature": float,
-            "ambient_humidity": float,
-            "ambient_light": float,
-            "ambient_gas": float,
-            "variation": float,
-            "variation_scale": float,
-            "noise_step": float,
-        }
-        kw: dict[str, Any] = {}
-        for key, conv in known_scalars.items():
-            if key in t:
-                kw[key] = _number(t.pop(key), f"world.{key}", conv)
-        if "seed" in t:
-            seed = int(_number(t.pop("seed"), "world.seed", float))
-        if kw.get("noise_step", 1.0) <= 0:
-            raise WorldError("world.noise_step must be > 0")
-        if kw.get("variation_scale", 1.0) <= 0:
-            raise WorldError("world.variation_scale must be > 0")
-        fires = _sources(t.pop("fires", []), "fires")
-        gas = _sources(t.pop("gas", []), "gas")
-        lights = _sources(t.pop("lights", []), "lights")
-        return cls(seed=seed, fires=fires, gas_sources=gas, lights=lights, extra=t, **kw)
+        try:
+            doc = convert(t, _WorldTable)
+        except Invalid as e:
+            raise WorldError(f"world.{e}") from None
+        kw = {k: v for k in _SCALARS if (v := getattr(doc, k)) is not None}
+        kw["seed"] = seed if doc.seed is None else int(doc.seed)
+        return cls(
+            fires=_sources(doc.fires, "fires"),
+            gas_sources=_sources(doc.gas, "gas"),
+            lights=_sources(doc.lights, "lights"),
+            extra={k: v for k, v in t.items() if k not in _WorldTable.__struct_fields__},
+            **kw,
+        )
 
 
-def _number(v: object, where: str, conv: type[float] = float) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise WorldError(f"{where} must be a finite number, got {v!r}")
-    return conv(v)
+# The [world] table's shape (docs/world.md); keys it does not name are kept for others.
+_Positive = Annotated[float, Meta(gt=0)]
 
 
-def _sources(raw: object, kind: str) -> tuple[Source, ...]:
-    if not isinstance(raw, list):
-        raise WorldError(f"world.{kind} must be an array of tables ([[world.{kind}]])")
+class _Keyframe(Struct, forbid_unknown_fields=True):
+    t: Finite
+    x: Finite | None = None  # omitted: the previous keyframe's
+    y: Finite | None = None
+    radius: Finite | None = None
+    peak: Finite | None = None
+
+
+class _Source(Struct, forbid_unknown_fields=True):
+    keyframes: Annotated[list[_Keyframe], Meta(min_length=1)]
+    name: str | None = None
+    edge: Finite = 1.0
+    hold: bool = True
+    gas: Finite = 0.0
+    light: Finite = 0.0
+
+
+class _WorldTable(Struct):  # None: World's default
+    ambient_temperature: Finite | None = None
+    ambient_humidity: Finite | None = None
+    ambient_light: Finite | None = None
+    ambient_gas: Finite | None = None
+    variation: Finite | None = None
+    variation_scale: _Positive | None = None
+    noise_step: _Positive | None = None
+    seed: Finite | None = None
+    fires: list[_Source] = []
+    gas: list[_Source] = []
+    lights: list[_Source] = []
+
+
+_SCALARS = [k for k in _WorldTable.__struct_fields__ if k not in ("seed", "fires", "gas", "lights")]
+
+
+def _sources(docs: list[_Source], kind: str) -> tuple[Source, ...]:
     out: list[Source] = []
-    for i, entry in enumerate(raw):
-        where = f"world.{kind}[{i}]"
-        if not isinstance(entry, Mapping):
-            raise WorldError(f"{where} must be a table")
-        e = dict(entry)
-        name = str(e.pop("name", f"{kind}{i}"))
-        where = f"world.{kind}[{name}]"
-        edge = _number(e.pop("edge", 1.0), f"{where}.edge")
-        hold = e.pop("hold", True)
-        if not isinstance(hold, bool):
-            raise WorldError(f"{where}.hold must be true or false")
-        gas = _number(e.pop("gas", 0.0), f"{where}.gas")
-        light = _number(e.pop("light", 0.0), f"{where}.light")
-        keys = _keyframes(e.pop("keyframes", None), where)
-        if e:
-            raise WorldError(f"{where}: unknown keys {', '.join(sorted(e))}")
-        out.append(Source(name, keys, edge, hold, gas, light))
-    return tuple(out)
-
-
-def _keyframes(raw: object, where: str) -> tuple[Keyframe, ...]:
-    """Keyframes as tables ``{t, x, y, radius, peak}``; omitted values carry over
-    from the previous keyframe (the first needs t, x, y and peak)."""
-    if not isinstance(raw, Sequence) or isinstance(raw, str) or not raw:
-        raise WorldError(f"{where}.keyframes must be a non-empty array of tables")
-    out: list[Keyframe] = []
-    prev: dict[str, float] = {"radius": 0.0}
-    for j, k in enumerate(raw):
-        if not isinstance(k, Mapping):
-            raise WorldError(f"{where}.keyframes[{j}] must be a table like {{t=0, x=1, y=2}}")
-        unknown = set(k) - {"t", "x", "y", "radius", "peak"}
-        if unknown:
-            raise WorldError(f"{where}.keyframes[{j}]: unknown keys {', '.join(sorted(unknown))}")
-        if "t" not in k:
-            raise WorldError(f"{where}.keyframes[{j}] needs t")
-        cur = dict(prev)
-        for name in ("t", "x", "y", "radius", "peak"):
-            if name in k:
-                cur[name] = _number(k[name], f"{where}.keyframes[{j}].{name}")
-        missing = [n for n in ("x", "y", "peak") if n not in cur]
-        if missing:
-            raise WorldError(f"{where}.keyframes[{j}] needs {', '.join(missing)}")
-        out.append(Keyframe(cur["t"], cur["x"], cur["y"], cur["radius"], cur["peak"]))
-        prev = cur
+    for i, d in enumerate(docs):
+        name = f"{kind}{i}" if d.name is None else d.name
+        frames: list[Keyframe] = []
+        prev: dict[str, float] = {"radius": 0.0}
+        for j, k in enumerate(d.keyframes):
+            # Omitted values carry over from the previous keyframe.
+            cur = prev | {f: v for f in k.__struct_fields__ if (v := getattr(k, f)) is not None}
+            missing = [n for n in ("x", "y", "peak") if n not in cur]
+            if missing:
+                raise WorldError(f"world.{kind}[{name}].keyframes[{j}] needs {', '.join(missing)}")
+            frames.append(Keyframe(cur["t"], cur["x"], cur["y"], cur["radius"], cur["peak"]))
+            prev = cur
+        out.append(Source(name, tuple(frames), d.edge, d.hold, d.gas, d.light))
     return tuple(out)
