@@ -228,7 +228,7 @@ def test_plain_log_throttles_status_lines() -> None:
 
 
 def test_describe_events() -> None:
-    from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected
+    from awaremw.protocol.events import ElectionCause, HandoverSent, LeaderElected
 
     assert describe(1, LeaderElected(1, 1, 7, 0, ElectionCause.CREATED, 1.0), 1.0) == (
         "mote 1 leads group 7 (type 1, created)"

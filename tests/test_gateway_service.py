@@ -21,7 +21,7 @@ from mosquitto import Collector, Mosquitto, mosquitto_fixture, pub  # noqa: F401
 from awaremw.gateway.bridge import Inject
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, deployment_definitions
-from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.events import ItemAdopted
 from awaremw.protocol.frames import (
     ChannelDef,
     DataRecord,

@@ -259,7 +259,7 @@ async def end_to_end(
     """
     from awaremw.gateway.service import attach_to_fleet
     from awaremw.nodes import KindsFactory, kind_names
-    from awaremw.protocol.channels import RecordProduced
+    from awaremw.protocol.events import RecordProduced
     from awaremw.runtime.deployment import load
     from awaremw.runtime.fleet import Fleet, FleetSettings
     from awaremw.runtime.zenoh_session import free_tcp_endpoint

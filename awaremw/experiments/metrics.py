@@ -30,17 +30,17 @@ from typing import Any
 from awaremw.experiments.scenario import Scenario
 from awaremw.experiments.truth import GroundTruth
 from awaremw.nodes import config_for
-from awaremw.protocol.channels import RecordProduced
-from awaremw.protocol.collection import Delivered
-from awaremw.protocol.frames import DataRecord, GroupTypeDef
-from awaremw.protocol.groups import (
+from awaremw.protocol.events import (
+    Delivered,
     ElectionCause,
     GroupJoined,
     GroupLeft,
     HandoverSent,
     LeaderElected,
     LeaderYielded,
+    RecordProduced,
 )
+from awaremw.protocol.frames import DataRecord, GroupTypeDef
 from awaremw.runtime.events import MoteDown
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch

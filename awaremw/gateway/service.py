@@ -45,10 +45,10 @@ from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSett
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore, unwrap, wire_version
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.dissemination import InjectSuperseded, ItemAdopted
+from awaremw.protocol.events import InjectSuperseded, ItemAdopted
 from awaremw.protocol.frames import DataRecord, GroupReport, ItemBody, ItemKind
 from awaremw.protocol.mote import AwareMote
-from awaremw.runtime.driver import MoteUp
+from awaremw.runtime.events import MoteUp
 from awaremw.runtime.fleet import Fleet
 
 log = logging.getLogger(__name__)

@@ -15,7 +15,7 @@ from rich.console import Console, Group
 from rich.live import Live
 from rich.text import Text
 
-from awaremw.protocol.groups import (
+from awaremw.protocol.events import (
     GroupJoined,
     GroupLeft,
     HandoverSent,
