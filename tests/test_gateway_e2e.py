@@ -40,8 +40,8 @@ from mosquitto import (  # noqa: F401
 )
 
 from awaremw.cli.client import publish as client_publish
-from awaremw.gateway.bridge import Publish
 from awaremw.gateway.broker import EmbeddedBroker
+from awaremw.gateway.events import Publish
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
 from awaremw.nodes import KindsFactory, app_of, build_core, kind_names, world_of
