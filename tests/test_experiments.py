@@ -97,8 +97,10 @@ def test_recorder_replays_memberships() -> None:
     assert rec.leaders_at(1, 3.0) == {77: 1}
     assert rec.group_ids(1, 0.0, 4.0) == {77}
     assert rec.group_ids(1, 4.0, 6.0) == {77, 88}
-    # Dispatch is by type: a look-alike class named MoteDown is no mote down.
-    rec.on_event(1, type("MoteDown", (), {"reason": "killed"})(), 6.0)
+    # Dispatch is by type: a look-alike class named MoteDown is no mote down, and
+    # no event at all (the match is exhaustive over MoteEvent).
+    with pytest.raises(AssertionError):
+        rec.on_event(1, type("MoteDown", (), {"reason": "killed"})(), 6.0)
     assert rec.down == {} and set(rec.members_at(1, 6.0)) == {1, 2}
     rec.on_event(1, MoteDown("killed"), 7.0)
     assert set(rec.members_at(1, 7.0)) == {2}

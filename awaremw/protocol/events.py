@@ -223,24 +223,11 @@ class PingResult:
     acked: bool
 
 
-GroupEvent: TypeAlias = (
-    GroupJoined | GroupLeft | LeaderElected | LeaderYielded | HandoverSent | GroupTypeRefused
-)
+# What an AwareMote reports, what a HelloMote reports, what any core reports.
 AwareEvent: TypeAlias = (
-    MalformedFrame
-    | ItemAdopted
-    | ItemRefused
-    | InjectSuperseded
-    | Delivered
-    | ParentChanged
-    | DataDropped
-    | GroupEvent
-    | RecordProduced
-    | ChannelRefused
-    | CommandExecuted
-)
-"""What an :class:`~awaremw.protocol.mote.AwareMote` reports."""
+    MalformedFrame | ItemAdopted | ItemRefused | InjectSuperseded | Delivered | ParentChanged
+    | DataDropped | GroupJoined | GroupLeft | LeaderElected | LeaderYielded | HandoverSent
+    | GroupTypeRefused | RecordProduced | ChannelRefused | CommandExecuted
+)  # fmt: skip
 HelloEvent: TypeAlias = MalformedFrame | NeighbourFound | NeighbourLost | PingResult
-"""What a :class:`~awaremw.protocol.hello.HelloMote` reports."""
 CoreEvent: TypeAlias = AwareEvent | HelloEvent
-"""What any core reports (``MoteCore.events()``)."""
