@@ -387,11 +387,8 @@ class GatewayBridge:
             case ev.InjectSuperseded():
                 return self._supersede(event)
             case ev.Delivered(payload=payload, t=t):
-                match payload:
-                    case DataRecord():
-                        return [*self.on_record(payload, t)]
-                    case GroupReport():
-                        return [*self.on_report(payload, t), StateChanged()]
+                out: list[Action] = [*self.on_payload(payload, t)]
+                return out if isinstance(payload, DataRecord) else [*out, StateChanged()]
             case (
                 MoteDown() | ev.MalformedFrame() | ev.ItemRefused() | ev.ParentChanged()
                 | ev.DataDropped() | ev.GroupJoined() | ev.GroupLeft() | ev.LeaderElected()

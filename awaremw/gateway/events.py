@@ -1,19 +1,8 @@
 """What the gateway's logic answers with: typed actions, and the transports.
 
-:class:`~awaremw.gateway.bridge.GatewayBridge` takes the gateway's inputs -- a
-payload from an IP transport (with the :class:`Transport` it came by), an event
-of a gateway mote (:data:`~awaremw.runtime.events.MoteEvent`), the time -- and
-answers with a list of :data:`Action`. The service carries them out, matching
-on the union (``case _: assert_never(action)``):
-
-* :class:`Publish` -- something for the IP side, with a topic relative to the
-  prefix (``data/1/1/513``); the MQTT bridge prepends ``aware/``, the Zenoh
-  API ``aware/hbn/``;
-* :class:`Inject` -- a versioned Drip item for the gateway mote(s);
-* :class:`Report` -- an :class:`ErrorReport` for the errors topic of one
-  transport (``<prefix>/errors`` or ``<prefix>/hbn/errors``);
-* :class:`StateChanged` -- definitions or groups changed: the Zenoh
-  queryable's snapshot is stale.
+:class:`~awaremw.gateway.bridge.GatewayBridge` answers every input with a list
+of :data:`Action` (its module docstring says which); the service carries them
+out, matching on the union (``case _: assert_never(action)``).
 """
 
 from __future__ import annotations

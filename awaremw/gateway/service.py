@@ -1,21 +1,14 @@
 """The gateway service: gateway motes + bridge + MQTT + Zenoh HBN, wired together.
 
-:class:`GatewayService` owns the :class:`GatewayBridge` (validation, versions,
-group table) and the transports, and talks to the sensor network through two
-callables the runtime provides:
-
-* ``inject(node_id, Inject)`` -- put a versioned item into a gateway mote's
-  core (inside the event loop that drives it);
-* ``now()`` -- the fleet's emulated time.
-
-The service only wires: what the transports hand it (:meth:`~GatewayService.handle`,
-tagged with their :class:`~awaremw.gateway.events.Transport`), the gateway
-motes' events (:meth:`~GatewayService.on_event`) and the time go to the bridge;
-the bridge's actions go out (:meth:`~GatewayService._apply`): publications to
-MQTT and Zenoh, injections into the gateway motes, refusals to the errors topic
-of the transport the payload came from (``<prefix>/errors`` on MQTT,
-``<prefix>/hbn/errors`` on Zenoh), a new snapshot for the Zenoh queryable.
-Every version decision is the bridge's.
+:class:`GatewayService` only wires: what the transports hand it (:meth:`handle`,
+with their :class:`~awaremw.gateway.events.Transport`), the gateway motes'
+events (:meth:`on_event`) and the time go to the :class:`GatewayBridge`, which
+makes every decision; its actions go out (:meth:`_apply`): publications on MQTT
+and Zenoh, injections into the gateway motes, refusals on the errors topic of
+the transport the payload came by (``<prefix>/errors``, ``<prefix>/hbn/errors``),
+a new snapshot for the Zenoh queryable. The runtime provides two callables
+(:meth:`bind`): ``inject(node_id, Inject)`` puts an item into a gateway mote's
+core (inside the loop that drives it), ``now()`` is the fleet's emulated time.
 """
 
 from __future__ import annotations
@@ -163,7 +156,7 @@ class GatewayService:
         self._deferred: dict[tuple[ItemKind, int], asyncio.TimerHandle] = {}
         # Set after every payload handled, version learned or paced injection made.
         self.handled = asyncio.Event()
-        self.delivered = asyncio.Event()  # set after every record or report from the WSN
+        self.delivered = asyncio.Event()  # set after every publication (records, groups)
 
     # ----------------------------------------------------------------- lifecycle
 
@@ -262,6 +255,7 @@ class GatewayService:
             match a:
                 case Publish():
                     self.publish(a)
+                    self.delivered.set()
                 case Inject() if a.node is not None:
                     self._inject_one(a.node, a)
                 case Inject():
@@ -330,10 +324,7 @@ class GatewayService:
         """Hook for the runtime: every event of a gateway mote's core."""
         if node_id not in self.roots:
             return
-        actions = self.bridge.on_mote_event(node_id, event, self._body_of)
-        self._apply(actions)
-        if any(isinstance(a, Publish) for a in actions):
-            self.delivered.set()
+        self._apply(self.bridge.on_mote_event(node_id, event, self._body_of))
 
     def publish(self, p: Publish) -> None:
         if self.mqtt is not None:

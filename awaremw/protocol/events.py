@@ -15,9 +15,8 @@ from typing import TypeAlias
 
 from awaremw.protocol.frames import DataRecord, ItemKind, Payload
 
-# --------------------------------------------------------------------------- any core
 
-
+# Any core (protocol/core.py, mote.py, hello.py)
 @dataclass(frozen=True, slots=True)
 class MalformedFrame:
     """Event: a frame from the radio could not be decoded (remote fault)."""
@@ -26,9 +25,7 @@ class MalformedFrame:
     size: int
 
 
-# --------------------------------------------------------------------------- dissemination
-
-
+# Dissemination (protocol/dissemination.py)
 @dataclass(frozen=True, slots=True)
 class ItemAdopted:
     """Event: this mote now holds ``version`` of an item (``source`` None: injected)."""
@@ -63,9 +60,7 @@ class InjectSuperseded:
     held: int
 
 
-# --------------------------------------------------------------------------- collection
-
-
+# Collection tree (protocol/collection.py)
 @dataclass(frozen=True, slots=True)
 class Delivered:
     """Event at a root: ``payload`` from ``origin`` arrived after ``thl`` hops at ``t``."""
@@ -94,9 +89,7 @@ class DataDropped:
     reason: str
 
 
-# --------------------------------------------------------------------------- groups
-
-
+# Groups (protocol/groups.py)
 class LeaveReason(Enum):
     CONDITION = "condition"  # stopped meeting the conditions
     SWITCHED = "switched"  # moved to a heavier group of the same type
@@ -172,9 +165,7 @@ class GroupTypeRefused:
     reason: str
 
 
-# --------------------------------------------------------------------------- channels, commands
-
-
+# Channels and commands (protocol/channels.py, commands.py)
 @dataclass(frozen=True, slots=True)
 class RecordProduced:
     """A leader finished an epoch: ``record`` went (or was offered) to the gateway."""
@@ -201,9 +192,7 @@ class CommandExecuted:
     version: int
 
 
-# --------------------------------------------------------------------------- HelloMote
-
-
+# HelloMote (protocol/hello.py)
 @dataclass(frozen=True, slots=True)
 class NeighbourFound:
     node: int
