@@ -31,6 +31,7 @@ COMPILED = [
     "awaremw/protocol/commands.py",
     "awaremw/protocol/component.py",
     "awaremw/protocol/dissemination.py",
+    "awaremw/protocol/events.py",
     "awaremw/protocol/groups.py",
     "awaremw/protocol/mote.py",
     "awaremw/protocol/timers.py",

@@ -21,8 +21,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from awaremw.protocol.attributes import X, Y
-from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.events import RecordProduced
 from awaremw.protocol.frames import ChannelDef, CommandDef, GroupTypeDef, ItemBody, ItemKind
 from awaremw.protocol.groups import Membership
 from awaremw.protocol.mote import AwareMote

@@ -155,7 +155,7 @@ def test_tallies_merge_across_processes() -> None:
 
 
 def test_tally_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
-    from awaremw.protocol.channels import RecordProduced
+    from awaremw.protocol.events import RecordProduced
     from awaremw.protocol.frames import DataRecord
 
     monkeypatch.setattr(aware_load, "MAX_TRACKED", 2)

@@ -10,9 +10,9 @@ import pytest
 from scenarios import LOSSLESS, Scenario, in_disc
 
 from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE
-from awaremw.protocol.channels import ChannelRefused, Channels, RecordProduced
+from awaremw.protocol.channels import Channels
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.events import ChannelRefused, ItemAdopted, RecordProduced
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     ANY_GROUP_TYPE,
@@ -601,6 +601,7 @@ def test_a_mote_in_no_group_keeps_no_epoch_timer() -> None:
     """Epochs tick only while a mote is in a group: a channel defined on a mote in
     none arms nothing; entering a group starts the epochs at the next boundary;
     leaving every group stops them once its pending partials are forgotten."""
+
     class FakeGroups:
         def __init__(self) -> None:
             self.ms: dict[int, Membership] = {}

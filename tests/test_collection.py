@@ -13,13 +13,9 @@ from awaremw.bench.dissemination import (
     parent_death_repair,
     route_of,
 )
-from awaremw.protocol.collection import (
-    Collection,
-    DataDropped,
-    Delivered,
-    ParentChanged,
-)
+from awaremw.protocol.collection import Collection
 from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.events import DataDropped, Delivered, ParentChanged
 from awaremw.protocol.frames import (
     BROADCAST,
     NO_ROUTE,

@@ -9,8 +9,9 @@ from typing import cast
 import pytest
 
 from awaremw.bench.dissemination import RecordingApp, TrafficMote, build_grid, inject_at
-from awaremw.protocol.commands import CommandExecuted, Commands
+from awaremw.protocol.commands import Commands
 from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.events import CommandExecuted
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     ChannelDef,

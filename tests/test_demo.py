@@ -228,7 +228,7 @@ def test_plain_log_throttles_status_lines() -> None:
 
 
 def test_describe_events() -> None:
-    from awaremw.protocol.groups import ElectionCause, HandoverSent, LeaderElected
+    from awaremw.protocol.events import ElectionCause, HandoverSent, LeaderElected
 
     assert describe(1, LeaderElected(1, 1, 7, 0, ElectionCause.CREATED, 1.0), 1.0) == (
         "mote 1 leads group 7 (type 1, created)"
@@ -236,9 +236,13 @@ def test_describe_events() -> None:
     assert describe(1, HandoverSent(1, 1, 7, 4, 2.0), 2.0) == (
         "mote 1 handed group 7 over to mote 4"
     )
-    assert describe(1, object(), 0.0) is None
+    from awaremw.protocol.events import ParentChanged
     from awaremw.runtime.events import MoteDown
 
+    assert describe(1, ParentChanged(None, 2, 10), 0.0) is None  # not news
     assert describe(3, MoteDown("battery"), 4.0) == "mote 3 is down (battery)"
     assert describe(3, MoteDown("stopped"), 4.0) is None  # the end of a run is no news
-    assert describe(3, type("MoteDown", (), {"reason": "killed"})(), 4.0) is None
+    # Dispatch is by type over the union MoteEvent: anything else is a bug.
+    for other in (object(), type("MoteDown", (), {"reason": "killed"})()):
+        with pytest.raises(AssertionError):
+            describe(3, other, 4.0)

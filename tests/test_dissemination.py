@@ -10,14 +10,8 @@ import pytest
 
 from awaremw.bench.dissemination import TrafficMote, build_grid, inject_at
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.dissemination import (
-    Dissemination,
-    ItemAdopted,
-    ItemRefused,
-    ItemTableFull,
-    digest_of,
-    digest_term,
-)
+from awaremw.protocol.dissemination import Dissemination, ItemTableFull, digest_of, digest_term
+from awaremw.protocol.events import ItemAdopted, ItemRefused
 from awaremw.protocol.frames import (
     BROADCAST,
     ChannelDef,
@@ -422,7 +416,7 @@ def test_an_injection_a_foreign_version_supersedes_is_reported_not_lost() -> Non
     # A forged item far along the u32 circle sits in the gateway mote; the gateway's
     # next version is "older" there. The mote says so (the gateway then re-injects
     # above it) instead of dropping the definition silently.
-    from awaremw.protocol.dissemination import InjectSuperseded
+    from awaremw.protocol.events import InjectSuperseded
 
     d, ctx, _ = make()
     forged = 0x7FFF_FFF0

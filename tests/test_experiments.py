@@ -16,19 +16,18 @@ from awaremw.experiments.scenario import load_scenario, scenario_of
 from awaremw.experiments.truth import components, truth_from
 from awaremw.experiments.virtual import VirtualRun
 from awaremw.protocol.attributes import attribute_id
-from awaremw.protocol.collection import Delivered
-from awaremw.protocol.frames import Condition, DataRecord, GroupTypeDef, Op
-from awaremw.protocol.groups import (
+from awaremw.protocol.events import (
+    Delivered,
     ElectionCause,
     GroupJoined,
     GroupLeft,
     LeaderElected,
     LeaveReason,
 )
+from awaremw.protocol.frames import Condition, DataRecord, GroupTypeDef, Op
 from awaremw.radio.model import CC2420, RadioModel
 from awaremw.runtime.deployment import DeploymentError, parse_deployment
-from awaremw.runtime.driver import MoteDown
-from awaremw.runtime.virtual import MoteDown as VirtualMoteDown
+from awaremw.runtime.events import MoteDown
 from awaremw.world.fields import Keyframe, Source, World
 from awaremw.world.mobility import Path as MPath
 from awaremw.world.mobility import Static
@@ -98,10 +97,12 @@ def test_recorder_replays_memberships() -> None:
     assert rec.leaders_at(1, 3.0) == {77: 1}
     assert rec.group_ids(1, 0.0, 4.0) == {77}
     assert rec.group_ids(1, 4.0, 6.0) == {77, 88}
-    # Dispatch is by type: a look-alike class named MoteDown is no mote down.
-    rec.on_event(1, type("MoteDown", (), {"reason": "killed"})(), 6.0)
+    # Dispatch is by type: a look-alike class named MoteDown is no mote down, and
+    # no event at all (the match is exhaustive over MoteEvent).
+    with pytest.raises(AssertionError):
+        rec.on_event(1, type("MoteDown", (), {"reason": "killed"})(), 6.0)
     assert rec.down == {} and set(rec.members_at(1, 6.0)) == {1, 2}
-    rec.on_event(1, VirtualMoteDown("killed"), 7.0)  # the virtual network's is the same type
+    rec.on_event(1, MoteDown("killed"), 7.0)
     assert set(rec.members_at(1, 7.0)) == {2}
     assert rec.down == {1: 7.0}
     rec.on_event(2, MoteDown("battery"), 8.0)
@@ -121,7 +122,7 @@ def test_score_and_delivery() -> None:
     rec = M.Recorder()
     r1 = DataRecord(1, 1, 77, 3, 0, 21.5, 4, 1)
     r2 = DataRecord(1, 1, 77, 4, 0, 21.7, 4, 1)
-    from awaremw.protocol.channels import RecordProduced
+    from awaremw.protocol.events import RecordProduced
 
     rec.on_event(1, RecordProduced(r1, 10.0), 10.0)
     rec.on_event(1, RecordProduced(r2, 12.0), 12.0)

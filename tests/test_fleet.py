@@ -16,7 +16,7 @@ from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.hello import HelloMote
 from awaremw.runtime.deployment import Deployment, NodeSpec, load, parse_deployment
-from awaremw.runtime.driver import MoteDown, MoteUp
+from awaremw.runtime.events import MoteDown, MoteUp
 from awaremw.runtime.fleet import (
     Fleet,
     FleetLauncher,

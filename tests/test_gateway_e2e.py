@@ -40,15 +40,14 @@ from mosquitto import (  # noqa: F401
 )
 
 from awaremw.cli.client import publish as client_publish
-from awaremw.gateway.bridge import Publish
 from awaremw.gateway.broker import EmbeddedBroker
+from awaremw.gateway.events import Publish
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
 from awaremw.nodes import KindsFactory, app_of, build_core, kind_names, world_of
 from awaremw.protocol.attributes import TEMPERATURE
-from awaremw.protocol.commands import CommandExecuted
 from awaremw.protocol.core import MoteCore
-from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.events import CommandExecuted, ItemAdopted
 from awaremw.protocol.frames import ItemKind
 from awaremw.runtime.deployment import Deployment, NodeSpec, load
 from awaremw.runtime.fleet import Fleet, FleetSettings

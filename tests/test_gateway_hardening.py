@@ -25,8 +25,9 @@ from hypothesis import strategies as st
 
 from awaremw.cli import main
 from awaremw.gateway import schema
-from awaremw.gateway.bridge import GatewayBridge, Outcome
+from awaremw.gateway.bridge import GatewayBridge
 from awaremw.gateway.broker import BrokerLimits, EmbeddedBroker, mask_url
+from awaremw.gateway.events import Outcome
 from awaremw.gateway.store import VersionStore
 
 GROUP = b'{"conditions": [{"attr": "temperature", "op": ">", "value": 45}]}'

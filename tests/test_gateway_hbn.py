@@ -10,7 +10,7 @@ import pytest
 import zenoh
 from inbox import Inbox
 
-from awaremw.gateway.bridge import ErrorReport, Publish
+from awaremw.gateway.events import ErrorReport, Publish
 from awaremw.gateway.hbn import HbnApi
 from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint, open_session
 

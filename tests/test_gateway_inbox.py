@@ -19,7 +19,7 @@ import pytest
 import zenoh
 from mosquitto import Collector, Mosquitto, mosquitto_fixture  # noqa: F401
 
-from awaremw.gateway.bridge import ErrorReport, Inject
+from awaremw.gateway.events import ErrorReport, Inject
 from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.inbox import OVERFLOW, Inbox, Incoming, overflow_report
 from awaremw.gateway.mqtt import MqttBridge, MqttSettings

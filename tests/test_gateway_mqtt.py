@@ -17,8 +17,8 @@ from mosquitto import (  # noqa: F401
     pub,
 )
 
-from awaremw.gateway.bridge import Publish
 from awaremw.gateway.broker import EmbeddedBroker
+from awaremw.gateway.events import Publish
 from awaremw.gateway.mqtt import BadMqttUrl, MqttBridge, MqttSettings
 
 pytestmark = pytest.mark.mosquitto

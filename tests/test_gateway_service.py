@@ -11,17 +11,17 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import zenoh
 from mosquitto import Collector, Mosquitto, mosquitto_fixture, pub  # noqa: F401
 
-from awaremw.gateway.bridge import Inject
+from awaremw.gateway.events import Inject
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, deployment_definitions
-from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.events import Delivered as FakeDelivered  # what a root emits
+from awaremw.protocol.events import ItemAdopted
 from awaremw.protocol.frames import (
     ChannelDef,
     DataRecord,
@@ -57,16 +57,6 @@ MALFORMED: list[tuple[str, bytes, str]] = [
     ("aware/cmd/led", json.dumps({"args": {"text": "x" * 80}}).encode(), "does_not_fit_mtu"),
     ("aware/def/widget/1", b"{}", "unknown_topic"),
 ]
-
-
-@dataclass(frozen=True)
-class FakeDelivered:
-    """Stands for collection.Delivered: what a root emits."""
-
-    origin: int
-    payload: DataRecord | GroupReport
-    thl: int
-    t: float
 
 
 class FakeWsn:

@@ -6,7 +6,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from awaremw.gateway.bridge import BridgePolicy, GatewayBridge, Inject
+from awaremw.gateway.bridge import BridgePolicy, GatewayBridge
+from awaremw.gateway.events import Inject
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore
 from awaremw.protocol.frames import (

@@ -18,14 +18,9 @@ from hypothesis import strategies as st
 from scenarios import LOSSLESS, Point, Scenario, ScriptedApp, in_disc, indicator, moving_disc
 
 from awaremw.protocol.attributes import TEMPERATURE, rssi_attribute
+from awaremw.protocol.events import ElectionCause, HandoverSent, LeaderElected, LeaderYielded
 from awaremw.protocol.frames import ANY_GROUP_ID, AggId, ChannelDef, Condition, GroupTypeDef, Op
-from awaremw.protocol.groups import (
-    ElectionCause,
-    HandoverSent,
-    LeaderElected,
-    LeaderYielded,
-    Role,
-)
+from awaremw.protocol.groups import Role
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import PRESETS, RadioPreset
 from awaremw.world.mobility import Path

@@ -11,6 +11,16 @@ from hypothesis import strategies as st
 
 from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE
 from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.events import (
+    ElectionCause,
+    GroupJoined,
+    GroupLeft,
+    GroupTypeRefused,
+    HandoverSent,
+    LeaderElected,
+    LeaderYielded,
+    LeaveReason,
+)
 from awaremw.protocol.frames import (
     BROADCAST,
     CommandDef,
@@ -27,15 +37,7 @@ from awaremw.protocol.frames import (
 )
 from awaremw.protocol.groups import (
     ELECTION_BACKOFF_FACTOR,
-    ElectionCause,
-    GroupJoined,
-    GroupLeft,
     Groups,
-    GroupTypeRefused,
-    HandoverSent,
-    LeaderElected,
-    LeaderYielded,
-    LeaveReason,
     Role,
     condition_holds,
     condition_may_hold,

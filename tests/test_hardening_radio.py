@@ -26,7 +26,8 @@ from hypothesis import strategies as st
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
 from awaremw.gateway.store import unwrap, wire_version
 from awaremw.nodes import KindsFactory, kind_names
-from awaremw.protocol.dissemination import ItemAdopted, newer, next_version
+from awaremw.protocol.dissemination import newer, next_version
+from awaremw.protocol.events import ItemAdopted
 from awaremw.protocol.frames import (
     BROADCAST,
     ChannelDef,

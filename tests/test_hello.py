@@ -8,9 +8,10 @@ import random
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
+from awaremw.protocol.core import MoteCore, Transmission
+from awaremw.protocol.events import MalformedFrame, NeighbourFound, NeighbourLost, PingResult
 from awaremw.protocol.frames import BROADCAST, DripSummary, Hello, decode, encode
-from awaremw.protocol.hello import HelloMote, NeighbourFound, NeighbourLost, PingResult
+from awaremw.protocol.hello import HelloMote
 
 
 def mote(node_id: int = 1, period: float = 1.0, **kw: float) -> HelloMote:

@@ -13,7 +13,8 @@ from awaremw.protocol.attributes import (
     attribute_name,
 )
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.core import MalformedFrame, Transmission
+from awaremw.protocol.core import Transmission
+from awaremw.protocol.events import MalformedFrame
 from awaremw.protocol.frames import BROADCAST, Hello, decode, encode
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.timers import TimerSet

@@ -14,7 +14,8 @@ from test_channels import _largest_frames
 from awaremw.bench.dissemination import Event, TrafficMote, build_grid, inject_at
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.dissemination import Dissemination, ItemAdopted, ItemRefused
+from awaremw.protocol.dissemination import Dissemination
+from awaremw.protocol.events import ItemAdopted, ItemRefused
 from awaremw.protocol.frames import (
     BROADCAST,
     MAX_NODE_ID,

@@ -28,7 +28,7 @@ from mosquitto import Mosquitto, MosquittoSub, mosquitto_fixture, pub  # noqa: F
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, _inject_core
 from awaremw.nodes import build_core, kind_names, world_of
-from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.events import ItemAdopted
 from awaremw.protocol.frames import (
     CtpData,
     DataRecord,

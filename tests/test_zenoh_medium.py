@@ -16,7 +16,8 @@ import msgpack
 import pytest
 import zenoh
 
-from awaremw.protocol.core import MalformedFrame, Transmission
+from awaremw.protocol.core import Transmission
+from awaremw.protocol.events import MalformedFrame
 from awaremw.protocol.frames import BROADCAST, FrameError, Hello, decode, encode
 from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
 from awaremw.radio.model import _NORMAL, RadioModel, cell_of, packet_key

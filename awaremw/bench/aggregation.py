@@ -74,9 +74,9 @@ from typing import Any
 
 from awaremw.bench.medium import add_medium_arguments, mac_totals, medium_of
 from awaremw.protocol.attributes import TEMPERATURE
-from awaremw.protocol.channels import RecordProduced
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
+from awaremw.protocol.events import RecordProduced
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     FRAME_TYPES,

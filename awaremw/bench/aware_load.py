@@ -46,9 +46,8 @@ from awaremw.experiments import objects
 from awaremw.experiments.objects import fires_of
 from awaremw.nodes import KindsFactory, kind_names, world_of
 from awaremw.protocol.attributes import TEMPERATURE
-from awaremw.protocol.channels import RecordProduced
-from awaremw.protocol.collection import Delivered
 from awaremw.protocol.core import MoteCore
+from awaremw.protocol.events import Delivered, RecordProduced
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     AggId,

@@ -53,6 +53,7 @@ import aiomqtt
 from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings
+from awaremw.protocol.events import Delivered
 from awaremw.protocol.frames import DataRecord
 
 
@@ -158,7 +159,7 @@ async def _throughput(url: str, sub_url: str, prefix: str, n: int) -> tuple[floa
         t0 = time.monotonic()
         for i in range(n):
             rec = DataRecord(1, 1, 1 + i % 16, i, 0, float(i), 1, 1)
-            svc.on_event(0, _Delivered(rec, float(i)), float(i))
+            svc.on_event(0, Delivered(0, rec, 0, float(i)), float(i))
             if i % 200 == 199:
                 await asyncio.sleep(0)  # let the sender and subscriber run
         while len(arr.times) < n:
@@ -185,7 +186,7 @@ async def _paced(
             if (wait := due - time.monotonic()) > 0:
                 await asyncio.sleep(wait)
             sent[f"{prefix}/data/2/1/2/{i}"] = time.monotonic()
-            svc.on_event(0, _Delivered(rec, float(i)), float(i))
+            svc.on_event(0, Delivered(0, rec, 0, float(i)), float(i))
         deadline = time.monotonic() + 30.0
         while len(arr.times) < n and time.monotonic() < deadline:
             arr.event.clear()
@@ -195,12 +196,6 @@ async def _paced(
             raise RuntimeError(f"bench bridge: {len(arr.times)} of {n} paced records arrived")
         assert svc.mqtt is not None
         return [arr.times[k] - sent[k] for k in sent], svc.mqtt.stats.protocol
-
-
-@dataclass(frozen=True)
-class _Delivered:
-    payload: DataRecord
-    t: float
 
 
 async def _main(args: argparse.Namespace) -> dict[str, Any]:
@@ -259,7 +254,7 @@ async def end_to_end(
     """
     from awaremw.gateway.service import attach_to_fleet
     from awaremw.nodes import KindsFactory, kind_names
-    from awaremw.protocol.channels import RecordProduced
+    from awaremw.protocol.events import RecordProduced
     from awaremw.runtime.deployment import load
     from awaremw.runtime.fleet import Fleet, FleetSettings
     from awaremw.runtime.zenoh_session import free_tcp_endpoint
@@ -312,7 +307,7 @@ async def end_to_end(
                     group = {"conditions": [{"attr": "temperature", "op": ">", "value": -100}]}
                     chan = {"attr": "temperature", "group_type": 1, "period_s": period}
                     for rel, doc in (("def/group/1", group), ("def/channel/1", chan)):
-                        out = svc.handle(rel, json.dumps(doc).encode(), via="local")
+                        out = svc.handle(rel, json.dumps(doc).encode())
                         if out.error is not None:
                             raise RuntimeError(f"bench definition refused: {out.error.error}")
                     await sensors.run(duration)

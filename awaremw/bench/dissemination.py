@@ -53,10 +53,9 @@ from collections.abc import Iterable
 from typing import Any
 
 from awaremw.bench.medium import add_medium_arguments, mac_totals, medium_of
-from awaremw.protocol.collection import ParentChanged
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.dissemination import ItemAdopted
+from awaremw.protocol.events import ItemAdopted, ParentChanged
 from awaremw.protocol.frames import (
     ChannelDef,
     CommandDef,

@@ -297,6 +297,7 @@ async def run_demo(
     from awaremw.experiments.snapshot import record_line as to_line
     from awaremw.experiments.snapshot import role_energy, snapshot_of
     from awaremw.gateway.broker import mask_url
+    from awaremw.runtime.events import MoteEvent
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
     from awaremw.view.snapshot import with_leds
 
@@ -322,7 +323,7 @@ async def run_demo(
             energy = role_energy(sc, run.recorder, now, traffic, fwd)
             dash.update_field(now, field_of(snap.motes, cores), energy)
 
-    def event(node: int, ev: object, t: float) -> None:
+    def event(node: int, ev: MoteEvent, t: float) -> None:
         line = describe(node, ev, t)
         if line is not None:
             view.log(t, line)

@@ -242,8 +242,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
-    from awaremw.gateway.bridge import Publish
     from awaremw.gateway.broker import BrokerError, EmbeddedBroker
+    from awaremw.gateway.events import Publish
     from awaremw.gateway.service import GatewaySettings, attach_to_fleet, deployment_definitions
     from awaremw.gateway.state import StateError
     from awaremw.gateway.store import StoreError
@@ -389,7 +389,7 @@ def _open_state(dep: object, state_dir: str | None, fresh: bool) -> DeploymentSt
 def _report_write_errors(svc: GatewayService, broker: EmbeddedBroker | None) -> None:
     """Failed writes of the state directory go to <prefix>/errors (rate-limited by their
     sources), besides the log."""
-    from awaremw.gateway.bridge import ErrorReport, Publish
+    from awaremw.gateway.events import ErrorReport, Publish
 
     def report(where: str) -> Callable[[str], None]:
         def publish(text: str) -> None:
@@ -433,7 +433,7 @@ async def _leftovers(mqtt: MqttSettings, motes: set[int]) -> Leftovers | None:
 async def _clear_unheard(svc: GatewayService, topics: tuple[str, ...], speed: float) -> None:
     """Clear the retained group states kept from the last run that the network has
     not reported again within the bridge's expiry (their group is gone)."""
-    from awaremw.gateway.bridge import Publish
+    from awaremw.gateway.events import Publish
 
     policy = svc.bridge.policy
     await asyncio.sleep(policy.report_period_s * policy.expiry_periods / speed)  # the expiry

@@ -25,23 +25,14 @@ import bisect
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, assert_never
 
 from awaremw.experiments.scenario import Scenario
 from awaremw.experiments.truth import GroundTruth
 from awaremw.nodes import config_for
-from awaremw.protocol.channels import RecordProduced
-from awaremw.protocol.collection import Delivered
+from awaremw.protocol import events as ev
 from awaremw.protocol.frames import DataRecord, GroupTypeDef
-from awaremw.protocol.groups import (
-    ElectionCause,
-    GroupJoined,
-    GroupLeft,
-    HandoverSent,
-    LeaderElected,
-    LeaderYielded,
-)
-from awaremw.runtime.events import MoteDown
+from awaremw.runtime.events import MoteDown, MoteEvent, MoteUp
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
 SAMPLE_DT = 0.5  # s between scored instants
@@ -96,35 +87,44 @@ class Recorder:
 
     # ------------------------------------------------------------------ inputs
 
-    def on_event(self, node: int, event: object, t: float) -> None:
+    def on_event(self, node: int, event: MoteEvent, t: float) -> None:
         """Feed one event of ``node`` at time ``t`` (VirtualNetwork.on_event signature)."""
         name = type(event).__name__  # a statistic only; dispatch is by type
         self.event_counts[name] = self.event_counts.get(name, 0) + 1
         match event:
-            case GroupJoined():
+            case ev.GroupJoined():
                 self._set(event.node, event.group_type, t, event.group_id, False)
-            case LeaderElected():
+            case ev.LeaderElected():
                 self._set(event.node, event.group_type, t, event.group_id, True)
                 self.elections.append(
                     Election(t, event.node, event.group_type, event.group_id, event.cause.value)
                 )
-            case GroupLeft():
+            case ev.GroupLeft():
                 self._set(event.node, event.group_type, t, None, False)
-            case HandoverSent():
+            case ev.HandoverSent():
                 self.handovers.append((t, event.group_type, event.group_id, event.node, event.to))
-            case LeaderYielded():
+            case ev.LeaderYielded():
                 self.yields.append(
                     (t, event.node, event.group_type, event.group_id, event.successor)
                 )
-            case RecordProduced(record=r):
+            case ev.RecordProduced(record=r):
                 self.produced.setdefault(_key(r), (t, r))
-            case Delivered(payload=DataRecord() as r):
+            case ev.Delivered(payload=DataRecord() as r):
                 self.on_record(t, r, "root")
             case MoteDown():
                 self.down.setdefault(node, t)
                 for (n, g), states in list(self.timeline.items()):
                     if n == node and states[-1].gid is not None:
                         self._set(n, g, t, None, False)
+            case (
+                ev.Delivered() | MoteUp() | ev.MalformedFrame() | ev.ItemAdopted()
+                | ev.ItemRefused() | ev.InjectSuperseded() | ev.ParentChanged() | ev.DataDropped()
+                | ev.GroupTypeRefused() | ev.ChannelRefused() | ev.CommandExecuted()
+                | ev.NeighbourFound() | ev.NeighbourLost() | ev.PingResult()
+            ):  # fmt: skip
+                pass  # counted only
+            case _:
+                assert_never(event)
 
     def on_record(self, t: float, record: DataRecord, via: str = "mqtt") -> None:
         """A record reached the IP side (MQTT subscriber or a root's Delivered event)."""
@@ -306,7 +306,7 @@ def handover_count(rec: Recorder, gtype: int, t0: float, t1: float) -> int:
     return sum(
         1
         for e in rec.elections
-        if e.group_type == gtype and t0 <= e.t <= t1 and e.cause == ElectionCause.HANDOVER.value
+        if e.group_type == gtype and t0 <= e.t <= t1 and e.cause == ev.ElectionCause.HANDOVER.value
     )
 
 

@@ -38,6 +38,7 @@ from awaremw.protocol.attributes import rssi_attribute
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.deployment import Deployment, NodeSpec
+from awaremw.runtime.events import EventHook, MoteEvent
 from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ class RunHooks:
 
     on_tick: Tick | None = None  # every sample_dt, with the run
     on_record: Callable[[Received], None] | None = None  # a record reached the robot
-    on_event: Callable[[int, object, float], None] | None = None  # every mote event
+    on_event: EventHook | None = None  # every mote event
 
 
 class RealtimeRun:
@@ -378,7 +379,7 @@ def run_realtime(
             snapshot_of(sc, run.recorder, now, run.live, run.traffic(), forwarders=run.forwarders())
         )
 
-    def event(node: int, ev: object, t: float) -> None:
+    def event(node: int, ev: MoteEvent, t: float) -> None:
         line = describe(node, ev, t)
         if line is not None:
             view.log(t, line)

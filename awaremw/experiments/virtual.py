@@ -20,6 +20,7 @@ from awaremw.experiments.scenario import Scenario
 from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.attributes import rssi_attribute
 from awaremw.protocol.core import MoteCore, Transmission
+from awaremw.protocol.events import CoreEvent
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.virtual import VirtualNetwork
@@ -65,7 +66,7 @@ class ScriptedCore:
     def link_result(self, tx: Transmission, acked: bool, now: float) -> None:
         self.inner.link_result(tx, acked, now)
 
-    def events(self) -> list[object]:
+    def events(self) -> list[CoreEvent]:
         return self.inner.events()
 
 

@@ -1,19 +1,17 @@
-"""The gateway's logic, independent of any transport (sans-IO).
+"""The gateway's logic, independent of any transport (sans-IO): events in,
+actions out (gateway/events.py).
 
 :class:`GatewayBridge` is fed with what arrives from the IP side (a topic
-relative to the prefix, e.g. ``def/channel/3``, and its payload) and with
-what the collection tree delivers at a gateway mote (``DataRecord`` and
-``GroupReport``). It answers with plain values:
+relative to the prefix, e.g. ``def/channel/3``, its payload and the transport it
+came by: :meth:`~GatewayBridge.handle`), with every event of a gateway mote
+(records and group reports the collection tree delivers, versions the mote
+adopted from the network, a reboot: :meth:`~GatewayBridge.on_mote_event`) and
+with the time (:meth:`~GatewayBridge.tick`). It answers with actions:
+:class:`Publish`, :class:`Inject`, :class:`Report`, :class:`StateChanged`.
 
-* :class:`Inject` -- a versioned Drip item for the gateway mote(s);
-* :class:`Publish` -- something for the IP side, with a topic relative to the
-  prefix (``data/1/1/513``, ``groups/1/513``); the MQTT bridge prepends
-  ``aware/``, the Zenoh API ``aware/hbn/``;
-* :class:`ErrorReport` -- why a payload was refused, for the transport it came
-  from (``<prefix>/errors`` or ``<prefix>/hbn/errors``).
-
-It owns the version store and the table of live groups; it never blocks,
-sleeps or talks to a socket.
+It owns the version store (every version decision: the store's count against
+the radio's u32 serial numbers, what the network holds, what to re-assert) and
+the table of live groups; it never blocks, sleeps or talks to a socket.
 """
 
 from __future__ import annotations
@@ -23,9 +21,19 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Collection
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, assert_never
 
+from awaremw.gateway.events import (
+    Action,
+    ErrorReport,
+    Inject,
+    Outcome,
+    Publish,
+    Report,
+    StateChanged,
+    Transport,
+)
 from awaremw.gateway.schema import (
     Definition,
     Limits,
@@ -38,7 +46,8 @@ from awaremw.gateway.schema import (
     parse_command,
     parse_group_type,
 )
-from awaremw.gateway.store import StoredItem, VersionStore, payload_hash
+from awaremw.gateway.store import StoredItem, VersionStore, payload_hash, unwrap, wire_version
+from awaremw.protocol import events as ev
 from awaremw.protocol.attributes import attribute_name, unit_of
 from awaremw.protocol.frames import (
     ANY_GROUP_TYPE,
@@ -49,8 +58,10 @@ from awaremw.protocol.frames import (
     ItemBody,
     ItemKind,
 )
+from awaremw.runtime.events import MoteDown, MoteEvent, MoteUp
 
 log = logging.getLogger(__name__)
+BodyFn = Callable[[int, ItemKind, int], ItemBody | None]  # (node, kind, item id): what it holds
 
 MAX_ERROR_PAYLOAD = 512  # characters of the refused payload echoed on the errors topic
 MAX_ERROR_TOPIC = 200  # characters of the topic echoed on the errors topic and in the log
@@ -96,57 +107,6 @@ class RateLimitedLog:
         suffix = f" ({skipped} more {code} refusals not logged)" if skipped else ""
         self.logger.warning(msg + suffix, *args)
         return True
-
-
-@dataclass(frozen=True, slots=True)
-class Inject:
-    """A versioned item to inject into every gateway mote."""
-
-    kind: ItemKind
-    item_id: int
-    version: int
-    body: ItemBody | None
-
-
-@dataclass(frozen=True, slots=True)
-class Publish:
-    """A message for the IP side; ``topic`` is relative to the prefix."""
-
-    topic: str
-    payload: bytes  # b"" with retain=True clears a retained topic
-    retain: bool = False
-    qos: int = 1
-
-
-@dataclass(frozen=True, slots=True)
-class ErrorReport:
-    """A refusal (or, with ``warning``, a note on an accepted payload), for the errors
-    topic of the transport the payload came from."""
-
-    topic: str  # the full topic / key expression the payload arrived on
-    code: str
-    error: str
-    payload: str
-    warning: bool = False  # the payload was accepted; "level": "warning" on the wire
-
-    def to_json(self) -> bytes:
-        doc = {"topic": self.topic, "error": self.error, "code": self.code, "payload": self.payload}
-        if self.warning:
-            doc["level"] = "warning"
-        return json.dumps(doc).encode()
-
-
-@dataclass(frozen=True, slots=True)
-class Outcome:
-    """What one incoming payload led to."""
-
-    inject: Inject | None = None
-    error: ErrorReport | None = None  # a refusal, or a warning on what ``inject`` carries
-    replay: bool = False  # a retained payload already handled: ignored
-
-    @property
-    def accepted(self) -> bool:
-        return self.inject is not None
 
 
 @dataclass(slots=True)
@@ -217,6 +177,9 @@ class BridgePolicy:
     command_slots: int = 16
     dedupe_window: int = 4096
     max_groups: int = MAX_GROUPS
+    # Retained definitions replayed by the broker are taken only when they are one
+    # of these (relative topic, payload) pairs; None: all. Live ones are always taken.
+    retained_only: frozenset[tuple[str, bytes]] | None = None
 
 
 class GatewayBridge:
@@ -256,7 +219,7 @@ class GatewayBridge:
 
     def startup(self) -> list[Inject]:
         """The stored state, to inject into the gateway motes when they start."""
-        return [Inject(i.kind, i.item_id, i.version, i.body) for i in self.store.items()]
+        return [_inject(i) for i in self.store.items()]
 
     def handle(
         self,
@@ -266,8 +229,10 @@ class GatewayBridge:
         source: str,
         retained: bool = False,
         size: int | None = None,
+        via: Transport = Transport.LOCAL,
     ) -> Outcome:
-        """One payload from the IP side on ``rel_topic`` (relative to the prefix).
+        """One payload from the IP side on ``rel_topic`` (relative to the prefix),
+        come by ``via`` (where a refusal is reported).
 
         ``source`` is the full topic as the sender saw it (echoed in errors and
         used to recognise replays); ``retained`` marks a payload replayed by
@@ -277,22 +242,26 @@ class GatewayBridge:
         given, is the payload's size as sent (a transport that did not copy an
         oversize payload passes it empty with its size).
         """
+        only = self.policy.retained_only
+        if retained and only is not None and (rel_topic, payload) not in only:
+            return Outcome(replay=True)  # not one of ours: inherited from the broker
         if (early := self._precheck(source, size)) is not None:
             # Refused before anything is remembered: a long topic is never stored.
-            return self._refuse(source, payload, early)
+            return self._refuse(source, payload, early, via)
         h = payload_hash(payload)
         if retained and self.store.last_seen(source) == h:
             self.stats.replays += 1
             return Outcome(replay=True)
         try:
-            outcome = self._apply(rel_topic, payload)
+            inj = self._apply(rel_topic, payload)
         except SchemaError as e:
             self.store.set_seen(source, h)
-            return self._refuse(source, payload, e)
+            return self._refuse(source, payload, e, via)
         self.store.set_seen(source, h)
-        if outcome.inject is not None and (w := self._waiting(outcome.inject, source, payload)):
-            outcome = Outcome(inject=outcome.inject, error=w)
-        return outcome
+        if inj is None:
+            return Outcome()
+        w = self._waiting(inj, source, payload)
+        return Outcome((inj, StateChanged()) + (() if w is None else (Report(w, via),)))
 
     def _precheck(self, source: str, size: int | None) -> SchemaError | None:
         if size is not None and size > self.limits.max_payload_bytes:
@@ -354,7 +323,7 @@ class GatewayBridge:
         text = payload[:MAX_ERROR_PAYLOAD].decode("utf-8", errors="replace")
         return ErrorReport(clip(source, MAX_ERROR_TOPIC), WAITS_FOR_GROUP_TYPE, msg, text, True)
 
-    def _refuse(self, source: str, payload: bytes, e: SchemaError) -> Outcome:
+    def _refuse(self, source: str, payload: bytes, e: SchemaError, via: Transport) -> Outcome:
         """Count, log (rate-limited) and report a refusal; the echoes are truncated."""
         self.stats.refused += 1
         self.stats.refused_by_code[e.code] = self.stats.refused_by_code.get(e.code, 0) + 1
@@ -364,9 +333,9 @@ class GatewayBridge:
             text += f"...(+{len(payload) - MAX_ERROR_PAYLOAD} bytes)"
         error = clip(str(e), MAX_ERROR_PAYLOAD)
         self.refusal_log.warning(e.code, "refused %s: %s", topic, error)
-        return Outcome(error=ErrorReport(topic, e.code, error, text))
+        return Outcome((Report(ErrorReport(topic, e.code, error, text), via),))
 
-    def _apply(self, rel_topic: str, payload: bytes) -> Outcome:
+    def _apply(self, rel_topic: str, payload: bytes) -> Inject | None:
         parts = rel_topic.split("/")
         if parts[0] == "def":
             d = self._parse_definition(
@@ -385,40 +354,76 @@ class GatewayBridge:
             self.stats.accepted += 1
             self._defined_here.add((ItemKind.COMMAND, slot))
             log.info("command %s -> slot %d version %d", c.name, slot, item.version)
-            return Outcome(inject=Inject(item.kind, item.item_id, item.version, item.body))
+            return _inject(item)
         raise UnknownTopic(
             f"unknown topic {rel_topic!r}; use def/group/<type>, def/channel/<id> or cmd/<name>"
         )
 
-    def _store(self, kind: ItemKind, item_id: int, body: ItemBody | None, js: Any) -> Outcome:
+    def _store(self, kind: ItemKind, item_id: int, body: ItemBody | None, js: Any) -> Inject | None:
         item = self.store.apply(kind, item_id, body, None if js is None else dict(js))
         if item is None:
             self.stats.unchanged += 1
-            return Outcome()
+            return None
         self.stats.accepted += 1
         self._defined_here.add((kind, item_id))
         what = "deleted" if body is None else "defined"
         log.info("%s %d %s, version %d", kind.name.lower(), item_id, what, item.version)
-        return Outcome(inject=Inject(item.kind, item.item_id, item.version, item.body))
+        return _inject(item)
 
-    def learn(
-        self, kind: ItemKind, item_id: int, version: int, body: ItemBody | None
-    ) -> Inject | None:
-        """A gateway mote adopted ``version`` of an item from the network.
+    # ----------------------------------------------------------------- WSN -> IP
+
+    def on_mote_event(
+        self, node: int, event: MoteEvent, body_of: BodyFn | None = None
+    ) -> list[Action]:
+        """An event of gateway mote ``node``; ``body_of`` reads the body a gateway
+        mote holds for an item (None: the gateway cannot learn what the network holds)."""
+        match event:
+            case MoteUp():  # (re)booted with an empty memory: give it the state
+                return [replace(i, node=node) for i in self.startup()]
+            case ev.ItemAdopted(source=None):
+                return []  # injected by us
+            case ev.ItemAdopted():
+                return self._learn(node, event, body_of)
+            case ev.InjectSuperseded():
+                return self._supersede(event)
+            case ev.Delivered(payload=payload, t=t):
+                out: list[Action] = [*self.on_payload(payload, t)]
+                return out if isinstance(payload, DataRecord) else [*out, StateChanged()]
+            case (
+                MoteDown() | ev.MalformedFrame() | ev.ItemRefused() | ev.ParentChanged()
+                | ev.DataDropped() | ev.GroupJoined() | ev.GroupLeft() | ev.LeaderElected()
+                | ev.LeaderYielded() | ev.HandoverSent() | ev.GroupTypeRefused()
+                | ev.RecordProduced() | ev.ChannelRefused() | ev.CommandExecuted()
+                | ev.NeighbourFound() | ev.NeighbourLost() | ev.PingResult()
+            ):  # fmt: skip
+                return []
+            case _:
+                assert_never(event)
+
+    def _learn(self, node: int, adopted: ev.ItemAdopted, body_of: BodyFn | None) -> list[Action]:
+        """Gateway mote ``node`` adopted ``adopted.version`` of an item from the network.
 
         A gateway that lost its store (or shares the network with another)
         learns the versions in force this way. If the item was (re)defined
         through this gateway since it started and the network holds another
         body under a version at least as high (so it ignored ours), our
         definition is the newer intent: it is stored again above the network's
-        version and returned, to be injected. Otherwise the network's state is
-        taken over and None returned.
+        version and injected. Otherwise the network's state is taken over.
         """
+        kind, item_id = adopted.kind, adopted.item_id
+        body: ItemBody | None = None
+        if not adopted.deleted and (
+            body_of is None or (body := body_of(node, kind, item_id)) is None
+        ):
+            return []  # cannot tell what the network holds: the store stays as it is
         cur = self.store.get(kind, item_id)
+        # The mote's u32 version, mapped into the store's non-wrapping count, so
+        # that "newer" there is RFC 1982 "newer" on the radio (store.unwrap).
+        version = unwrap(adopted.version, None if cur is None else cur.version)
         if cur is not None and (
             cur.version > version or (cur.version == version and cur.body == body)
         ):
-            return None  # the store is ahead, or agrees
+            return []  # the store is ahead, or agrees
         if cur is not None and (kind, item_id) in self._defined_here and cur.body != body:
             item = self.store.bump_to(kind, item_id, version + 1, cur.body, cur.json)
             self.stats.reasserted += 1
@@ -426,27 +431,27 @@ class GatewayBridge:
                 "%s %d: the network holds version %d; ours is re-sent as version %d",
                 kind.name.lower(), item_id, version, item.version,
             )  # fmt: skip
-            return Inject(item.kind, item.item_id, item.version, item.body)
-        if self.store.learn(kind, item_id, version, body) is not None:
-            self.stats.learned += 1
-            log.info(
-                "learned %s %d version %d from the network", kind.name.lower(), item_id, version
-            )
-        return None
+            return [_inject(item), StateChanged()]
+        self.store.learn(kind, item_id, version, body)
+        self.stats.learned += 1
+        log.info("learned %s %d version %d from the network", kind.name.lower(), item_id, version)
+        return [StateChanged()]
 
-    def supersede(self, kind: ItemKind, item_id: int, version: int) -> Inject | None:
-        """Store our current definition again at ``version`` (above what a gateway
-        mote holds from the network) and return it to be injected."""
-        cur = self.store.get(kind, item_id)
-        if cur is None or version <= cur.version:
-            return None
-        item = self.store.bump_to(kind, item_id, version, cur.body, cur.json)
+    def _supersede(self, sup: ev.InjectSuperseded) -> list[Action]:
+        """Our mote holds a foreign version that ours does not supersede (serial
+        order is not transitive: forged versions can sit anywhere on the circle):
+        store our definition again just above it, and inject it."""
+        cur = self.store.get(sup.kind, sup.item_id)
+        if cur is None or wire_version(cur.version) != sup.version:
+            return []  # a later definition is on its way already
+        # Step over it on the radio's circle: the next store version whose u32 is
+        # ``held + 1``, newer than ``held`` for every mote (RFC 1982).
+        version = cur.version + ((sup.held - sup.version) & 0xFFFFFFFF) + 1
+        item = self.store.bump_to(sup.kind, sup.item_id, version, cur.body, cur.json)
         self.stats.reasserted += 1
-        log.info("%s %d: re-sent as version %d over a foreign one", kind.name.lower(), item_id,
-                 item.version)  # fmt: skip
-        return Inject(item.kind, item.item_id, item.version, item.body)
-
-    # ----------------------------------------------------------------- WSN -> IP
+        log.info("%s %d: re-sent as version %d over a foreign one", sup.kind.name.lower(),
+                 sup.item_id, item.version)  # fmt: skip
+        return [_inject(item), StateChanged()]
 
     def on_payload(self, payload: DataRecord | GroupReport, now: float) -> list[Publish]:
         """A payload the collection tree delivered at a gateway mote at emulated ``now``."""
@@ -516,6 +521,11 @@ class GatewayBridge:
         out.append(Publish(group_topic(*key), g.to_json(), retain=True))
         return out
 
+    def tick(self, now: float) -> list[Action]:
+        """The time (emulated): clear the groups gone silent (:meth:`expire`)."""
+        expired: list[Action] = [*self.expire(now)]
+        return [*expired, StateChanged()] if expired else []
+
     def expire(self, now: float) -> list[Publish]:
         """Clear the groups not heard from for ``expiry_periods`` report periods."""
         limit = self.policy.expiry_periods * self.report_period_s
@@ -557,3 +567,7 @@ class GatewayBridge:
 
     def item(self, kind: ItemKind, item_id: int) -> StoredItem | None:
         return self.store.get(kind, item_id)
+
+
+def _inject(item: StoredItem) -> Inject:
+    return Inject(item.kind, item.item_id, item.version, item.body)

@@ -45,7 +45,8 @@ from types import MappingProxyType
 
 import zenoh
 
-from awaremw.gateway.bridge import ErrorReport, Publish, RateLimitedLog
+from awaremw.gateway.bridge import RateLimitedLog
+from awaremw.gateway.events import ErrorReport, Publish
 from awaremw.gateway.inbox import (
     OVERFLOW,
     Inbox,

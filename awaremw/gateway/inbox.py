@@ -26,7 +26,8 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from awaremw.gateway.bridge import MAX_ERROR_TOPIC, ErrorReport, clip
+from awaremw.gateway.bridge import MAX_ERROR_TOPIC, clip
+from awaremw.gateway.events import ErrorReport
 
 MAX_DEFINITIONS = 4096  # distinct definition topics waiting (the contract's ids are u16)
 MAX_COMMANDS = 1_000  # commands waiting

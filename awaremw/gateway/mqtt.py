@@ -55,7 +55,8 @@ import aiomqtt
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from awaremw.gateway.bridge import Publish, RateLimitedLog
+from awaremw.gateway.bridge import RateLimitedLog
+from awaremw.gateway.events import Publish
 from awaremw.gateway.inbox import MAX_COMMANDS, MAX_DEFINITIONS, Inbox, Incoming, overflow_report
 
 log = logging.getLogger(__name__)

@@ -1,19 +1,14 @@
 """The gateway service: gateway motes + bridge + MQTT + Zenoh HBN, wired together.
 
-:class:`GatewayService` owns the :class:`GatewayBridge` (validation, versions,
-group table) and the transports, and talks to the sensor network through two
-callables the runtime provides:
-
-* ``inject(node_id, Inject)`` -- put a versioned item into a gateway mote's
-  core (inside the event loop that drives it);
-* ``now()`` -- the fleet's emulated time.
-
-The runtime calls :meth:`GatewayService.on_event` with every core event of
-the gateway motes; ``Delivered`` events (from the collection tree's roots)
-become data records and group states on MQTT and Zenoh.
-
-Refusals go back to the transport the payload came from: ``<prefix>/errors``
-on MQTT, ``<prefix>/hbn/errors`` on Zenoh.
+:class:`GatewayService` only wires: what the transports hand it (:meth:`handle`,
+with their :class:`~awaremw.gateway.events.Transport`), the gateway motes'
+events (:meth:`on_event`) and the time go to the :class:`GatewayBridge`, which
+makes every decision; its actions go out (:meth:`_apply`): publications on MQTT
+and Zenoh, injections into the gateway motes, refusals on the errors topic of
+the transport the payload came by (``<prefix>/errors``, ``<prefix>/hbn/errors``),
+a new snapshot for the Zenoh queryable. The runtime provides two callables
+(:meth:`bind`): ``inject(node_id, Inject)`` puts an item into a gateway mote's
+core (inside the loop that drives it), ``now()`` is the fleet's emulated time.
 """
 
 from __future__ import annotations
@@ -25,36 +20,42 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, assert_never
 
 import zenoh
 
-from awaremw.gateway.bridge import (
-    BridgePolicy,
-    ErrorReport,
-    GatewayBridge,
+from awaremw.gateway.bridge import BodyFn, BridgePolicy, GatewayBridge
+from awaremw.gateway.events import (
+    Action,
     Inject,
     Outcome,
     Publish,
+    Report,
+    StateChanged,
+    Transport,
 )
 from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.inbox import Inbox, Incoming
-from awaremw.gateway.mqtt import STATS_TOPIC, STATUS_TOPIC, MqttBridge, MqttSettings
+from awaremw.gateway.mqtt import (
+    ERRORS_TOPIC,
+    STATS_TOPIC,
+    STATUS_TOPIC,
+    MqttBridge,
+    MqttSettings,
+)
 from awaremw.gateway.schema import Limits
-from awaremw.gateway.store import VersionStore, unwrap, wire_version
+from awaremw.gateway.store import VersionStore, wire_version
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.dissemination import InjectSuperseded, ItemAdopted
-from awaremw.protocol.frames import DataRecord, GroupReport, ItemBody, ItemKind
+from awaremw.protocol.frames import ItemBody, ItemKind
 from awaremw.protocol.mote import AwareMote
-from awaremw.runtime.driver import MoteUp
+from awaremw.runtime.events import MoteEvent
 from awaremw.runtime.fleet import Fleet
 
 log = logging.getLogger(__name__)
 
 InjectFn = Callable[[int, Inject], None]
-BodyFn = Callable[[int, ItemKind, int], ItemBody | None]
 ClockFn = Callable[[], float]
 STORE_FILE = "gateway.sqlite"
 INJECT_GAP_S = 0.5  # wall seconds between two injections of one definition (the newest wins)
@@ -129,14 +130,15 @@ class GatewayService:
                 report_period_s=self.config.report_every_beacons * self.config.beacon_period,
                 expiry_periods=s.expiry_periods,
                 command_slots=self.config.max_command_slots,
+                retained_only=s.retained_only,
             ),
         )
         self.mqtt: MqttBridge | None = None
         if mqtt is not None:
             self.mqtt = MqttBridge(
-                MqttSettings(**{**_fields(mqtt), "prefix": s.prefix}),
+                replace(mqtt, prefix=s.prefix),
                 lambda rel, payload, retained, topic: self.handle(
-                    rel, payload, retained=retained, topic=topic, via="mqtt"
+                    rel, payload, retained=retained, topic=topic, via=Transport.MQTT
                 ),
                 self._valid,
             )
@@ -154,7 +156,7 @@ class GatewayService:
         self._deferred: dict[tuple[ItemKind, int], asyncio.TimerHandle] = {}
         # Set after every payload handled, version learned or paced injection made.
         self.handled = asyncio.Event()
-        self.delivered = asyncio.Event()  # set after every record or report from the WSN
+        self.delivered = asyncio.Event()  # set after every publication (records, groups)
 
     # ----------------------------------------------------------------- lifecycle
 
@@ -168,13 +170,12 @@ class GatewayService:
         """Re-inject the stored state, then open the transports."""
         if self._inject is None or self._now is None:
             raise RuntimeError("GatewayService.bind() must be called before start()")
-        for inj in self.bridge.startup():
-            self._inject_all(inj)
+        self._apply(self.bridge.startup())
         if self.settings.hbn and self._session is not None:
             self.hbn = HbnApi(
                 self._session,
                 lambda rel, payload, retained, key, size: self.handle(
-                    rel, payload, retained=retained, topic=key, via="hbn", size=size
+                    rel, payload, retained=retained, topic=key, via=Transport.HBN, size=size
                 ),
                 prefix=self.settings.prefix,
                 max_payload_bytes=self.settings.max_payload_bytes,
@@ -229,21 +230,15 @@ class GatewayService:
         *,
         retained: bool = False,
         topic: str = "",
-        via: str = "",
+        via: Transport = Transport.LOCAL,
         size: int | None = None,
     ) -> Outcome:
-        """One payload from an IP transport (``via``: ``mqtt``, ``hbn`` or ``local``);
-        ``size``: the payload's size as sent, when the transport did not copy it whole."""
-        only = self.settings.retained_only
-        if retained and only is not None and (rel, payload) not in only:
-            self.handled.set()
-            return Outcome(replay=True)
-        out = self.bridge.handle(rel, payload, source=topic or rel, retained=retained, size=size)
-        if out.inject is not None:
-            self._inject_paced(out.inject)
-            self._refresh_hbn()
-        if out.error is not None:
-            self._report(out.error, via)
+        """One payload from an IP transport; ``size``: the payload's size as sent,
+        when the transport did not copy it whole."""
+        out = self.bridge.handle(
+            rel, payload, source=topic or rel, retained=retained, size=size, via=via
+        )
+        self._apply(out.actions, paced=True)
         self.handled.set()
         return out
 
@@ -253,18 +248,33 @@ class GatewayService:
         the HBN inbox calls it on Zenoh's threads."""
         return self.bridge.validate(m.rel, m.payload, source=m.topic, size=m.size) is None
 
-    def _report(self, error: ErrorReport, via: str) -> None:
-        """An error report on the errors topic of the transport it concerns."""
-        if via == "mqtt" and self.mqtt is not None:
-            self.mqtt.publish(Publish("errors", error.to_json()))
-        elif via == "hbn" and self.hbn is not None:
-            self.hbn.publish_error(error)
+    def _apply(self, actions: Iterable[Action], *, paced: bool = False) -> None:
+        """Carry out the bridge's actions; ``paced``: injections of definitions
+        from the IP side (a burst goes on the radio as its newest version)."""
+        for a in actions:
+            match a:
+                case Publish():
+                    self.publish(a)
+                    self.delivered.set()
+                case Inject() if a.node is not None:
+                    self._inject_one(a.node, a)
+                case Inject():
+                    (self._inject_paced if paced else self._inject_all)(a)
+                case Report(via=Transport.MQTT) if self.mqtt is not None:
+                    self.mqtt.publish(Publish(ERRORS_TOPIC, a.error.to_json()))
+                case Report(via=Transport.HBN) if self.hbn is not None:
+                    self.hbn.publish_error(a.error)
+                case Report():
+                    pass  # a local payload, or its transport is off: the Outcome has it
+                case StateChanged():
+                    self._refresh_hbn()
+                    self.handled.set()
+                case _:
+                    assert_never(a)
 
     def define_initial(self, definitions: Iterable[tuple[str, bytes]]) -> list[Outcome]:
         """Apply definitions that come with the deployment (as if published live)."""
-        return [
-            self.handle(rel, p, topic=f"deployment:{rel}", via="local") for rel, p in definitions
-        ]
+        return [self.handle(rel, p, topic=f"deployment:{rel}") for rel, p in definitions]
 
     def _inject_paced(self, inj: Inject) -> None:
         """Inject a new definition, at most once per ``INJECT_GAP_S`` per item: in a
@@ -288,7 +298,7 @@ class GatewayService:
 
     def _inject_deferred(self, key: tuple[ItemKind, int]) -> None:
         del self._deferred[key]
-        item = self.bridge.store.get(*key)
+        item = self.bridge.item(*key)
         if item is None:
             return
         self._last_inject[key] = time.monotonic()
@@ -310,63 +320,11 @@ class GatewayService:
 
     # ----------------------------------------------------------------- WSN -> IP
 
-    def on_event(self, node_id: int, event: object, now: float) -> None:
+    def on_event(self, node_id: int, event: MoteEvent, now: float) -> None:
         """Hook for the runtime: every event of a gateway mote's core."""
         if node_id not in self.roots:
             return
-        if isinstance(event, MoteUp) and self._inject is not None:
-            # A gateway mote (re)booted with an empty memory: give it the state.
-            for inj in self.bridge.startup():
-                self._inject_one(node_id, inj)
-            return
-        if isinstance(event, ItemAdopted):
-            if event.source is not None:  # heard from the radio, not injected by us
-                self._learn(node_id, event)
-            return
-        if isinstance(event, InjectSuperseded):
-            # Our mote holds a foreign version that ours does not supersede (serial
-            # order is not transitive: forged versions can sit anywhere on the circle).
-            self._supersede(event)
-            return
-        payload = getattr(event, "payload", None)
-        if not isinstance(payload, DataRecord | GroupReport):
-            return
-        t = getattr(event, "t", now)
-        for p in self.bridge.on_payload(payload, float(t)):
-            self.publish(p)
-        self.delivered.set()
-        if isinstance(payload, GroupReport):
-            self._refresh_hbn()
-
-    def _supersede(self, ev: InjectSuperseded) -> None:
-        """Re-inject our definition just above the version the mote holds."""
-        cur = self.bridge.store.get(ev.kind, ev.item_id)
-        if cur is None or wire_version(cur.version) != ev.version:
-            return  # a later definition is on its way already
-        # Step over it on the radio's circle: the next store version whose u32 is
-        # ``held + 1``, newer than ``held`` for every mote (RFC 1982).
-        target = cur.version + ((ev.held - ev.version) & 0xFFFFFFFF) + 1
-        inj = self.bridge.supersede(ev.kind, ev.item_id, target)
-        if inj is not None:
-            self._inject_all(inj)
-
-    def _learn(self, node_id: int, ev: ItemAdopted) -> None:
-        body: ItemBody | None = None
-        if not ev.deleted:
-            if self._body_of is None:
-                return  # cannot tell what the network holds: leave the store as it is
-            body = self._body_of(node_id, ev.kind, ev.item_id)
-            if body is None:
-                return
-        # The mote's u32 version, mapped into the store's non-wrapping count, so
-        # that "newer" there is RFC 1982 "newer" on the radio (store.unwrap).
-        cur = self.bridge.store.get(ev.kind, ev.item_id)
-        version = unwrap(ev.version, None if cur is None else cur.version)
-        inj = self.bridge.learn(ev.kind, ev.item_id, version, body)
-        if inj is not None:
-            self._inject_all(inj)
-        self._refresh_hbn()
-        self.handled.set()
+        self._apply(self.bridge.on_mote_event(node_id, event, self._body_of))
 
     def publish(self, p: Publish) -> None:
         if self.mqtt is not None:
@@ -382,12 +340,7 @@ class GatewayService:
         assert self._now is not None
         period = max(0.05, self.bridge.report_period_s / 4)
         while True:
-            now = self._now()
-            expired = self.bridge.expire(now)
-            for p in expired:
-                self.publish(p)
-            if expired:
-                self._refresh_hbn()
+            self._apply(self.bridge.tick(self._now()))
             await asyncio.sleep(self._wall(period))
 
     def _wall(self, emulated: float) -> float:
@@ -432,10 +385,6 @@ class GatewayService:
         self._refresh_due = False
         if self.hbn is not None:
             self.hbn.set_state(self.state())
-
-
-def _fields(s: MqttSettings) -> dict[str, Any]:
-    return {f: getattr(s, f) for f in s.__slots__}
 
 
 def attach_to_fleet(

@@ -355,22 +355,12 @@ class VersionStore:
 
     def learn(
         self, kind: ItemKind, item_id: int, version: int, body: ItemBody | None
-    ) -> StoredItem | None:
-        """The network holds ``version`` of an item (heard by a gateway mote).
-
-        If that is newer than what the store knows (the store was lost, or
-        another gateway defined it), take it over, so the next definition gets
-        a version the motes accept. Returns the new state, or None if the store
-        was up to date.
-        """
-        h = body_hash(kind, body)
-        row = self._db.execute(
-            "SELECT version, hash FROM items WHERE kind=? AND item_id=?", (int(kind), item_id)
-        ).fetchone()
-        if row is not None and (row[0] > version or (row[0] == version and row[1] == h)):
-            return None
+    ) -> StoredItem:
+        """Take over ``version`` of an item the network holds (heard by a gateway
+        mote), so the next definition gets a version the motes accept; the bridge
+        decides when (``GatewayBridge._learn``)."""
         js = None if body is None else definition_json(kind, body)
-        return self._write(kind, item_id, version, h, body, js)
+        return self._write(kind, item_id, version, body_hash(kind, body), body, js)
 
     def _write(
         self,

@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 from awaremw.protocol import aggregation
 from awaremw.protocol.collection import Collection
 from awaremw.protocol.component import Component, MoteContext
+from awaremw.protocol.events import ChannelRefused, RecordProduced
 from awaremw.protocol.frames import (
     ANY_GROUP_ID,
     ANY_GROUP_TYPE,
@@ -50,23 +51,6 @@ MAX_CHANNEL_ID = 0xFF
 KEEP_EPOCHS = 3  # pending state kept this many epochs back (late partials)
 
 _Key = tuple[int, int, int, int]  # (channel, group type, group id, epoch)
-
-
-@dataclass(frozen=True, slots=True)
-class RecordProduced:
-    """A leader finished an epoch: ``record`` went (or was offered) to the gateway."""
-
-    record: DataRecord
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class ChannelRefused:
-    """A channel definition this mote cannot run (bad id, unknown function, too many)."""
-
-    node: int
-    channel: int
-    reason: str
 
 
 @dataclass

@@ -60,42 +60,12 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 
 from awaremw.protocol.component import Component, MoteContext
+from awaremw.protocol.events import DataDropped, Delivered, ParentChanged
 from awaremw.protocol.frames import BROADCAST, NO_ROUTE, CtpBeacon, CtpData, Frame, Payload
 from awaremw.protocol.trickle import Trickle
 
 ETX_ONE = 10  # ETX 1.0 in the x10 integer scale of costs
 MAX_COST = NO_ROUTE - 1  # path costs saturate here (NO_ROUTE means "none")
-
-
-# --------------------------------------------------------------------------- events
-
-
-@dataclass(frozen=True, slots=True)
-class Delivered:
-    """Event at a root: ``payload`` from ``origin`` arrived after ``thl`` hops at ``t``."""
-
-    origin: int
-    payload: Payload
-    thl: int
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class ParentChanged:
-    """Event: the mote's parent changed (None: no route); ``cost`` is the new path cost."""
-
-    old: int | None
-    new: int | None
-    cost: int
-
-
-@dataclass(frozen=True, slots=True)
-class DataDropped:
-    """Event: a packet was given up (``reason``: queue full, thl, retries)."""
-
-    origin: int
-    seqno: int
-    reason: str
 
 
 # --------------------------------------------------------------------------- state

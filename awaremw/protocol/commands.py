@@ -21,22 +21,13 @@ command it finds there once. The gateway deletes a slot to retire a command.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from awaremw.protocol.component import Component, MoteContext
+from awaremw.protocol.events import CommandExecuted
 from awaremw.protocol.frames import ANY_GROUP_ID, CommandDef, ItemBody, ItemKind, TargetKind
 from awaremw.protocol.groups import Groups
 
 VersionOf = Callable[[ItemKind, int], "int | None"]
-
-
-@dataclass(frozen=True, slots=True)
-class CommandExecuted:
-    """Event: the application's handler ran ``name`` from ``slot`` at ``version``."""
-
-    name: str
-    slot: int
-    version: int
 
 
 class Commands(Component):

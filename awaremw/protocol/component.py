@@ -14,6 +14,7 @@ from collections.abc import Callable
 from awaremw.protocol.attributes import Application, ReadBounds
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
+from awaremw.protocol.events import CoreEvent
 from awaremw.protocol.frames import BROADCAST, NODE_MASK, RSSI_BASE, Frame, encode, note_sent
 from awaremw.protocol.timers import TimerSet
 
@@ -58,7 +59,7 @@ class MoteContext:
         self.rssi: dict[int, RssiSample] = {}
         self.outbox: list[Transmission] = []
         self.pending: dict[int, tuple[Component, Frame]] = {}
-        self.event_list: list[object] = []
+        self.event_list: list[CoreEvent] = []
         # The application's read_bounds (ReadBounds), looked up again if app changes.
         self._bounds_app: Application | None = None
         self._bounds: Callable[[int, float], tuple[float, float] | None] | None = None
@@ -75,7 +76,7 @@ class MoteContext:
         self.outbox.append(tx)
         return tx
 
-    def emit(self, event: object) -> None:
+    def emit(self, event: CoreEvent) -> None:
         self.event_list.append(event)
 
     def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:

@@ -22,6 +22,7 @@ import itertools
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from awaremw.protocol.events import CoreEvent
 from awaremw.protocol.frames import BROADCAST
 
 _tx_ids = itertools.count(1)
@@ -52,14 +53,6 @@ class Transmission:
         return Transmission(frame, dest, next(_tx_ids))
 
 
-@dataclass(frozen=True, slots=True)
-class MalformedFrame:
-    """Event: a frame from the radio could not be decoded (remote fault)."""
-
-    error: str
-    size: int
-
-
 @runtime_checkable
 class MoteCore(Protocol):
     """What the runtime drives. See the module docstring for the call order."""
@@ -78,7 +71,7 @@ class MoteCore(Protocol):
 
     def link_result(self, tx: Transmission, acked: bool, now: float) -> None: ...
 
-    def events(self) -> list[object]: ...
+    def events(self) -> list[CoreEvent]: ...
 
 
 @runtime_checkable

@@ -52,11 +52,11 @@ because the gateway should have checked :meth:`Dissemination.accepts`).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
 
 from awaremw.protocol.component import Component, MoteContext
+from awaremw.protocol.events import InjectSuperseded, ItemAdopted, ItemRefused
 from awaremw.protocol.frames import (
     BROADCAST,
     SIG_PART_BYTES,
@@ -116,40 +116,6 @@ class _Pending:
         self.body: object = _MISSING  # ItemBody | None once heard
         self.parts: list[bytes | None] = [None] * SIG_PARTS
         self.source = source
-
-
-@dataclass(frozen=True, slots=True)
-class ItemAdopted:
-    """Event: this mote now holds ``version`` of an item (``source`` None: injected)."""
-
-    kind: ItemKind
-    item_id: int
-    version: int
-    deleted: bool
-    source: int | None
-
-
-@dataclass(frozen=True, slots=True)
-class ItemRefused:
-    """Event: a newer item heard from the radio could not be stored (remote fault)."""
-
-    kind: ItemKind
-    item_id: int
-    version: int
-    source: int
-    reason: str
-
-
-@dataclass(frozen=True, slots=True)
-class InjectSuperseded:
-    """Event: an injected version was not newer than the version this mote holds
-    (``held``, e.g. a foreign item heard from the radio): the injector, the source
-    of truth, may inject again above ``held``."""
-
-    kind: ItemKind
-    item_id: int
-    version: int
-    held: int
 
 
 class ItemTableFull(ValueError):

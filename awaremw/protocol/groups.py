@@ -53,6 +53,16 @@ from typing import NamedTuple
 
 from awaremw.protocol.collection import Collection
 from awaremw.protocol.component import Component, MoteContext
+from awaremw.protocol.events import (
+    ElectionCause,
+    GroupJoined,
+    GroupLeft,
+    GroupTypeRefused,
+    HandoverSent,
+    LeaderElected,
+    LeaderYielded,
+    LeaveReason,
+)
 from awaremw.protocol.frames import (
     ANY_GROUP_TYPE,
     BROADCAST,
@@ -87,22 +97,6 @@ class Role(Enum):
     HANDING_OVER = "handing_over"
 
 
-class LeaveReason(Enum):
-    CONDITION = "condition"  # stopped meeting the conditions
-    SWITCHED = "switched"  # moved to a heavier group of the same type
-    YIELDED = "yielded"  # a leader that heard a heavier leader (now a member of it)
-    LEADER_LOST = "leader_lost"  # no beacon for the leader timeout
-    HANDOVER = "handover"  # a leader that handed its group over
-    DELETED = "deleted"  # the group type was deleted
-
-
-class ElectionCause(Enum):
-    CREATED = "created"  # a qualifying mote found no group nearby
-    HANDOVER = "handover"  # took over a leaving leader's group (same id)
-    ELECTION = "election"  # the leader was lost; a new group (new id) replaces it
-    FAILOVER = "failover"  # the leader died: a member that was its neighbour took over (same id)
-
-
 @dataclass(frozen=True, slots=True)
 class Membership:
     """This mote's view of its group of one type."""
@@ -114,65 +108,6 @@ class Membership:
     parent: int | None  # next hop towards the leader (None at the leader)
     hops: int  # distance to the leader in the group tree (0 at the leader)
     weight: int
-
-
-@dataclass(frozen=True, slots=True)
-class GroupJoined:
-    node: int
-    group_type: int
-    group_id: int
-    leader: int
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class GroupLeft:
-    node: int
-    group_type: int
-    group_id: int
-    reason: LeaveReason
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class LeaderElected:
-    """``node`` became the leader of ``group_id`` (membership implied)."""
-
-    node: int
-    group_type: int
-    group_id: int
-    weight: int
-    cause: ElectionCause
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class LeaderYielded:
-    node: int
-    group_type: int
-    group_id: int
-    successor: int  # the heavier group's id (equal to group_id on an id clash)
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class HandoverSent:
-    """A leaving leader's Handover was acknowledged and not refused."""
-
-    node: int
-    group_type: int
-    group_id: int
-    to: int
-    t: float
-
-
-@dataclass(frozen=True, slots=True)
-class GroupTypeRefused:
-    """A definition this mote cannot hold (too many types, reserved type id)."""
-
-    node: int
-    group_type: int
-    reason: str
 
 
 @dataclass

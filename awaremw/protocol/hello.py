@@ -6,39 +6,26 @@ entries expire, and can ping a neighbour by unicast (the link layer's ACK
 tells whether it got there). It exercises the runtime, the medium and the
 benchmarks before the real middleware exists, and stays useful as the
 simplest core to test drivers with. Garbage from the radio becomes a
-:class:`~awaremw.protocol.core.MalformedFrame` event and changes nothing else.
+:class:`~awaremw.protocol.events.MalformedFrame` event and changes nothing else.
 """
 
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
 
 import msgpack
 
-from awaremw.protocol.core import MalformedFrame, Transmission
+from awaremw.protocol.core import Transmission
+from awaremw.protocol.events import (
+    CoreEvent,
+    MalformedFrame,
+    NeighbourFound,
+    NeighbourLost,
+    PingResult,
+)
 from awaremw.protocol.frames import BROADCAST, MAX_NODE_ID, Frame, FrameError, Hello, decode
 
 _packb = msgpack.Packer(use_single_float=True).pack
-
-
-@dataclass(frozen=True, slots=True)
-class NeighbourFound:
-    node: int
-    rssi_dbm: float
-
-
-@dataclass(frozen=True, slots=True)
-class NeighbourLost:
-    node: int
-
-
-@dataclass(frozen=True, slots=True)
-class PingResult:
-    """Outcome of :meth:`HelloMote.ping` after the link layer's ACK and retries."""
-
-    dest: int
-    acked: bool
 
 
 class _LastDecoded:
@@ -86,7 +73,7 @@ class HelloMote:
         self.ignored = 0  # valid frames of other types
         self._next_beacon: float | None = None
         self._out: list[Transmission] = []
-        self._events: list[object] = []
+        self._events: list[CoreEvent] = []
         self._pings: dict[int, int] = {}  # tx_id -> dest
 
     # ------------------------------------------------------------ MoteCore
@@ -142,7 +129,7 @@ class HelloMote:
         if dest is not None:
             self._events.append(PingResult(dest, acked))
 
-    def events(self) -> list[object]:
+    def events(self) -> list[CoreEvent]:
         ev, self._events = self._events, []
         return ev
 

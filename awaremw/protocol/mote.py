@@ -29,8 +29,9 @@ from awaremw.protocol.collection import Collection
 from awaremw.protocol.commands import Commands
 from awaremw.protocol.component import Component, MoteContext, RssiSample
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.core import MalformedFrame, Transmission
+from awaremw.protocol.core import Transmission
 from awaremw.protocol.dissemination import Dissemination
+from awaremw.protocol.events import CoreEvent, MalformedFrame
 from awaremw.protocol.frames import (
     BROADCAST,
     CtpBeacon,
@@ -210,7 +211,7 @@ class AwareMote:
         owner, frame = entry
         owner.on_link_result(frame, acked, now)
 
-    def events(self) -> list[object]:
+    def events(self) -> list[CoreEvent]:
         out, self.ctx.event_list = self.ctx.event_list, []
         return out
 

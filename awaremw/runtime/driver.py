@@ -25,18 +25,16 @@ import math
 from array import array
 from collections.abc import Callable
 
-from awaremw.protocol.core import MalformedFrame, MoteCore, Transmission
+from awaremw.protocol.core import MoteCore, Transmission
+from awaremw.protocol.events import MalformedFrame
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.zenoh_medium import Radio, ZenohMedium
-from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
-from awaremw.runtime.events import MoteUp as MoteUp
+from awaremw.runtime.events import EventHook, MoteDown, MoteEvent, MoteUp
 from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
 
 log = logging.getLogger(__name__)
-
-EventHook = Callable[[int, object, float], None]
 
 _MAX_FIRINGS_AT_ONE_TIME = 10_000
 
@@ -356,7 +354,7 @@ class MoteRunner:
                 return
         self._after_guarded(now)
 
-    def _emit(self, event: object, now: float) -> None:
+    def _emit(self, event: MoteEvent, now: float) -> None:
         if type(event) is MalformedFrame and self.radio is not None:
             self.radio.counters.malformed += 1
         hook = self.on_event

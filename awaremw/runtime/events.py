@@ -2,11 +2,18 @@
 events, through every driver's ``on_event(node_id, event, now)`` hook: the
 asyncio driver (:mod:`awaremw.runtime.driver`) and the virtual-clock network
 (:mod:`awaremw.runtime.virtual`) emit the same types. Consumers dispatch on the
-type (``match event: case MoteDown(reason=r): ...``), never on class names."""
+type (``match event: case MoteDown(reason=r): ...``), never on class names.
+
+:data:`MoteEvent` is everything such a hook is given: a core's events
+(:data:`~awaremw.protocol.events.CoreEvent`) and these."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeAlias
+
+from awaremw.protocol.events import CoreEvent
 
 
 @dataclass(frozen=True, slots=True)
@@ -23,4 +30,6 @@ class MoteDown:
     reason: str
 
 
-MoteEvent = MoteUp | MoteDown
+RuntimeEvent: TypeAlias = MoteUp | MoteDown
+MoteEvent: TypeAlias = CoreEvent | RuntimeEvent
+EventHook: TypeAlias = Callable[[int, MoteEvent, float], None]  # (node id, event, now)

@@ -47,7 +47,8 @@ from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import RadioModel
 from awaremw.radio.zenoh_medium import MacSettings, ZenohMedium
 from awaremw.runtime.deployment import Deployment
-from awaremw.runtime.driver import EventHook, LagStats
+from awaremw.runtime.driver import LagStats
+from awaremw.runtime.events import EventHook
 from awaremw.runtime.fleet_clock import ClockSync
 from awaremw.runtime.fleet_control import MAX_CONTROL_BYTES, ControlService
 from awaremw.runtime.fleet_guard import FleetError, LoopGuard

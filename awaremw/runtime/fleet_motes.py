@@ -10,7 +10,8 @@ from collections.abc import Callable
 from awaremw.protocol.core import MoteCore
 from awaremw.radio.zenoh_medium import ZenohMedium
 from awaremw.runtime.deployment import Deployment, NodeSpec
-from awaremw.runtime.driver import EventHook, LagStats, MoteRunner
+from awaremw.runtime.driver import LagStats, MoteRunner
+from awaremw.runtime.events import EventHook, MoteEvent
 
 CoreFactory = Callable[[NodeSpec, Deployment], MoteCore]
 NodeFilter = Callable[[NodeSpec], bool]
@@ -160,6 +161,6 @@ class FleetMotes:
         self._boot_of[spec.id] = spec.boot_s
         return r
 
-    def _dispatch(self, node_id: int, event: object, now: float) -> None:
+    def _dispatch(self, node_id: int, event: MoteEvent, now: float) -> None:
         for h in self._hooks:
             h(node_id, event, now)

@@ -35,7 +35,8 @@ import math
 from collections.abc import Callable
 from typing import TypeVar
 
-from awaremw.protocol.core import IdleCheck, MalformedFrame, MoteCore, Transmission
+from awaremw.protocol.core import IdleCheck, MoteCore, Transmission
+from awaremw.protocol.events import CoreEvent, MalformedFrame
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
 from awaremw.radio.capture import RadioTap, lost, refused
@@ -65,13 +66,12 @@ from awaremw.radio.model import (
 )
 from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear, hear_link
 from awaremw.radio.security import FrameGuard, Opened, RadioSecurity
-from awaremw.runtime.events import MoteDown as MoteDown  # re-exported: its old home
+from awaremw.runtime.events import EventHook, MoteDown
 from awaremw.world.mobility import Mobility, Static
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
-EventHook = Callable[[int, object, float], None]
 TransmitHook = Callable[[int, Transmission, float], None]
 
 _TIMER, _TX_END, _UC_DONE, _START, _CALL, _CCA = range(6)
@@ -335,7 +335,7 @@ class VirtualNetwork:
             self._after(node)
 
     def _handle(
-        self, node: _Node, txs: list[Transmission], evs: list[object], dl: float | None
+        self, node: _Node, txs: list[Transmission], evs: list[CoreEvent], dl: float | None
     ) -> None:
         if txs:
             for tx in txs:
@@ -384,7 +384,7 @@ class VirtualNetwork:
         # Inlined _after(node): with nothing sent and no event, only re-arm.
         idle = node.idle
         txs: list[Transmission] | None
-        evs: list[object] | None
+        evs: list[CoreEvent] | None
         if idle is None:
             txs = core.drain()
             evs = core.events()

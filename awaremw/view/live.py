@@ -9,20 +9,14 @@ from __future__ import annotations
 
 import sys
 from collections import deque
-from typing import Protocol, TextIO
+from typing import Protocol, TextIO, assert_never
 
 from rich.console import Console, Group
 from rich.live import Live
 from rich.text import Text
 
-from awaremw.protocol.groups import (
-    GroupJoined,
-    GroupLeft,
-    HandoverSent,
-    LeaderElected,
-    LeaderYielded,
-)
-from awaremw.runtime.events import MoteDown
+from awaremw.protocol import events as ev
+from awaremw.runtime.events import MoteDown, MoteEvent, MoteUp
 from awaremw.view.render import render
 from awaremw.view.snapshot import RecordLine, Snapshot
 
@@ -37,24 +31,24 @@ class View(Protocol):
     def stop(self) -> None: ...
 
 
-def describe(node: int, event: object, t: float) -> str | None:
+def describe(node: int, event: MoteEvent, t: float) -> str | None:
     """A one-line description of a notable middleware event (None: not notable)."""
     match event:
-        case LeaderElected():
+        case ev.LeaderElected():
             return (
                 f"mote {event.node} leads group {event.group_id} (type {event.group_type}, "
                 f"{event.cause.value})"
             )
-        case GroupJoined():
+        case ev.GroupJoined():
             return f"mote {event.node} joined group {event.group_id} (type {event.group_type})"
-        case GroupLeft():
+        case ev.GroupLeft():
             return (
                 f"mote {event.node} left group {event.group_id} (type {event.group_type}, "
                 f"{event.reason.value})"
             )
-        case HandoverSent():
+        case ev.HandoverSent():
             return f"mote {event.node} handed group {event.group_id} over to mote {event.to}"
-        case LeaderYielded():
+        case ev.LeaderYielded():
             return (
                 f"mote {event.node} yielded group {event.group_id} to heavier group "
                 f"{event.successor}"
@@ -63,7 +57,15 @@ def describe(node: int, event: object, t: float) -> str | None:
             return None  # the run ended: not news
         case MoteDown(reason=reason):
             return f"mote {node} is down ({reason})"
-    return None
+        case (
+            MoteUp() | ev.MalformedFrame() | ev.ItemAdopted() | ev.ItemRefused()
+            | ev.InjectSuperseded() | ev.Delivered() | ev.ParentChanged() | ev.DataDropped()
+            | ev.GroupTypeRefused() | ev.RecordProduced() | ev.ChannelRefused()
+            | ev.CommandExecuted() | ev.NeighbourFound() | ev.NeighbourLost() | ev.PingResult()
+        ):  # fmt: skip
+            return None
+        case _:
+            assert_never(event)
 
 
 def record_line(r: RecordLine) -> str:
