@@ -503,8 +503,9 @@ def test_five_channels_at_once_under_csma_and_collisions_lose_almost_nothing(see
 def test_under_loss_the_count_says_which_readings_were_included() -> None:
     """Each member reads a distinct power of two, so a SUM names exactly the readings
     it includes (exact in float32 below 2**24): its popcount must equal the count."""
+    # Lossy enough that partials are lost although the group tree avoids weak links.
     lossy = dataclasses.replace(PRESETS["cc2420"], shadowing_sigma_db=6.0)
-    spacing = 14.0
+    spacing = 15.0
     inside = in_disc(2.5 * spacing, 2.5 * spacing, 2.6 * spacing)
     index: dict[tuple[float, float], int] = {}
     for j in range(6):
@@ -520,7 +521,7 @@ def test_under_loss_the_count_says_which_readings_were_included() -> None:
     def hot(p: tuple[float, float], t: float) -> float:
         return 80.0 if inside(p) else 20.0
 
-    sc = Scenario(seed=7, preset=lossy)
+    sc = Scenario(seed=2, preset=lossy)
     sc.grid(6, 6, {T: hot, HUMIDITY: power}, spacing=spacing)
     sc.run_until(1.0)
     sc.define_group(1, HOT)

@@ -90,6 +90,9 @@ class ChannelStats:
 @dataclass(slots=True)
 class _Pending:
     agg: int
+    # The group tree as it stood when the epoch began here (see _tree_of).
+    parent: int | None
+    hops: int
     count: int = 0
     state: tuple[float, ...] = ()
     sent: bool = False  # sent up (member) or finalised (leader)
@@ -186,6 +189,9 @@ class Channels(Component):
             return
         self.stats.link_dropped += 1
         self.groups.parent_failed(frame.group_type, frame.dst, now)
+        for p in self._pending.values():
+            if p.parent == frame.dst:
+                p.parent = None  # pending epochs follow the tree the group moved to
 
     # ----------------------------------------------------------------- epochs
 
@@ -234,7 +240,9 @@ class Channels(Component):
             if not channel_matches(d, m):
                 continue
             key = (cid, m.group_type, m.group_id, e)
-            p = self._pending.setdefault(key, _Pending(d.agg))
+            p = self._pending.get(key)
+            if p is None:
+                p = self._pending[key] = _Pending(d.agg, m.parent, m.hops)
             v = self.ctx.read(d.attr, now)
             if v is None or not math.isfinite(v):
                 self.stats.unavailable += 1
@@ -249,7 +257,8 @@ class Channels(Component):
         if m.is_leader:
             self.timers.set(("final", key), self.slot_time(cid, e, 0))
         elif ("send", key) not in self.timers:
-            self.timers.set(("send", key), self._send_time(cid, e, m.hops))
+            p = self._pending[key]
+            self.timers.set(("send", key), self._send_time(cid, e, p.hops))
 
     def _send_time(self, cid: int, epoch: int, hops: int) -> float:
         """A member's send time: its slot, plus a uniform offset in the slot's jitter.
@@ -295,17 +304,12 @@ class Channels(Component):
         if m.is_leader:  # took the group over since the epoch started
             self._final(key, now)
             return
-        if now < self.slot_time(cid, e, m.hops):
-            # Our hop count shrank since the epoch started (a leader beacon came
-            # through a shorter way): children on the new tree send until our new
-            # slot, so wait for it; sending now would make their partials late.
-            self.timers.set(("send", key), self._send_time(cid, e, m.hops))
-            return
         p.sent = True
-        if p.count == 0 or m.parent is None:
+        parent = m.parent if p.parent is None else p.parent
+        if p.count == 0 or parent is None:
             return
         self._send_partial(
-            Partial(self.ctx.node_id, m.parent, cid, gtype, gid, e, p.agg, p.count, p.state)
+            Partial(self.ctx.node_id, parent, cid, gtype, gid, e, p.agg, p.count, p.state)
         )
 
     def _send_partial(self, frame: Partial) -> None:
@@ -362,7 +366,7 @@ class Channels(Component):
         key = (f.channel, f.group_type, f.group_id, f.epoch)
         p = self._pending.get(key)
         if p is None and now < self.slot_time(f.channel, f.epoch, m.hops):
-            p = self._pending[key] = _Pending(f.agg)
+            p = self._pending[key] = _Pending(f.agg, m.parent, m.hops)
             self._schedule(key, m)
         if p is not None and not p.sent:
             self.stats.merged += 1

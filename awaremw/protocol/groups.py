@@ -555,9 +555,13 @@ class Groups(Component):
 
     def _link_key(
         self, st: _TypeState, node: int, hops: int, rssi: float
-    ) -> tuple[bool, bool, int, float]:
-        """Order of parent candidates: not failed, a good link, fewest hops, strongest."""
-        return (node in st.failed, rssi < self.ctx.config.group_link_rssi_floor, hops, -rssi)
+    ) -> tuple[bool, int, int, float]:
+        """Order of parent candidates: not failed, link band, fewest hops, strongest."""
+        return (node in st.failed, self._band(rssi), hops, -rssi)
+
+    def _band(self, rssi: float) -> int:
+        floor = self.ctx.config.group_link_rssi_floor
+        return 0 if rssi >= floor else 1 if rssi >= floor - 2 else 2 if rssi >= floor - 3.5 else 3
 
     def _link_rssi(self, node: int, rssi: float) -> float:
         # The mote's EWMA of everything heard from the node (updated with this
@@ -1038,11 +1042,12 @@ class Groups(Component):
     def _schedule_forward(self, st: _TypeState, now: float) -> None:
         name = ("fwd", st.gtype)
         if name not in self.timers:
+            # The weaker the first copy's link, the longer we wait (one forward
+            # jitter per band below group_link_rssi_floor): a copy over a better
+            # link usually arrives meanwhile and can still become the parent.
             j = self.ctx.config.forward_jitter
-            # Over a weak link, wait one more jitter: a copy over a good link
-            # usually arrives meanwhile and can still become the parent.
-            weak = st.parent_rssi < self.ctx.config.group_link_rssi_floor
-            self.timers.set(name, now + (j if weak else 0.0) + self.ctx.rng.uniform(0, j))
+            band = self._band(st.parent_rssi)
+            self.timers.set(name, now + band * j + self.ctx.rng.uniform(0, j))
 
     def _forward(self, st: _TypeState, count: bool = True) -> None:
         st.forwarded = True
