@@ -14,6 +14,10 @@ first, at a uniform offset in the first ``slot_jitter`` (0.8) of the slot, so
 that the motes of one ring rarely contend for the channel at once; the rest
 is left for CSMA and retries), merging whatever its children sent before; the
 leader finalises in the middle of slot ``D``.
+An epoch runs on the group tree as it stood when it began at this mote: its
+partial goes to that parent in that slot, whatever beacon arrives meanwhile
+(every member does the same, so an epoch's partials meet on one tree), unless
+a unicast to that parent failed since.
 A partial that arrives after its receiver already sent is forwarded on alone
 (and counted as late); one that reaches the leader after the record went out
 is counted and dropped.
@@ -90,7 +94,8 @@ class ChannelStats:
 @dataclass(slots=True)
 class _Pending:
     agg: int
-    # The group tree as it stood when the epoch began here (see _tree_of).
+    # The group tree when the epoch began here: its partial goes to this parent
+    # (None: the current one) in this hop count's slot.
     parent: int | None
     hops: int
     count: int = 0
