@@ -194,8 +194,8 @@ class Channels(Component):
             return
         self.stats.link_dropped += 1
         self.groups.parent_failed(frame.group_type, frame.dst, now)
-        for p in self._pending.values():
-            if p.parent == frame.dst:
+        for key, p in self._pending.items():
+            if key[1] == frame.group_type and p.parent == frame.dst:
                 p.parent = None  # pending epochs follow the tree the group moved to
 
     # ----------------------------------------------------------------- epochs
