@@ -234,6 +234,40 @@ def test_member_merges_children_before_its_slot_and_forwards_late_ones() -> None
     assert h.c.stats.late_forwarded == 1 and h.c.stats.merged == 2
 
 
+def test_an_epoch_runs_on_the_tree_it_began_with() -> None:
+    """A beacon mid-epoch (new parent, new hop count) takes effect at the next
+    epoch: this epoch's partial goes to the parent, in the slot, it began with,
+    so that the children that planned their slots on that tree still merge."""
+    h = H()
+    h.groups.set(1, 500, hops=2, parent=5)
+    h.c.define(1, chan(AggId.SUM), 0.0)
+    h.advance(2.0)  # epoch 1 begins: parent 5, hop 2
+    h.groups.set(1, 500, hops=1, parent=6)  # a beacon came through a shorter way
+    h.advance(h.c.slot_time(1, 1, 2) + 0.001)
+    h.hear(partial(31, epoch=1, count=3, state=(9.0,), agg=AggId.SUM))  # a hop-3 child
+    assert h.sent() == []
+    h.advance(h.c.slot_time(1, 1, 1) - 0.001)  # the end of the hop-2 slot
+    (p,) = h.sent()
+    assert isinstance(p, Partial) and (p.dst, p.count) == (5, 4)
+    assert h.c.stats.late_forwarded == 0
+    h.advance(4.0 + h.c.slot_time(1, 1, 0) - 2.0)  # epoch 2: the new tree
+    (p,) = h.sent()
+    assert isinstance(p, Partial) and (p.dst, p.epoch) == (6, 2)
+
+
+def test_a_parent_that_failed_is_left_by_the_pending_epochs() -> None:
+    h = H()
+    h.groups.set(1, 500, hops=2, parent=5)
+    h.c.define(1, chan(AggId.SUM), 0.0)
+    h.advance(2.0)  # epoch 1 begins on parent 5
+    failed = partial(10, dst=5, epoch=0)  # an older epoch's partial to 5 failed ...
+    h.groups.set(1, 500, hops=2, parent=6)  # ... and groups moved the parent
+    h.c.on_link_result(failed, False, h.now)
+    h.advance(3.99)
+    (p,) = h.sent()
+    assert isinstance(p, Partial) and (p.dst, p.epoch) == (6, 1)
+
+
 def test_partial_before_own_epoch_start_is_kept_for_the_slot() -> None:
     h = H()
     h.groups.set(1, 500, hops=1, parent=5)
@@ -503,8 +537,9 @@ def test_five_channels_at_once_under_csma_and_collisions_lose_almost_nothing(see
 def test_under_loss_the_count_says_which_readings_were_included() -> None:
     """Each member reads a distinct power of two, so a SUM names exactly the readings
     it includes (exact in float32 below 2**24): its popcount must equal the count."""
+    # Lossy enough that partials are lost although the group tree avoids weak links.
     lossy = dataclasses.replace(PRESETS["cc2420"], shadowing_sigma_db=6.0)
-    spacing = 14.0
+    spacing = 15.0
     inside = in_disc(2.5 * spacing, 2.5 * spacing, 2.6 * spacing)
     index: dict[tuple[float, float], int] = {}
     for j in range(6):
@@ -520,7 +555,7 @@ def test_under_loss_the_count_says_which_readings_were_included() -> None:
     def hot(p: tuple[float, float], t: float) -> float:
         return 80.0 if inside(p) else 20.0
 
-    sc = Scenario(seed=7, preset=lossy)
+    sc = Scenario(seed=2, preset=lossy)
     sc.grid(6, 6, {T: hot, HUMIDITY: power}, spacing=spacing)
     sc.run_until(1.0)
     sc.define_group(1, HOT)

@@ -546,16 +546,21 @@ def test_good_link_beats_fewer_hops_until_the_hop_count_is_on_the_air() -> None:
     assert m is not None and (m.parent, m.hops) == (2, 1)
     h.advance(h.cfg.forward_jitter * 0.99)
     assert h.sent() == []  # a weak parent: it waits longer before forwarding
+    h.advance(h.cfg.forward_jitter * 2.99)
+    assert h.sent() == []  # the weaker, the longer
     h.hear(beacon(src=7, seq=3, hops=1), rssi=-80.0)  # a good link, one hop more
     m = h.g.membership(1)
     assert m is not None and (m.parent, m.hops) == (7, 2)
-    h.advance(2 * h.cfg.forward_jitter)
+    h.advance(4 * h.cfg.forward_jitter)  # -94 dBm: three bands under the floor
     (f,) = h.sent()
     assert isinstance(f, LeaderBeacon) and f.hops == 2
     # Our hop count is public now: it may not grow any more, even for a good link.
     h.hear(beacon(src=8, seq=4, hops=0), rssi=-93.0)
+    h.advance(h.now + 2 * h.cfg.forward_jitter * 0.99)
+    assert h.sent() == []  # two bands under the floor: two jitters at least
     h.advance(h.now + 2 * h.cfg.forward_jitter)
-    h.sent()
+    (f,) = h.sent()
+    assert f.hops == 1
     h.hear(beacon(src=9, seq=4, hops=1), rssi=-70.0)
     assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
 

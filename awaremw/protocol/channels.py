@@ -14,6 +14,10 @@ first, at a uniform offset in the first ``slot_jitter`` (0.8) of the slot, so
 that the motes of one ring rarely contend for the channel at once; the rest
 is left for CSMA and retries), merging whatever its children sent before; the
 leader finalises in the middle of slot ``D``.
+An epoch runs on the group tree as it stood when it began at this mote: its
+partial goes to that parent in that slot, whatever beacon arrives meanwhile
+(every member does the same, so an epoch's partials meet on one tree), unless
+a unicast to that parent failed since.
 A partial that arrives after its receiver already sent is forwarded on alone
 (and counted as late); one that reaches the leader after the record went out
 is counted and dropped.
@@ -74,6 +78,10 @@ class ChannelStats:
 @dataclass(slots=True)
 class _Pending:
     agg: int
+    # The group tree when the epoch began here: its partial goes to this parent
+    # (None: the current one) in this hop count's slot.
+    parent: int | None
+    hops: int
     count: int = 0
     state: tuple[float, ...] = ()
     sent: bool = False  # sent up (member) or finalised (leader)
@@ -170,6 +178,9 @@ class Channels(Component):
             return
         self.stats.link_dropped += 1
         self.groups.parent_failed(frame.group_type, frame.dst, now)
+        for key, p in self._pending.items():
+            if key[1] == frame.group_type and p.parent == frame.dst:
+                p.parent = None  # pending epochs follow the tree the group moved to
 
     # ----------------------------------------------------------------- epochs
 
@@ -218,7 +229,9 @@ class Channels(Component):
             if not channel_matches(d, m):
                 continue
             key = (cid, m.group_type, m.group_id, e)
-            p = self._pending.setdefault(key, _Pending(d.agg))
+            p = self._pending.get(key)
+            if p is None:
+                p = self._pending[key] = _Pending(d.agg, m.parent, m.hops)
             v = self.ctx.read(d.attr, now)
             if v is None or not math.isfinite(v):
                 self.stats.unavailable += 1
@@ -233,7 +246,8 @@ class Channels(Component):
         if m.is_leader:
             self.timers.set(("final", key), self.slot_time(cid, e, 0))
         elif ("send", key) not in self.timers:
-            self.timers.set(("send", key), self._send_time(cid, e, m.hops))
+            p = self._pending[key]
+            self.timers.set(("send", key), self._send_time(cid, e, p.hops))
 
     def _send_time(self, cid: int, epoch: int, hops: int) -> float:
         """A member's send time: its slot, plus a uniform offset in the slot's jitter.
@@ -279,17 +293,12 @@ class Channels(Component):
         if m.is_leader:  # took the group over since the epoch started
             self._final(key, now)
             return
-        if now < self.slot_time(cid, e, m.hops):
-            # Our hop count shrank since the epoch started (a leader beacon came
-            # through a shorter way): children on the new tree send until our new
-            # slot, so wait for it; sending now would make their partials late.
-            self.timers.set(("send", key), self._send_time(cid, e, m.hops))
-            return
         p.sent = True
-        if p.count == 0 or m.parent is None:
+        parent = m.parent if p.parent is None else p.parent
+        if p.count == 0 or parent is None:
             return
         self._send_partial(
-            Partial(self.ctx.node_id, m.parent, cid, gtype, gid, e, p.agg, p.count, p.state)
+            Partial(self.ctx.node_id, parent, cid, gtype, gid, e, p.agg, p.count, p.state)
         )
 
     def _send_partial(self, frame: Partial) -> None:
@@ -346,7 +355,7 @@ class Channels(Component):
         key = (f.channel, f.group_type, f.group_id, f.epoch)
         p = self._pending.get(key)
         if p is None and now < self.slot_time(f.channel, f.epoch, m.hops):
-            p = self._pending[key] = _Pending(f.agg)
+            p = self._pending[key] = _Pending(f.agg, m.parent, m.hops)
             self._schedule(key, m)
         if p is not None and not p.sent:
             self.stats.merged += 1

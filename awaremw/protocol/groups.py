@@ -84,6 +84,12 @@ ELECTION_BACKOFF_FACTOR = 3.0  # creation backoff after a lost leader, x create_
 TENTATIVE_CREATE_SPREAD = 0.5  # spontaneous creation backoff with tentative ids, x create_backoff
 TENTATIVE_BEACONS = 2  # a would-be group announces its id this many times, evenly spread
 MAX_COPIES = 8  # copies of one beacon seq remembered for the forward suppression
+# Group links by RSSI under group_link_rssi_floor: down to BAND_2_DB under it is
+# band 1, down to BAND_3_DB band 2, weaker band 3 (the floor and up: band 0).
+# Counted per partial attempt on the CC2420 preset: 0.01-0.15 retransmissions
+# per partial in bands 0-1, about 0.3 in band 2, 1 to 3 in band 3.
+BAND_2_DB = 2.0
+BAND_3_DB = 3.5
 
 
 # --------------------------------------------------------------------------- public values
@@ -490,9 +496,14 @@ class Groups(Component):
 
     def _link_key(
         self, st: _TypeState, node: int, hops: int, rssi: float
-    ) -> tuple[bool, bool, int, float]:
-        """Order of parent candidates: not failed, a good link, fewest hops, strongest."""
-        return (node in st.failed, rssi < self.ctx.config.group_link_rssi_floor, hops, -rssi)
+    ) -> tuple[bool, int, int, float]:
+        """Order of parent candidates: not failed, link band, fewest hops, strongest."""
+        return (node in st.failed, self._band(rssi), hops, -rssi)
+
+    def _band(self, rssi: float) -> int:
+        """0 for a good link, up to 3 for the weakest (BAND_2_DB, BAND_3_DB)."""
+        under = self.ctx.config.group_link_rssi_floor - rssi
+        return 0 if under <= 0 else 1 if under <= BAND_2_DB else 2 if under <= BAND_3_DB else 3
 
     def _link_rssi(self, node: int, rssi: float) -> float:
         # The mote's EWMA of everything heard from the node (updated with this
@@ -973,11 +984,12 @@ class Groups(Component):
     def _schedule_forward(self, st: _TypeState, now: float) -> None:
         name = ("fwd", st.gtype)
         if name not in self.timers:
+            # The weaker the first copy's link, the longer we wait (one forward
+            # jitter per band below group_link_rssi_floor): a copy over a better
+            # link usually arrives meanwhile and can still become the parent.
             j = self.ctx.config.forward_jitter
-            # Over a weak link, wait one more jitter: a copy over a good link
-            # usually arrives meanwhile and can still become the parent.
-            weak = st.parent_rssi < self.ctx.config.group_link_rssi_floor
-            self.timers.set(name, now + (j if weak else 0.0) + self.ctx.rng.uniform(0, j))
+            band = self._band(st.parent_rssi)
+            self.timers.set(name, now + band * j + self.ctx.rng.uniform(0, j))
 
     def _forward(self, st: _TypeState, count: bool = True) -> None:
         st.forwarded = True
