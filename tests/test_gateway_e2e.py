@@ -202,9 +202,10 @@ def check_against_samples(
     return complete
 
 
-def is_period(r: dict[str, Any], period: float) -> bool:
-    """Whether a record's epoch matches ``period`` (its epoch start is just before t)."""
-    return -0.5 <= r["t"] - r["epoch"] * period <= period + 0.5
+def is_period(r: dict[str, Any], period: float, late: float = 0.5) -> bool:
+    """Whether a record's epoch matches ``period`` (its epoch start is just before t:
+    within the epoch and ``late`` emulated seconds of delivery)."""
+    return -0.5 <= r["t"] - r["epoch"] * period <= period + late
 
 
 # --------------------------------------------------------------------------- Mosquitto
