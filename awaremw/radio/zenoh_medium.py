@@ -6,8 +6,9 @@ queue, MAC backoff, airtime, sequence numbers, ACK wait and retries, duplicate
 filter, counters, battery). The rules are those of the virtual-clock driver
 (``docs/radio.md``, "Medium semantics"; :mod:`awaremw.runtime.virtual`), and
 the code that applies them is shared with it: who hears whom, cached receiver
-lists and bulk-counted drops in :mod:`awaremw.radio.neighbourhood`, the link
-layer's state and rules in :mod:`awaremw.radio.linklayer`. So a run over
+lists and bulk-counted drops in :mod:`awaremw.radio.neighbourhood`, every
+reception decision and its accounting in :mod:`awaremw.radio.reception`, the
+link layer's state and rules in :mod:`awaremw.radio.linklayer`. So a run over
 Zenoh and a virtual run of the same deployment count the same things the same
 way. ``docs/runtime.md`` describes the Zenoh side.
 

@@ -10,13 +10,11 @@ medium applies exactly the rules of the Zenoh medium (``docs/radio.md``,
 counters.
 
 Who hears whom (cells, cached receiver lists of static senders, bulk-counted
-drops) is :mod:`awaremw.radio.neighbourhood`; the link layer's state and rules
+drops) is :mod:`awaremw.radio.neighbourhood`; every reception decision and its
+accounting :mod:`awaremw.radio.reception`; the link layer's state and rules
 (sequence numbers, duplicates, ACKs, retries) :mod:`awaremw.radio.linklayer`:
 the same code the Zenoh medium runs. What is this driver's own is the event
-heap and the per-packet loop over a static sender's receivers (the hot path:
-:meth:`RadioModel.decide <awaremw.radio.model.RadioModel.decide>` inlined),
-which is what makes 1,000 motes run at least 10x faster than real time.
-Moving motes are evaluated afresh at every frame.
+heap, and what a delivery does (the receiver's core takes the frame).
 
 Channel access and collisions are :mod:`awaremw.radio.mac`'s, driven through
 :mod:`awaremw.radio.linklayer` as the Zenoh medium drives them: each mote's
