@@ -41,6 +41,7 @@ COMPILED = [
     "awaremw/radio/mac.py",
     "awaremw/radio/model.py",
     "awaremw/radio/neighbourhood.py",
+    "awaremw/radio/reception.py",
     "awaremw/runtime/virtual.py",
     "awaremw/world/fields.py",
 ]

@@ -248,3 +248,88 @@ def test_the_checker_finds_a_circle_inside_a_layer(tmp_path: Path) -> None:
 def test_a_module_outside_the_layers_is_refused() -> None:
     with pytest.raises(AssertionError, match="in no layer"):
         rank("awaremw.plugins.x")
+
+
+# ------------------------------------------------------------------ private names
+
+
+def private_imports(root: Path) -> list[str]:
+    """Every use of another module's private (underscore) name in the package:
+    ``from awaremw.x import _name``, and ``mod._name`` on a module imported as
+    ``mod`` (``import awaremw.x as mod``, ``from awaremw import x``). Dunders
+    (``__version__``) are public."""
+    known = modules(root)
+    top = root.name
+    found: list[str] = []
+
+    def private(name: str) -> bool:
+        return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+    for name, path in known.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        aliases: dict[str, str] = {}  # local name -> package module it stands for
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.startswith(top + ".") and alias.asname:
+                        aliases[alias.asname] = alias.name
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")
+                    base = base[: len(base) - (node.level - 1)]
+                    target = ".".join([*base, *([node.module] if node.module else [])])
+                else:
+                    target = node.module or ""
+                if target != top and not target.startswith(top + "."):
+                    continue
+                for alias in node.names:
+                    sub = f"{target}.{alias.name}"
+                    if sub in known:
+                        aliases[alias.asname or alias.name] = sub
+                    elif private(alias.name) and target != name:
+                        found.append(f"{name} (line {node.lineno}) imports {target}.{alias.name}")
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in aliases
+                and private(node.attr)
+                and aliases[node.value.id] != name
+            ):
+                mod = aliases[node.value.id]
+                found.append(f"{name} (line {node.lineno}) uses {mod}.{node.attr}")
+    return found
+
+
+def test_no_module_imports_another_modules_private_names() -> None:
+    assert private_imports(ROOT) == []
+
+
+def test_the_checker_finds_a_private_import(tmp_path: Path) -> None:
+    root = _tree(
+        tmp_path,
+        {
+            "__init__.py": "__version__ = '1'\n",
+            "radio/__init__.py": "",
+            "radio/model.py": "_M64 = 1\nPUBLIC = 2\n_own = _M64\n",
+            "radio/medium.py": (
+                "from awaremw.radio.model import _M64, PUBLIC\n"
+                "from awaremw import __version__\n"
+                "def f():\n"
+                "    from .model import _own\n"
+            ),
+            "runtime/__init__.py": "",
+            "runtime/virtual.py": (
+                "from awaremw.radio import model\n"
+                "import awaremw.radio.model as m\n"
+                "x = model._M64 + m.PUBLIC + m._own\n"
+            ),
+        },
+    )
+    assert sorted(private_imports(root)) == [
+        "awaremw.radio.medium (line 1) imports awaremw.radio.model._M64",
+        "awaremw.radio.medium (line 4) imports awaremw.radio.model._own",
+        "awaremw.runtime.virtual (line 3) uses awaremw.radio.model._M64",
+        "awaremw.runtime.virtual (line 3) uses awaremw.radio.model._own",
+    ]

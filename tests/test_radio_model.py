@@ -120,7 +120,7 @@ def test_empirical_loss_matches_prr(fading: float) -> None:
         # The fading index is uniform over the deviate table: exact expectation.
         from awaremw.radio import model as mod
 
-        table = mod._NORMAL
+        table = mod.NORMAL
         expected = statistics.fmean(m.prr(mean - fading * z, frame_len) for z in table)
     assert 0.05 < expected < 0.95, "pick a distance inside the transitional region"
     n = 20000

@@ -16,18 +16,18 @@ from traces import aware_trace
 from awaremw.protocol.core import IdleCheck
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.protocol.mote import AwareMote
+from awaremw.radio import reception
 from awaremw.radio.mac import Air, _mw
 from awaremw.radio.model import (
-    _NORMAL,
-    _SHIFT,
     CC2420,
     DOMAIN_FADING,
     DOMAIN_SHADOW,
+    NORMAL,
+    SHIFT,
     RadioModel,
     cell_of,
     link_hash,
 )
-from awaremw.runtime import virtual
 from awaremw.world.fields import World, gauss_hash
 from awaremw.world.mobility import Static
 
@@ -42,7 +42,7 @@ def test_the_fast_paths_change_no_event_and_no_counter(monkeypatch: pytest.Monke
     assert any("RecordProduced" in line for line in fast)
     # Off: every overlapping frame checked, every assessment asked of the Air,
     # every reception followed by drain/events/next_deadline.
-    monkeypatch.setattr(virtual, "_reaching", lambda others, cell: others)
+    monkeypatch.setattr(reception, "reaching", lambda others, cell: others)
     monkeypatch.setattr(Air, "any_near", lambda self, rid, cell, t0, t1: True)
     monkeypatch.setattr(AwareMote, "idle", lambda self: False)
     slow = _trace(120, 25.0)
@@ -76,7 +76,7 @@ def test_survival_against_the_reaching_frames_is_survival_against_all() -> None:
             rx, ry = f.x + rng.uniform(-cs, cs), f.y + rng.uniform(-cs, cs)
         rssi = rng.uniform(-95.0, -60.0)
         whole = a.survives(f, rssi, rid, rx, ry, a.overlapping(f))
-        rel = virtual._reaching(b.overlapping(fb), cell_of(rx, ry, cs))
+        rel = reception.reaching(b.overlapping(fb), cell_of(rx, ry, cs))
         fastway = not rel or b.survives(fb, rssi, rid, rx, ry, rel)
         assert fastway == whole
         checked[whole] += 1
@@ -119,7 +119,7 @@ def test_mean_rssi_and_link_hashes_are_the_formulas(symmetric: bool) -> None:
     for d in [0.0, 0.05, CC2420.d0_m * 0.1, 0.2, *(rng.uniform(0, 200) for _ in range(300))]:
         a, b = rng.randrange(1 << 16), rng.randrange(1 << 16)
         lo, hi = (min(a, b), max(a, b)) if symmetric else (a, b)
-        shadow = sigma * _NORMAL[link_hash(12345, DOMAIN_SHADOW, lo, hi) >> _SHIFT]
+        shadow = sigma * NORMAL[link_hash(12345, DOMAIN_SHADOW, lo, hi) >> SHIFT]
         assert model.static_shadow_db(a, b) == shadow
         assert model.fading_link_hash(a, b) == link_hash(12345, DOMAIN_FADING, a, b)
         txp = rng.choice([0.0, -10.0, -25.0])

@@ -20,7 +20,7 @@ from awaremw.protocol.core import Transmission
 from awaremw.protocol.events import MalformedFrame
 from awaremw.protocol.frames import BROADCAST, FrameError, Hello, decode, encode
 from awaremw.radio.envelope import Kind, MalformedEnvelope, decode_envelope, encode_envelope
-from awaremw.radio.model import _NORMAL, RadioModel, cell_of, packet_key
+from awaremw.radio.model import NORMAL, RadioModel, cell_of, packet_key
 from awaremw.radio.zenoh_medium import Handler
 from awaremw.runtime.deployment import Deployment, NodeSpec, parse_deployment
 from awaremw.runtime.fleet import Fleet, FleetSettings
@@ -245,7 +245,7 @@ def _distance_for_prr(model: RadioModel, src: int, dst: int, bits: int, target: 
 
     def p(d: float) -> float:
         mean = model.mean_rssi(src, dst, d, 0.0)
-        return sum(model.prr_bits(mean - sf * z, bits) for z in _NORMAL) / len(_NORMAL)
+        return sum(model.prr_bits(mean - sf * z, bits) for z in NORMAL) / len(NORMAL)
 
     lo, hi = 1.0, model.max_range_m(0.0)
     for _ in range(60):
@@ -296,7 +296,7 @@ async def test_loss_rate_matches_the_prr_curve(router: str) -> None:
     for seq in range(sent):
         nb = 8 * (len(encode(Hello(1, BROADCAST, seq), 64)) + model.preset.phy_overhead_bytes)
         mean = model.mean_rssi(1, 2, d, 0.0)
-        probs.append(sum(model.prr_bits(mean - sf * z, nb) for z in _NORMAL) / len(_NORMAL))
+        probs.append(sum(model.prr_bits(mean - sf * z, nb) for z in NORMAL) / len(NORMAL))
     expect = sum(probs)
     sigma = math.sqrt(sum(q * (1 - q) for q in probs))
     assert abs(len(kept) - expect) < 4 * sigma

@@ -322,14 +322,6 @@ class Capture:
         return self.writer.packets
 
 
-def lost(beyond_range: bool, collided: bool = False) -> str:
-    """The cause of a frame the medium dropped: out of range, destroyed by an
-    overlapping frame (SINR below the capture threshold), else path loss."""
-    if beyond_range:
-        return "distance"
-    return "collision" if collided else "path_loss"
-
-
 def refused(data: bytes | None, opened: Opened | None) -> str | None:
     """None if the core got the frame (``data``), else why link security refused it:
     a bad or short MIC, else a replayed counter (or a full sender table)."""

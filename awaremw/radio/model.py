@@ -23,9 +23,11 @@ from typing import Final
 
 # --------------------------------------------------------------------------- hashing
 
-_M64: Final = 0xFFFFFFFFFFFFFFFF
-_GOLDEN: Final = 0x9E3779B97F4A7C15
-_MUL: Final = 0xBF58476D1CE4E5B9
+# Public: radio/reception.py inlines packet_hash and decide with them (the hot path).
+
+M64: Final = 0xFFFFFFFFFFFFFFFF
+GOLDEN: Final = 0x9E3779B97F4A7C15
+MUL: Final = 0xBF58476D1CE4E5B9
 
 # Hash domains: independent streams for independent random quantities.
 DOMAIN_SHADOW: Final = 1
@@ -35,16 +37,16 @@ DOMAIN_BACKOFF: Final = 3
 
 def splitmix64(x: int) -> int:
     """The splitmix64 finaliser: a fast, well-mixed 64-bit bijection."""
-    x = (x + _GOLDEN) & _M64
-    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _M64
-    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _M64
+    x = (x + GOLDEN) & M64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & M64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & M64
     return x ^ (x >> 31)
 
 
 def link_hash(seed: int, domain: int, a: int, b: int) -> int:
     """64-bit hash of ``(seed, domain, a, b)``; ``a`` and ``b`` are 16-bit ids."""
     return splitmix64(
-        splitmix64(seed & _M64) ^ ((domain << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
+        splitmix64(seed & M64) ^ ((domain << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
     )
 
 
@@ -55,7 +57,7 @@ def packet_hash(link_h: int, packet_key: int) -> int:
     word per link and ``packet_key * golden`` spreads the key, so one round is
     enough here, and this is the per-packet, per-receiver hot path.
     """
-    z = ((link_h ^ ((packet_key * _GOLDEN) & _M64)) * _MUL) & _M64
+    z = ((link_h ^ ((packet_key * GOLDEN) & M64)) * MUL) & M64
     return z ^ (z >> 31)
 
 
@@ -71,26 +73,26 @@ def packet_key(seq: int, attempt: int = 0, ack: bool = False) -> int:
     return (seq << 8) | (attempt << 1) | int(ack)
 
 
-# Inverse normal CDF sampled at 2**12 mid-points: z = _NORMAL[h >> 52]. The table
+# Inverse normal CDF sampled at 2**12 mid-points: z = NORMAL[h >> 52]. The table
 # bounds every deviate to |z| <= _Z_MAX (about 3.49), which keeps the set of
 # links that can ever deliver small (see max_range_m and never_delivers).
 _NORMAL_BITS: Final = 12
-_NORMAL: Final[tuple[float, ...]] = tuple(
+NORMAL: Final[tuple[float, ...]] = tuple(
     NormalDist().inv_cdf((i + 0.5) / (1 << _NORMAL_BITS)) for i in range(1 << _NORMAL_BITS)
 )
-Z_MAX: Final = _NORMAL[-1]
-_SHIFT: Final = 64 - _NORMAL_BITS
-_U32: Final = 1.0 / 4294967296.0
+Z_MAX: Final = NORMAL[-1]
+SHIFT: Final = 64 - _NORMAL_BITS
+U32: Final = 1.0 / 4294967296.0
 
 
 def normal_deviate(h: int) -> float:
     """Standard normal deviate from the top 12 bits of a 64-bit hash."""
-    return _NORMAL[h >> _SHIFT]
+    return NORMAL[h >> SHIFT]
 
 
 def uniform(h: int) -> float:
     """Uniform deviate in [0, 1) from the low 32 bits of a 64-bit hash."""
-    return (h & 0xFFFFFFFF) * _U32
+    return (h & 0xFFFFFFFF) * U32
 
 
 # --------------------------------------------------------------------------- presets
@@ -331,13 +333,13 @@ class RadioModel:
         "_d_min",
         "_fading_link",
         "_max_fade",
-        "_one_snr_db",
         "_pl_d0",
         "_range_cache",
         "_seed_mix",
         "_shadow",
         "_ten_n",
         "link_cache_max",
+        "one_snr_db",
         "preset",
         "prr_memo",
         "seed",
@@ -362,13 +364,13 @@ class RadioModel:
         self.prr_memo: dict[int, float] = {}
         self._ber_memo: dict[int, float] = {}  # round(snr_db * 1000) -> BER
         self._max_fade = preset.fading_sigma_db * Z_MAX
-        self._seed_mix = splitmix64(seed & _M64)  # link_hash's first round
+        self._seed_mix = splitmix64(seed & M64)  # link_hash's first round
         # path_loss_db's constants (mean_rssi inlines it).
         self._d0 = preset.d0_m
         self._d_min = preset.d0_m * 0.1
         self._pl_d0 = preset.pl_d0_db
         self._ten_n = 10.0 * preset.path_loss_exponent
-        self._one_snr_db = self._snr_db_for_prr_one()
+        self.one_snr_db = self._snr_db_for_prr_one()
 
     # ---------------------------------------------------------------- geometry
 
@@ -392,7 +394,7 @@ class RadioModel:
             h = splitmix64(
                 self._seed_mix ^ ((DOMAIN_SHADOW << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
             )
-            v = sigma * _NORMAL[h >> _SHIFT]
+            v = sigma * NORMAL[h >> SHIFT]
             if len(self._shadow) >= self.link_cache_max:
                 self._shadow.clear()  # keyed by remote sender ids: bounded, recomputable
             self._shadow[k] = v
@@ -431,7 +433,7 @@ class RadioModel:
         h = packet_hash(self.fading_link_hash(src, dst), packet_key)
         return (
             self.mean_rssi(src, dst, distance, tx_power)
-            - self.preset.fading_sigma_db * _NORMAL[h >> _SHIFT]
+            - self.preset.fading_sigma_db * NORMAL[h >> SHIFT]
         )
 
     def max_range_m(self, tx_power: float | None = None) -> float:
@@ -490,7 +492,7 @@ class RadioModel:
         if rssi_dbm < p.sensitivity_dbm:
             return 0.0
         snr_db = rssi_dbm - p.noise_floor_dbm
-        if snr_db >= self._one_snr_db:
+        if snr_db >= self.one_snr_db:
             return 1.0
         milli = round(snr_db * 1000.0)
         k = (milli << 16) | bits
@@ -520,8 +522,8 @@ class RadioModel:
         ``link_h`` is :meth:`fading_link_hash`, ``mean_rssi_dbm`` :meth:`mean_rssi`.
         """
         h = packet_hash(link_h, packet_key)
-        rssi = mean_rssi_dbm - self.preset.fading_sigma_db * _NORMAL[h >> _SHIFT]
-        return (h & 0xFFFFFFFF) * _U32 < self.prr_bits(rssi, bits), rssi
+        rssi = mean_rssi_dbm - self.preset.fading_sigma_db * NORMAL[h >> SHIFT]
+        return (h & 0xFFFFFFFF) * U32 < self.prr_bits(rssi, bits), rssi
 
     def reception(
         self,

@@ -1,9 +1,10 @@
 """Who hears whom: the cell grid of one medium's motes and per-sender receiver caches.
 
 Both radio media -- the Zenoh medium (:mod:`awaremw.radio.zenoh_medium`) and
-the virtual-clock driver (:mod:`awaremw.runtime.virtual`) -- decide rules 3 to
-5 of ``docs/radio.md`` ("Medium semantics") through this module, so the two
-cannot drift apart:
+the virtual-clock driver (:mod:`awaremw.runtime.virtual`) -- find the
+receivers of a frame (rules 3 and 4 of ``docs/radio.md``, "Medium
+semantics") through this module, and decide each reception in
+:mod:`awaremw.radio.reception`:
 
 * :class:`Station` is what a medium knows of one mote's radio here (position,
   cell, TX power, range, counters, on the air or not); each medium subclasses
@@ -24,13 +25,9 @@ cannot drift apart:
   sender moved) or the counters are read (:meth:`Neighbourhood.flush_all`).
   :meth:`Neighbourhood.link` caches unicast links between static motes in the
   same cache.
-* :func:`hear` is rules 4 and 5 for one receiver evaluated from scratch
-  (moving motes, unicasts); :func:`hear_link` the same on a cached link.
 
-The per-packet loop over ``near`` is the hot path of both media and stays in
-each (the virtual driver inlines :meth:`RadioModel.decide
-<awaremw.radio.model.RadioModel.decide>`; the Zenoh medium calls it); what is
-shared is what the loop iterates and how the bulk counts are kept.
+The per-packet loop over ``near`` (:meth:`Reception.broadcast
+<awaremw.radio.reception.Reception.broadcast>`) is the hot path of both media.
 """
 
 from __future__ import annotations
@@ -329,73 +326,3 @@ class Neighbourhood(Generic[S]):
         if links is not None:
             links[r.node_id] = out
         return out
-
-
-# Collision check of one reception (radio/mac.py, Air.survives bound to the frame
-# and receiver): given the packet's RSSI, did it survive the frames overlapping it?
-Survive = Callable[[float], bool]
-
-
-def deliver(
-    model: RadioModel,
-    rc: MoteCounters,
-    mean: float,
-    link_h: int,
-    n: int,
-    bits: int,
-    key: int,
-    survive: Survive | None = None,
-) -> float | None:
-    """Rule 5 for one receiver in range: the model decides; lost -> ``dropped_loss``;
-    received but destroyed by overlapping frames (``survive``) -> ``collisions``;
-    delivered -> ``frames_rx``, ``bytes_rx`` and the packet's RSSI is returned."""
-    ok, rssi = model.decide(link_h, mean, bits, key)
-    if not ok:
-        rc.dropped_loss += 1
-        return None
-    if survive is not None and not survive(rssi):
-        rc.collisions += 1
-        return None
-    rc.frames_rx += 1
-    rc.bytes_rx += n
-    return rssi
-
-
-def hear(
-    model: RadioModel,
-    rc: MoteCounters,
-    src: int,
-    dst: int,
-    d: float,
-    tx_power: float,
-    range_m: float,
-    n: int,
-    bits: int,
-    key: int,
-    survive: Survive | None = None,
-) -> float | None:
-    """Rules 4 and 5 for one receiver at distance ``d``, from scratch (moving motes,
-    unicasts): beyond ``range_m`` -> ``dropped_distance``, else :func:`deliver`."""
-    if d > range_m:
-        rc.dropped_distance += 1
-        return None
-    mean = model.mean_rssi(src, dst, d, tx_power)
-    return deliver(model, rc, mean, model.fading_link_hash(src, dst), n, bits, key, survive)
-
-
-def hear_link(
-    model: RadioModel,
-    link: Link[S],
-    range_m: float,
-    n: int,
-    bits: int,
-    key: int,
-    survive: Survive | None = None,
-) -> float | None:
-    """:func:`hear` on a cached link (:meth:`Neighbourhood.link`) of a sender whose
-    range is ``range_m``."""
-    r, d, mean, link_h = link
-    if d > range_m:
-        r.counters.dropped_distance += 1
-        return None
-    return deliver(model, r.counters, mean, link_h, n, bits, key, survive)

@@ -6,8 +6,9 @@ queue, MAC backoff, airtime, sequence numbers, ACK wait and retries, duplicate
 filter, counters, battery). The rules are those of the virtual-clock driver
 (``docs/radio.md``, "Medium semantics"; :mod:`awaremw.runtime.virtual`), and
 the code that applies them is shared with it: who hears whom, cached receiver
-lists and bulk-counted drops in :mod:`awaremw.radio.neighbourhood`, the link
-layer's state and rules in :mod:`awaremw.radio.linklayer`. So a run over
+lists and bulk-counted drops in :mod:`awaremw.radio.neighbourhood`, every
+reception decision and its accounting in :mod:`awaremw.radio.reception`, the
+link layer's state and rules in :mod:`awaremw.radio.linklayer`. So a run over
 Zenoh and a virtual run of the same deployment count the same things the same
 way. ``docs/runtime.md`` describes the Zenoh side.
 
@@ -78,7 +79,7 @@ import zenoh
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
-from awaremw.radio.capture import RadioTap, lost, refused
+from awaremw.radio.capture import RadioTap
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.envelope import (
     Envelope,
@@ -103,7 +104,8 @@ from awaremw.radio.mac import (
     mac_params,
 )
 from awaremw.radio.model import RadioModel, cell_of, expect_motes, packet_key
-from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear
+from awaremw.radio.neighbourhood import Cell, Neighbourhood
+from awaremw.radio.reception import Reception
 from awaremw.radio.security import FrameGuard, RadioSecurity
 from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
@@ -333,6 +335,10 @@ class ZenohMedium:
         # ``self.guard.refused`` and per mote in ``counters.refused``.
         self.guard: FrameGuard | None = None if security is None else FrameGuard(security)
         self.payload_mtu = p.mtu if security is None else security.payload_mtu(p.mtu)
+        # Every reception decision and its accounting (radio/reception.py).
+        self._rx: Reception[Radio] = Reception(
+            model, self._nb, self._air, self.guard, self._deliver, self._battery_down
+        )
         # Rejected envelopes by reason, and faults contained by the last guards
         # (an exception out of a Zenoh callback or a mote handler): counted,
         # logged at most once per reason every 10 s (awaremw.radio.faults).
@@ -656,15 +662,24 @@ class ZenohMedium:
         if fr.remote and self.tap is not None:
             self.tap.on_air(fr.end, e.src, e.dest, e.seq, e.attempt, e.frame)
         others = self._air.overlapping(f) if self._collide and f is not None else None
+        rx = self._rx
         if e.dest == BROADCAST:
-            self._hear_broadcast(
-                e.src, e.x, e.y, e.tx_power, e.seq, e.frame, now, f, others or None
-            )
+            if not rx.broadcast(e.src, e.x, e.y, e.tx_power, True, e.frame, e.seq, f,
+                                others or None, now, self.tap):  # fmt: skip
+                self.stats.ignored += 1
             return
         r = self.radios.get(e.dest)
-        got = r is not None and self._hear_unicast(
-            e.src, e.x, e.y, e.tx_power, e.seq, e.attempt, e.frame, r, now, f, others or None
-        )
+        got = False
+        if r is not None and r.alive:
+            link = rx.link(e.src, e.x, e.y, e.tx_power, r, now)
+            if link is None:
+                self.stats.ignored += 1  # not listening to the sender's cell
+            else:
+                rng = self.model.max_range_m(e.tx_power)
+                got = rx.unicast(e.src, link, rng, e.frame, e.seq, e.attempt, f, others or None,
+                                 now, self.tap)  # fmt: skip
+                if got:  # it sent its ACK (and may have spent its battery since)
+                    self._check_battery(r, now)
         s = fr.sender
         if s is not None:  # a local sender: its outcome, as the virtual medium times it
             acked = (
@@ -700,157 +715,11 @@ class ZenohMedium:
         for r in self._nb.listeners((cx, cy), now):
             r.counters.malformed += 1
 
-    def _hear_broadcast(
-        self,
-        src: int,
-        sx: float,
-        sy: float,
-        txp: float,
-        seq: int,
-        frame: bytes,
-        now: float,
-        f: OnAir | None = None,
-        others: list[OnAir] | None = None,
-    ) -> None:
-        n = len(frame)
-        bits = 8 * (n + self._overhead)
-        key = packet_key(seq, 0)
-        g = self.guard
-        op = None if g is None else g.open(src, BROADCAST, seq, frame)  # once per frame
-        nb = self._nb
-        air = self._air
-        c = nb.sender(src, sx, sy, txp)
-        links = self.links
-        tap = self.tap
-        heard = False
-        if c.near or c.far_loss or c.far_dist:
-            heard = True
-            c.pending += 1  # one more broadcast for the far_* receivers (counted in bulk)
-            decide = self.model.decide  # the model's own decision, never a copy of it
-            for r, rc, mean, lh in c.near:
-                if not r.alive:
-                    continue
-                ok, rssi = decide(lh, mean, bits, key)
-                if not ok:
-                    rc.dropped_loss += 1
-                    if tap is not None:
-                        tap.reception(now, src, r.node_id, rssi, "path_loss")
-                    continue
-                if others is not None and not air.survives(f, rssi, r.node_id, r.x, r.y, others):  # type: ignore[arg-type]
-                    rc.collisions += 1
-                    if tap is not None:
-                        tap.reception(now, src, r.node_id, rssi, "collision")
-                    continue
-                rc.frames_rx += 1
-                rc.bytes_rx += n
-                if links is not None:
-                    _tally(links, src, r.node_id)
-                data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
-                if tap is not None:
-                    tap.reception(now, src, r.node_id, rssi, refused(data, op))
-                if data is not None:
-                    r.sink.radio_receive(data, rssi, now)
-                if r.battery is not None:
-                    self._check_battery(r, now)
-        if nb.moving:
-            m = self.model
-            scell = cell_of(sx, sy, self.cell_size)
-            rng = m.max_range_m(txp)
-            for r in list(nb.moving):
-                if r.node_id == src or not r.alive:
-                    continue
-                nb.locate(r, now)
-                if not adjacent(r.cell, scell):
-                    continue
-                heard = True
-                d = math.hypot(r.x - sx, r.y - sy)
-                c0 = r.counters.collisions
-                got = hear(m, r.counters, src, r.node_id, d, txp, rng, n, bits, key,
-                           self._survivor(f, others, r))  # fmt: skip
-                if tap is not None and got is None:
-                    tap.reception(
-                        now, src, r.node_id, None, lost(d > rng, r.counters.collisions > c0)
-                    )
-                if got is None:
-                    continue
-                if links is not None:
-                    _tally(links, src, r.node_id)
-                data = frame if op is None else g.accept(r.node_id, r.counters, src, op)  # type: ignore[union-attr]
-                if tap is not None:
-                    tap.reception(now, src, r.node_id, got, refused(data, op))
-                if data is not None:
-                    r.sink.radio_receive(data, got, now)
-                self._check_battery(r, now)
-        if not heard:
-            self.stats.ignored += 1
-
-    def _hear_unicast(
-        self,
-        src: int,
-        sx: float,
-        sy: float,
-        txp: float,
-        seq: int,
-        attempt: int,
-        frame: bytes,
-        r: Radio,
-        now: float,
-        f: OnAir | None = None,
-        others: list[OnAir] | None = None,
-    ) -> bool:
-        """The destination ``r`` hears (or not) one attempt. Returns whether it
-        got the frame (and so sent its auto-ACK)."""
-        if not r.alive:
-            return False
-        self._nb.locate(r, now)
-        if not adjacent(r.cell, cell_of(sx, sy, self.cell_size)):
-            self.stats.ignored += 1
-            return False  # not listening to the sender's cell: hears nothing, counts nothing
-        n = len(frame)
-        m = self.model
-        rc = r.counters
-        d = math.hypot(r.x - sx, r.y - sy)
-        bits = 8 * (n + self._overhead)
-        key = packet_key(seq, attempt)
-        survive = self._survivor(f, others, r)
-        c0 = rc.collisions
-        rssi = hear(m, rc, src, r.node_id, d, txp, m.max_range_m(txp), n, bits, key, survive)
-        tap = self.tap
-        if rssi is None:
-            if tap is not None:
-                tap.reception(
-                    now, src, r.node_id, None, lost(d > m.max_range_m(txp), rc.collisions > c0)
-                )
-            return False
+    def _deliver(self, r: Radio, src: int, data: bytes, rssi: float, now: float) -> None:
+        """A frame ``r`` took (radio/reception.py) goes to its runner."""
         if self.links is not None:
             _tally(self.links, src, r.node_id)
-        g = self.guard
-        op = None if g is None else g.open(src, r.node_id, seq, frame)
-        if op is not None and op.payload is None:
-            # Bad MIC: dropped before the duplicate filter (it cannot poison it);
-            # the hardware ACK goes out all the same (802.15.4 ACKs are not secured).
-            g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
-            if tap is not None:
-                tap.reception(now, src, r.node_id, rssi, "mic")
-        elif linklayer.accept_unicast(r, src, seq):
-            data = frame if op is None else g.accept(r.node_id, rc, src, op)  # type: ignore[union-attr]
-            if tap is not None:
-                tap.reception(now, src, r.node_id, rssi, refused(data, op))
-            if data is not None:
-                r.sink.radio_receive(data, rssi, now)
-        elif tap is not None:
-            tap.reception(now, src, r.node_id, rssi, "duplicate")
-        if not linklayer.send_ack(r):  # switched off by whoever handled the frame
-            return False
-        self._check_battery(r, now)
-        return True
-
-    def _survivor(self, f: OnAir | None, others: list[OnAir] | None, r: Radio) -> Survive | None:
-        """The collision check of frame ``f`` at receiver ``r`` (None: nothing overlapped)."""
-        if f is None or not others:
-            return None
-        air = self._air
-        return lambda rssi: air.survives(f, rssi, r.node_id, r.x, r.y, others)
+        r.sink.radio_receive(data, rssi, now)
 
     def _ack_in(
         self,
@@ -1032,10 +901,13 @@ class ZenohMedium:
     def _check_battery(self, r: Radio, now: float) -> bool:
         """False (and the mote is switched off) once its battery is spent."""
         if linklayer.battery_spent(r, self.preset):
-            self.detach(r.node_id)
-            r.sink.radio_down("battery", now)
+            self._battery_down(r, now)
             return False
         return r.alive
+
+    def _battery_down(self, r: Radio, now: float) -> None:
+        self.detach(r.node_id)
+        r.sink.radio_down("battery", now)
 
     def _silence(self, r: Radio) -> None:
         fr = r.on_air

@@ -10,13 +10,11 @@ medium applies exactly the rules of the Zenoh medium (``docs/radio.md``,
 counters.
 
 Who hears whom (cells, cached receiver lists of static senders, bulk-counted
-drops) is :mod:`awaremw.radio.neighbourhood`; the link layer's state and rules
+drops) is :mod:`awaremw.radio.neighbourhood`; every reception decision and its
+accounting :mod:`awaremw.radio.reception`; the link layer's state and rules
 (sequence numbers, duplicates, ACKs, retries) :mod:`awaremw.radio.linklayer`:
 the same code the Zenoh medium runs. What is this driver's own is the event
-heap and the per-packet loop over a static sender's receivers (the hot path:
-:meth:`RadioModel.decide <awaremw.radio.model.RadioModel.decide>` inlined),
-which is what makes 1,000 motes run at least 10x faster than real time.
-Moving motes are evaluated afresh at every frame.
+heap, and what a delivery does (the receiver's core takes the frame).
 
 Channel access and collisions are :mod:`awaremw.radio.mac`'s, driven through
 :mod:`awaremw.radio.linklayer` as the Zenoh medium drives them: each mote's
@@ -39,7 +37,7 @@ from awaremw.protocol.core import IdleCheck, MoteCore, Transmission
 from awaremw.protocol.events import CoreEvent, MalformedFrame
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
-from awaremw.radio.capture import RadioTap, lost, refused
+from awaremw.radio.capture import RadioTap
 from awaremw.radio.counters import Battery, MoteCounters
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
@@ -53,19 +51,10 @@ from awaremw.radio.mac import (
     OnAir,
     mac_params,
 )
-from awaremw.radio.model import (
-    _GOLDEN,
-    _M64,
-    _MUL,
-    _NORMAL,
-    _SHIFT,
-    _U32,
-    RadioModel,
-    expect_motes,
-    packet_key,
-)
-from awaremw.radio.neighbourhood import Cell, Neighbourhood, Survive, adjacent, hear, hear_link
-from awaremw.radio.security import FrameGuard, Opened, RadioSecurity
+from awaremw.radio.model import RadioModel, expect_motes
+from awaremw.radio.neighbourhood import Neighbourhood
+from awaremw.radio.reception import Reception
+from awaremw.radio.security import FrameGuard, RadioSecurity
 from awaremw.runtime.events import EventHook, MoteDown
 from awaremw.world.mobility import Mobility, Static
 
@@ -76,12 +65,6 @@ TransmitHook = Callable[[int, Transmission, float], None]
 
 _TIMER, _TX_END, _UC_DONE, _START, _CALL, _CCA = range(6)
 _MAX_FIRINGS_AT_ONE_TIME = 100_000
-
-
-def _reaching(others: list[OnAir], cell: Cell) -> list[OnAir]:
-    """The frames of ``others`` sent from ``cell`` or the 8 cells around it."""
-    cx, cy = cell
-    return [o for o in others if -1 <= o.cell[0] - cx <= 1 and -1 <= o.cell[1] - cy <= 1]
 
 
 class _Node(LinkStation):
@@ -148,11 +131,6 @@ class VirtualNetwork:
         self._cores: dict[int, MoteCore] = {}
         self._nb: Neighbourhood[_Node] = Neighbourhood(model)
         p = self.preset
-        self._sens = p.sensitivity_dbm
-        self._noise = p.noise_floor_dbm
-        self._one_snr = model._one_snr_db
-        self._sigma_f = p.fading_sigma_db
-        self._overhead = p.phy_overhead_bytes
         # Medium access and collisions (radio/mac.py): the MAC of every mote, and
         # the frames on the air when anything needs them (carrier sense, SINR).
         self.mac_params = mac_params(p, mac)
@@ -165,6 +143,10 @@ class VirtualNetwork:
         # opened and checked for replays off it; the cores get mtu - overhead bytes.
         self.guard: FrameGuard | None = None if security is None else FrameGuard(security)
         self._mtu = p.mtu if security is None else security.payload_mtu(p.mtu)
+        # Every reception decision and its accounting (radio/reception.py).
+        self._rx: Reception[_Node] = Reception(
+            model, self._nb, self._air, self.guard, self._deliver, self._battery_down
+        )
 
     # ------------------------------------------------------------------ public API
 
@@ -327,13 +309,6 @@ class VirtualNetwork:
         core = node.core
         self._handle(node, core.drain(), core.events(), core.next_deadline())
 
-    def _after_rx(self, node: _Node) -> None:
-        """:meth:`_after` following a reception (the timer is armed at the core's
-        last deadline, so an idle core has nothing to collect)."""
-        idle = node.idle
-        if idle is None or not idle():
-            self._after(node)
-
     def _handle(
         self, node: _Node, txs: list[Transmission], evs: list[CoreEvent], dl: float | None
     ) -> None:
@@ -460,13 +435,6 @@ class VirtualNetwork:
             if node.alive and not node.busy:
                 self._start_next(node)
 
-    def _survivor(self, f: OnAir | None, others: list[OnAir] | None, r: _Node) -> Survive | None:
-        """The collision check of frame ``f`` at receiver ``r`` (None: nothing overlapped)."""
-        if f is None or not others:
-            return None
-        air = self._air
-        return lambda rssi: air.survives(f, rssi, r.node_id, r.x, r.y, others)
-
     # ------------------------------------------------------------------ the medium
 
     def _tx_end(self, s: _Node) -> None:
@@ -489,229 +457,62 @@ class VirtualNetwork:
         if tx.dest == BROADCAST:
             s.busy = False
             s.cur = None
-            self._broadcast(s, frame, n, seq << 8, f, others or None)  # packet_key(seq, 0)
+            if not s.static:
+                self._nb.locate(s, self._now)
+            self._rx.broadcast(s.node_id, s.x, s.y, s.tx_power, s.static, frame, seq, f,
+                               others or None, self._now, self.tap)  # fmt: skip
             if s.battery is not None:
                 self._check_battery(s)
             if s.queue and s.alive and not s.busy:
                 self._start_next(s)
         else:
-            self._unicast(s, tx, frame, n, seq, s.cur_attempt, f, others or None)
+            self._unicast(s, tx, frame, seq, s.cur_attempt, f, others or None)
             self._check_battery(s)
 
-    def _broadcast(
-        self,
-        s: _Node,
-        frame: bytes,
-        n: int,
-        key: int,
-        f: OnAir | None,
-        others: list[OnAir] | None,
-    ) -> None:
-        """Rules 3 to 5 for a broadcast that just ended; ``others``: the frames that
-        overlapped it (None: none, or collisions off)."""
-        g = self.guard
-        air = self._air
-        op = None if g is None else g.open(s.node_id, BROADCAST, key >> 8, frame)
-        sid = s.node_id
-        bits = 8 * (n + self._overhead)
-        kg = (key * _GOLDEN) & _M64
-        now = self._now
-        nb = self._nb
-        tap = self.tap
-        if s.static:
-            c = nb.sender(s.node_id, s.x, s.y, s.tx_power)
-            c.pending += 1  # one more broadcast for the far_* receivers (counted in bulk)
-            sens = self._sens
-            noise = self._noise
-            one = self._one_snr
-            sf = self._sigma_f
-            prr_bits = self.model.prr_bits
-            memo = self.model.prr_memo
-            normal = _NORMAL
-            mask = _M64
-            mul = _MUL
-            shift = _SHIFT
-            rel_by_cell: dict[Cell, list[OnAir]] | None = None if others is None else {}
-            for r, rc, mean, lh in c.near:
-                # Inlined RadioModel.decide(lh, mean, bits, key), the hot path.
-                # packet_hash is z ^ (z >> 31): its top 12 bits (the normal
-                # deviate) are z's, so the xorshift is only needed for the
-                # uniform draw, inside the PRR's transitional band.
-                z = ((lh ^ kg) * mul) & mask
-                rssi = mean - sf * normal[z >> shift]
-                if rssi < sens:
-                    if r.alive:
-                        rc.dropped_loss += 1
-                        if tap is not None:
-                            tap.reception(now, sid, r.node_id, rssi, "path_loss")
-                    continue
-                snr = rssi - noise
-                if snr < one:
-                    z ^= z >> 31
-                    # prr_bits(rssi, bits), its cache looked up inline first.
-                    pv = memo.get((round(snr * 1000.0) << 16) | bits)
-                    if pv is None:
-                        pv = prr_bits(rssi, bits)
-                    if (z & 0xFFFFFFFF) * _U32 >= pv:
-                        if r.alive:
-                            rc.dropped_loss += 1
-                            if tap is not None:
-                                tap.reception(now, sid, r.node_id, rssi, "path_loss")
-                        continue
-                if not r.alive:
-                    continue
-                if rel_by_cell is not None:  # others is not None
-                    # Only the overlapping frames sent from r's cell or the 8 around
-                    # reach r (Air.power_mw is 0 for the others, and r's own frame
-                    # is in its cell): an empty list means the frame survived.
-                    rel = rel_by_cell.get(r.cell)
-                    if rel is None:
-                        rel = _reaching(others, r.cell)  # type: ignore[arg-type]
-                        rel_by_cell[r.cell] = rel
-                    if rel and not air.survives(f, rssi, r.node_id, r.x, r.y, rel):  # type: ignore[arg-type]
-                        rc.collisions += 1
-                        if tap is not None:
-                            tap.reception(now, sid, r.node_id, rssi, "collision")
-                        continue
-                rc.frames_rx += 1
-                rc.bytes_rx += n
-                core = r.core
-                data = frame if g is None else g.accept(r.node_id, rc, sid, op)  # type: ignore[arg-type]
-                if tap is not None:
-                    tap.reception(now, sid, r.node_id, rssi, refused(data, op))
-                if data is not None:
-                    try:
-                        core.receive(data, rssi, now)
-                    except Exception as e:
-                        self._contain(r, "receive", e)
-                # Inlined _after_rx(r): usually nothing to send, no event, same deadline.
-                idle = r.idle
-                if idle is None or not idle():
-                    txs = core.drain()
-                    evs = core.events()
-                    dl = core.next_deadline()
-                    if txs or evs or dl != r.armed:
-                        self._handle(r, txs, evs, dl)
-                if r.battery is not None:
-                    self._check_battery(r)
-            if nb.moving:
-                for r in list(nb.moving):
-                    self._hear(s, r, frame, n, bits, key, op, f, others)
-        else:
-            nb.locate(s, now)
-            candidates = [r for lst in nb.cells_around(s.cell) for r in lst]
-            candidates.extend(nb.moving)  # filtered by cell in _hear
-            for r in candidates:
-                self._hear(s, r, frame, n, bits, key, op, f, others)
+    def _deliver(self, r: _Node, src: int, data: bytes, rssi: float, now: float) -> None:
+        """A frame ``r`` took (radio/reception.py) goes to its core."""
+        core = r.core
+        try:
+            core.receive(data, rssi, now)
+        except Exception as e:
+            self._contain(r, "receive", e)
+        # _after(r), inlined: usually nothing to send, no event, the same deadline
+        # (an IdleCheck core says so without the three calls).
+        idle = r.idle
+        if idle is None or not idle():
+            txs = core.drain()
+            evs = core.events()
+            dl = core.next_deadline()
+            if txs or evs or dl != r.armed:
+                self._handle(r, txs, evs, dl)
 
-    def _hear(
-        self,
-        s: _Node,
-        r: _Node,
-        frame: bytes,
-        n: int,
-        bits: int,
-        key: int,
-        op: Opened | None,
-        f: OnAir | None,
-        others: list[OnAir] | None,
-    ) -> None:
-        """One receiver of a broadcast, evaluated from scratch (moving motes)."""
-        if r is s or not r.alive:
-            return
-        now = self._now
-        self._nb.locate(r, now)
-        if not adjacent(r.cell, s.cell):
-            return  # not subscribed to the sender's cell: hears nothing, counts nothing
-        d = math.hypot(r.x - s.x, r.y - s.y)
-        c0 = r.counters.collisions
-        rssi = hear(
-            self.model,
-            r.counters,
-            s.node_id,
-            r.node_id,
-            d,
-            s.tx_power,
-            s.range_m,
-            n,
-            bits,
-            key,
-            self._survivor(f, others, r),
-        )
-        tap = self.tap
-        if rssi is None:
-            if tap is not None:
-                cause = lost(d > s.range_m, r.counters.collisions > c0)
-                tap.reception(now, s.node_id, r.node_id, None, cause)
-            return
-        g = self.guard
-        data = frame if g is None or op is None else g.accept(r.node_id, r.counters, s.node_id, op)
-        if tap is not None:
-            tap.reception(now, s.node_id, r.node_id, rssi, refused(data, op))
-        if data is not None:
-            try:
-                r.core.receive(data, rssi, now)
-            except Exception as e:
-                self._contain(r, "receive", e)
-        self._after_rx(r)
-        self._check_battery(r)
+    def _battery_down(self, r: _Node, now: float) -> None:
+        self.kill(r.node_id, "battery")
 
     def _unicast(
         self,
         s: _Node,
         tx: Transmission,
         frame: bytes,
-        n: int,
         seq: int,
         a: int,
         f: OnAir | None,
         others: list[OnAir] | None,
     ) -> None:
         now = self._now
-        p = self.preset
-        m = self.model
         r = self._nodes.get(tx.dest)
         acked = False
         if r is not None and r.alive:
             link = self._nb.link(s, r, now)  # None: r does not listen to s's cell
-            if link is not None:
-                bits = 8 * (n + self._overhead)
-                survive = self._survivor(f, others, r)
-                c0 = r.counters.collisions
-                rssi = hear_link(m, link, s.range_m, n, bits, packet_key(seq, a), survive)
-                if rssi is None and self.tap is not None:
-                    why = lost(link[1] > s.range_m, r.counters.collisions > c0)
-                    self.tap.reception(now, s.node_id, r.node_id, None, why)
-                if rssi is not None:
-                    cause: str | None = "duplicate"  # for a tap
-                    g = self.guard
-                    op = None if g is None else g.open(s.node_id, tx.dest, seq, frame)
-                    if op is not None and op.payload is None:
-                        # Bad MIC: dropped before the duplicate filter (it cannot
-                        # poison it); the hardware ACK goes out all the same.
-                        g.accept(r.node_id, r.counters, s.node_id, op)  # type: ignore[union-attr]
-                        cause = "mic"
-                    elif linklayer.accept_unicast(r, s.node_id, seq):
-                        data = (
-                            frame
-                            if g is None or op is None
-                            else g.accept(r.node_id, r.counters, s.node_id, op)
-                        )
-                        cause = None if data is not None else "replay"
-                        if data is not None:
-                            try:
-                                r.core.receive(data, rssi, now)
-                            except Exception as e:
-                                self._contain(r, "receive", e)
-                            self._after_rx(r)
-                    if self.tap is not None:
-                        self.tap.reception(now, s.node_id, r.node_id, rssi, cause)
-                    if linklayer.send_ack(r):
-                        # The hardware ACK, on the reverse link at the receiver's power.
-                        d = link[1]
-                        acked = linklayer.ack_heard(m, r.node_id, r.tx_power, s.node_id, d, seq, a)
-                        self._check_battery(r)
-        self._push(linklayer.outcome_time(p, now, acked), _UC_DONE, s, acked)
+            if link is not None and self._rx.unicast(
+                s.node_id, link, s.range_m, frame, seq, a, f, others, now, self.tap
+            ):
+                # The hardware ACK, on the reverse link at the receiver's power.
+                acked = linklayer.ack_heard(
+                    self.model, r.node_id, r.tx_power, s.node_id, link[1], seq, a
+                )
+                self._check_battery(r)
+        self._push(linklayer.outcome_time(self.preset, now, acked), _UC_DONE, s, acked)
 
     def _uc_done(self, s: _Node, acked: bool) -> None:
         tx = s.cur
