@@ -190,6 +190,18 @@ def test_every_third_party_import_is_declared() -> None:
     assert missing == []
 
 
+def test_the_picture_in_the_docs_is_of_this_code() -> None:
+    """docs/img/architecture.png was drawn from today's floors and modules
+    (``python tests/architecture_picture.py`` draws it again)."""
+    import architecture_picture as picture
+
+    drawn = picture.read_structure()
+    assert drawn is not None, "the picture carries no structure: draw it again"
+    now = picture.structure()
+    moved = {f: now[f] for f in now if drawn.get(f) != now[f]}
+    assert moved == {}, "the code has moved on: python tests/architecture_picture.py"
+
+
 # ------------------------------------------------------------------ the checker itself
 
 
