@@ -40,6 +40,7 @@ COMPILED = [
     "awaremw/radio/mac.py",
     "awaremw/radio/model.py",
     "awaremw/radio/neighbourhood.py",
+    "awaremw/runtime/timerq.py",
     "awaremw/runtime/virtual.py",
     "awaremw/world/fields.py",
 ]
