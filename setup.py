@@ -42,6 +42,7 @@ COMPILED = [
     "awaremw/radio/model.py",
     "awaremw/radio/neighbourhood.py",
     "awaremw/radio/reception.py",
+    "awaremw/runtime/timerq.py",
     "awaremw/runtime/virtual.py",
     "awaremw/world/fields.py",
 ]

@@ -1,6 +1,6 @@
 """The virtual-clock driver: MoteCores on an in-memory medium, as fast as possible.
 
-A discrete-event simulator: a heap of ``(time, seq, kind, node, data)``
+A discrete-event simulator: a queue of ``(time, seq, kind, node, data)``
 entries, processed in order; ``seq`` (insertion order) breaks ties, so a run is
 a deterministic function of the seed, the motes added and the calls made. The
 medium applies exactly the rules of the Zenoh medium (``docs/radio.md``,
@@ -14,7 +14,8 @@ drops) is :mod:`awaremw.radio.neighbourhood`; every reception decision and its
 accounting :mod:`awaremw.radio.reception`; the link layer's state and rules
 (sequence numbers, duplicates, ACKs, retries) :mod:`awaremw.radio.linklayer`:
 the same code the Zenoh medium runs. What is this driver's own is the event
-heap, and what a delivery does (the receiver's core takes the frame).
+queue (:mod:`awaremw.runtime.timerq`, a calendar of time slots), and what a
+delivery does (the receiver's core takes the frame).
 
 Channel access and collisions are :mod:`awaremw.radio.mac`'s, driven through
 :mod:`awaremw.radio.linklayer` as the Zenoh medium drives them: each mote's
@@ -27,7 +28,6 @@ the assessments, and at each frame's end says which receptions survived
 
 from __future__ import annotations
 
-import heapq
 import logging
 import math
 from collections.abc import Callable
@@ -56,6 +56,7 @@ from awaremw.radio.neighbourhood import Neighbourhood
 from awaremw.radio.reception import Reception
 from awaremw.radio.security import FrameGuard, RadioSecurity
 from awaremw.runtime.events import EventHook, MoteDown
+from awaremw.runtime.timerq import TimerQueue
 from awaremw.world.mobility import Mobility, Static
 
 log = logging.getLogger(__name__)
@@ -124,8 +125,7 @@ class VirtualNetwork:
         self.faults = FaultLog("contained fault", log, logging.ERROR)
         self.strict = False
         self._now = 0.0
-        self._heap: list[tuple[float, int, int, object, object]] = []
-        self._seq = 0
+        self._queue = TimerQueue()  # (time, seq, kind, node, data) events
         self._nodes: dict[int, _Node] = {}
         self._counters: dict[int, MoteCounters] = {}
         self._cores: dict[int, MoteCore] = {}
@@ -272,10 +272,9 @@ class VirtualNetwork:
 
     def run_until(self, t: float) -> None:
         """Process every event up to and including virtual time ``t``."""
-        heap = self._heap
-        pop = heapq.heappop
-        while heap and heap[0][0] <= t:
-            when, _, kind, node, data = pop(heap)
+        pop = self._queue.pop_until
+        while (e := pop(t)) is not None:
+            when, _, kind, node, data = e
             self._now = when
             if kind == _TIMER:  # the most frequent first
                 self._timer(node, data)  # type: ignore[arg-type]
@@ -295,8 +294,7 @@ class VirtualNetwork:
     # ------------------------------------------------------------------ scheduling
 
     def _push(self, t: float, kind: int, node: object, data: object) -> None:
-        self._seq += 1
-        heapq.heappush(self._heap, (t, self._seq, kind, node, data))
+        self._queue.push(t, kind, node, data)
 
     def _contain(self, node: _Node, where: str, e: Exception) -> None:
         """A core raised: count it (rate-limited log); re-raise in strict mode."""
@@ -379,10 +377,7 @@ class VirtualNetwork:
             node.armed = dl
             node.timer_gen += 1
             if node.alive:
-                self._seq += 1
-                heapq.heappush(
-                    self._heap, (dl if dl > now else now, self._seq, _TIMER, node, node.timer_gen)
-                )
+                self._queue.push(dl if dl > now else now, _TIMER, node, node.timer_gen)
 
     def _start_next(self, node: _Node) -> None:
         if not node.queue:
@@ -408,8 +403,7 @@ class VirtualNetwork:
             if not node.static:
                 self._nb.locate(node, self._now)
         end = linklayer.put_on_air(node, air, self.preset, start)
-        self._seq += 1
-        heapq.heappush(self._heap, (end, self._seq, _TX_END, node, None))
+        self._queue.push(end, _TX_END, node, None)
 
     def _cca(self, node: _Node) -> None:
         """A clear channel assessment of ``node`` ends now: transmit, back off or give up."""
