@@ -1,0 +1,98 @@
+"""Fleets of motes on the Zenoh radio: one interface, one process or many.
+
+:func:`open_fleet` gives a :class:`AnyFleet`: a
+:class:`~awaremw.runtime.fleet.local.Fleet` when the motes run in this process
+(one process), a :class:`~awaremw.runtime.fleet.launcher.FleetLauncher` of
+worker processes otherwise. Both are used the same way::
+
+    async with open_fleet(deployment, factory, LauncherSettings(processes=n)) as fleet:
+        await fleet.run(60.0)
+        print(fleet.stats.snapshot().line())
+    fleet.counters(), fleet.results  # per mote, per process
+
+The modules: ``local`` (:class:`Fleet`), ``launcher`` and ``worker`` (the
+processes), ``pool`` (their supervision), ``settings``, ``stats``, and the
+parts of a fleet (``motes``, ``control``, ``clock``, ``guard``).
+"""
+
+from __future__ import annotations
+
+import math
+from types import TracebackType
+from typing import Protocol, Self
+
+from awaremw.radio.capture import Capture
+from awaremw.radio.counters import MoteCounters
+from awaremw.runtime.deployment import Deployment
+from awaremw.runtime.fleet.launcher import FleetLauncher
+from awaremw.runtime.fleet.local import Fleet
+from awaremw.runtime.fleet.motes import CoreFactory
+from awaremw.runtime.fleet.settings import FleetSettings, LauncherSettings
+from awaremw.runtime.fleet.stats import FleetSnapshot, WorkerResult
+from awaremw.runtime.partition import WorkerFilter, XStripe
+
+__all__ = ["AnyFleet", "Fleet", "FleetLauncher", "FleetSettings", "LauncherSettings", "open_fleet"]
+
+
+class Snapshots(Protocol):
+    def snapshot(self) -> FleetSnapshot: ...
+
+
+class AnyFleet(Protocol):
+    """What every fleet offers, in this process or many."""
+
+    @property
+    def endpoint(self) -> str:
+        """Where gateways, sniffers and ``fleet-ctl`` reach the fleet."""
+
+    @property
+    def stats(self) -> Snapshots:
+        """Progress snapshots (counter totals, recent timer lag)."""
+
+    @property
+    def results(self) -> list[WorkerResult]:
+        """Each process's figures, after the fleet closed."""
+
+    @property
+    def capture(self) -> Capture | None:
+        """The radio capture of ``settings.pcap``."""
+
+    async def __aenter__(self) -> Self: ...
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+    async def run(self, duration: float | None = None) -> None:
+        """Run until emulated time ``duration`` (forever if None); raise if a part failed."""
+
+    def now(self) -> float:
+        """Emulated seconds since the start."""
+
+    def counters(self) -> dict[int, MoteCounters]:
+        """Per-mote counters (of a launcher: after it closed)."""
+
+    async def freeze(self, grace_s: float = 0.5) -> None:
+        """Start no new frame; let frames in flight land for ``grace_s`` wall seconds."""
+
+
+def open_fleet(
+    deployment: Deployment,
+    core_factory: CoreFactory,
+    settings: LauncherSettings,
+    *,
+    part: XStripe | None = None,
+) -> AnyFleet:
+    """The fleet ``settings`` asks for, not entered yet: in this process when
+    :attr:`LauncherSettings.local`, else worker processes. ``part`` (only in
+    this process) keeps one stripe of the deployment, e.g. one host's;
+    ``settings.exclude_kinds`` applies either way."""
+    if not settings.local:
+        if part is not None:
+            raise ValueError("a part of a deployment runs in one process without a router here")
+        return FleetLauncher(deployment, core_factory, settings)
+    keep = WorkerFilter(part or XStripe(-math.inf, math.inf), settings.exclude_kinds)
+    return Fleet(deployment, core_factory, settings.in_process(), node_filter=keep)
