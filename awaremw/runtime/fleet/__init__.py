@@ -39,44 +39,23 @@ class Snapshots(Protocol):
 
 
 class AnyFleet(Protocol):
-    """What every fleet offers, in this process or many."""
+    """What every fleet offers, in this process or many (docs/runtime.md)."""
+
+    endpoint: str  # where gateways, sniffers and fleet-ctl reach it
+    results: list[WorkerResult]  # each process's figures, after the fleet closed
+    capture: Capture | None  # the radio capture of settings.pcap
 
     @property
-    def endpoint(self) -> str:
-        """Where gateways, sniffers and ``fleet-ctl`` reach the fleet."""
-
-    @property
-    def stats(self) -> Snapshots:
-        """Progress snapshots (counter totals, recent timer lag)."""
-
-    @property
-    def results(self) -> list[WorkerResult]:
-        """Each process's figures, after the fleet closed."""
-
-    @property
-    def capture(self) -> Capture | None:
-        """The radio capture of ``settings.pcap``."""
+    def stats(self) -> Snapshots: ...  # progress: counter totals, recent timer lag
 
     async def __aenter__(self) -> Self: ...
-
     async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
+        self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
     ) -> None: ...
-
-    async def run(self, duration: float | None = None) -> None:
-        """Run until emulated time ``duration`` (forever if None); raise if a part failed."""
-
-    def now(self) -> float:
-        """Emulated seconds since the start."""
-
-    def counters(self) -> dict[int, MoteCounters]:
-        """Per-mote counters (of a launcher: after it closed)."""
-
-    async def freeze(self, grace_s: float = 0.5) -> None:
-        """Start no new frame; let frames in flight land for ``grace_s`` wall seconds."""
+    async def run(self, duration: float | None = None) -> None: ...
+    def now(self) -> float: ...
+    def counters(self) -> dict[int, MoteCounters]: ...  # a launcher's: after it closed
+    async def freeze(self, grace_s: float = 0.5) -> None: ...
 
 
 def open_fleet(

@@ -5,7 +5,7 @@ launcher hands a worker its fleet's settings as they are."""
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from awaremw.radio.security import RadioSecurity
@@ -181,25 +181,14 @@ class LauncherSettings:
 
     def in_process(self) -> FleetSettings:
         """The settings of the one fleet when it runs in this process (:attr:`local`)."""
-        session = self._client(self.connect)
-        if session is None and self.client:
-            session = SessionSettings("client", self.connect)
-        return FleetSettings(
-            speed=self.speed,
-            prefix=self.prefix,
-            connect=self.connect,
+        client = SessionSettings("client", self.connect) if self.client else None
+        return replace(
+            self.fleet("main", self.connect),
             listen=self.listen,
-            handler=self.handler,
+            autostart=True,
             start_wall=self.start_wall,
-            control=self.control,
-            collect_lag=self.collect_lag,
-            freeze_gc=True,
-            track_links=self.track_links,
-            session=session,
-            security=self.security,
-            plugin=self.plugin,
+            session=self._client(self.connect) or client,
             pcap=self.pcap,
-            lag_from_s=self.lag_from_s,
         )
 
     def _client(self, connect: tuple[str, ...]) -> SessionSettings | None:
