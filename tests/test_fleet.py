@@ -26,6 +26,7 @@ from awaremw.runtime.fleet import (
     open_fleet,
 )
 from awaremw.runtime.fleet.motes import hello_core
+from awaremw.runtime.fleet.stats import merged_links
 from awaremw.runtime.partition import stripes
 
 pytestmark = pytest.mark.zenoh
@@ -126,7 +127,7 @@ async def test_two_processes_on_one_router_exchange_frames_only_within_range() -
         assert [r["fleet"] for r in replies if r["done"]] == ["w0"]
         await launcher.run(6.0)
     assert all(r.error is None for r in launcher.results)
-    links = launcher.links()
+    links = merged_links(launcher.results)
     pos = {s.id: s.position for s in dep.nodes} | {50: (85.0, 30.0)}
     rng = model.max_range_m(0.0)
     for (a, b), n in links.items():

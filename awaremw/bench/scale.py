@@ -88,6 +88,7 @@ from awaremw.runtime.deployment import Deployment, NodeSpec
 from awaremw.runtime.driver import percentile
 from awaremw.runtime.fleet import LauncherSettings, open_fleet
 from awaremw.runtime.fleet.motes import hello_core
+from awaremw.runtime.fleet.stats import plugin_results
 
 SPACING_M = 12.0  # CC2420 at 0 dBm: about ten neighbours hear each beacon
 WORKLOADS = ("hello", "aware")
@@ -232,11 +233,10 @@ async def run_once(
     for r in results:
         if r.error:
             raise RuntimeError(f"process {r.name}: {r.error}")
-    tally = aware_load.RecordTally()
-    tallies = [r.extra["plugin"] for r in results if "plugin" in r.extra]
+    tallies = plugin_results(results)
     if aware and len(tallies) != len(results):
         raise RuntimeError(f"{len(results) - len(tallies)} process(es) returned no tally")
-    tally.merge(tallies)
+    tally = aware_load.RecordTally().merge(tallies)
     lag = [v for r in results for v in r.lag_ms]
     wall = time.perf_counter() - t0
     tot = MoteCounters()

@@ -1,18 +1,12 @@
 """Fleets of motes on the Zenoh radio: one interface, one process or many.
 
-:func:`open_fleet` gives a :class:`AnyFleet`: a
-:class:`~awaremw.runtime.fleet.local.Fleet` when the motes run in this process
-(one process), a :class:`~awaremw.runtime.fleet.launcher.FleetLauncher` of
-worker processes otherwise. Both are used the same way::
-
-    async with open_fleet(deployment, factory, LauncherSettings(processes=n)) as fleet:
-        await fleet.run(60.0)
-        print(fleet.stats.snapshot().line())
-    fleet.counters(), fleet.results  # per mote, per process
-
-The modules: ``local`` (:class:`Fleet`), ``launcher`` and ``worker`` (the
-processes), ``pool`` (their supervision), ``settings``, ``stats``, and the
-parts of a fleet (``motes``, ``control``, ``clock``, ``guard``).
+:func:`open_fleet` gives an :class:`AnyFleet`: a
+:class:`~awaremw.runtime.fleet.local.Fleet` when the motes run in this process,
+a :class:`~awaremw.runtime.fleet.launcher.FleetLauncher` of worker processes
+otherwise, used the same way (docs/runtime.md, "One interface"). The modules:
+``local``, ``launcher``, ``worker`` and ``pool`` (the processes),
+``settings``, ``stats``, and the parts of a fleet (``motes``, ``control``,
+``clock``, ``guard``).
 """
 
 from __future__ import annotations

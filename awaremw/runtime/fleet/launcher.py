@@ -35,7 +35,7 @@ from awaremw.runtime.fleet.pool import (
     resume_counters,
 )
 from awaremw.runtime.fleet.settings import LauncherSettings
-from awaremw.runtime.fleet.stats import MergedStats, WorkerResult, merged_counters, merged_links
+from awaremw.runtime.fleet.stats import MergedStats, WorkerResult, merged_counters
 from awaremw.runtime.partition import partition
 from awaremw.runtime.router import EmbeddedRouter
 from awaremw.runtime.zenoh_session import (
@@ -62,8 +62,8 @@ class FleetLauncher:
     :attr:`stats` merges the workers' latest snapshots (sent every
     ``settings.progress_s``). ``settings.plugin`` (a ``WorkerPlugin``,
     picklable) runs in every worker beside its fleet; each worker's
-    ``plugin.result()`` is in :meth:`plugin_results` after the launcher exited,
-    and every worker's :class:`WorkerResult` in :attr:`results`.
+    ``plugin.result()`` is in its :class:`WorkerResult` in :attr:`results`
+    after the launcher exited.
     """
 
     def __init__(
@@ -262,15 +262,6 @@ class FleetLauncher:
         if self.router is not None:
             await asyncio.to_thread(self.router.close)
             self.router = None
-
-    def links(self) -> dict[tuple[int, int], int]:
-        """Frames delivered per (src, dst) over all workers (with ``track_links``)."""
-        return merged_links(self.results)
-
-    def plugin_results(self) -> list[Any]:
-        """Each worker's ``plugin.result()``, in worker order (after the launcher
-        exited; a worker that returned none is left out)."""
-        return [r.extra["plugin"] for r in self.results if "plugin" in r.extra]
 
     def counters(self) -> dict[int, MoteCounters]:
         """Per-mote counters merged from every worker (after the launcher exited)."""

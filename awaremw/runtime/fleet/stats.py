@@ -145,6 +145,11 @@ def merged_counters(results: Iterable[WorkerResult]) -> dict[int, MoteCounters]:
     return out
 
 
+def plugin_results(results: Iterable[WorkerResult]) -> list[Any]:
+    """Each process's ``plugin.result()`` in order (one that returned none left out)."""
+    return [r.extra["plugin"] for r in results if "plugin" in r.extra]
+
+
 def merged_links(results: Iterable[WorkerResult]) -> dict[tuple[int, int], int]:
     """Frames delivered per (src, dst) over every process (with ``track_links``)."""
     out: dict[tuple[int, int], int] = {}

@@ -88,8 +88,6 @@ async def _worker(p: WorkerParams, conn: Conn) -> None:
                     case "stop":
                         break
                 fleet.raise_errors()
-            if progress is not None:
-                progress.cancel()
     except Exception as e:  # reported to the parent, which fails the run
         log.exception("worker %s failed", p.name)
         error = f"{type(e).__name__}: {e}"
