@@ -60,7 +60,7 @@ import zenoh
 from awaremw.cli.fleet import control_query
 from awaremw.gateway.schema import Limits, parse_channel
 from awaremw.runtime.deployment import load
-from awaremw.runtime.fleet import stripes
+from awaremw.runtime.partition import stripes
 from awaremw.runtime.zenoh_session import SessionSettings, close_quietly, open_session
 
 AW = [sys.executable, "-m", "awaremw"]

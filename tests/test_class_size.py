@@ -31,10 +31,10 @@ HOLD_DATA = {
     "radio.zenoh_medium.MediumStats",
     "runtime.deployment.NodeSpec",
     "runtime.deployment.Deployment",
-    "runtime.fleet_settings.FleetSettings",
-    "runtime.fleet_settings.LauncherSettings",
-    "runtime.fleet_stats.FleetSnapshot",
-    "runtime.workers.WorkerResult",
+    "runtime.fleet.settings.FleetSettings",
+    "runtime.fleet.settings.LauncherSettings",
+    "runtime.fleet.stats.FleetSnapshot",
+    "runtime.fleet.stats.WorkerResult",
     "world.fields.World",
     "gateway.mqtt.MqttSettings",
     "gateway.mqtt.MqttStats",
@@ -99,6 +99,6 @@ def test_the_exceptions_name_real_classes() -> None:
 
 def test_the_fleet_is_thin() -> None:
     s = sizes()
-    assert s["runtime.fleet.Fleet"][0] <= MAX_PUBLIC_METHODS
-    assert s["runtime.fleet.Fleet"][1] <= 6
-    assert s["runtime.fleet.FleetLauncher"][1] <= 4
+    assert s["runtime.fleet.local.Fleet"][0] <= MAX_PUBLIC_METHODS
+    assert s["runtime.fleet.local.Fleet"][1] <= 6
+    assert s["runtime.fleet.launcher.FleetLauncher"][1] <= 4

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from awaremw.runtime.deployment import load
-from awaremw.runtime.fleet import stripes
+from awaremw.runtime.partition import stripes
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
 
 pytestmark = pytest.mark.zenoh
@@ -35,8 +35,9 @@ def test_fleet_duration_exits_0() -> None:
     p = run("fleet", "grid_small", "--duration", "3", "--speed", "6", "--listen", ep)
     assert p.returncode == 0, p.stderr
     assert "grid_small: 26 motes" in p.stdout
-    last = p.stdout.strip().splitlines()[-1]
+    last = [ln for ln in p.stdout.splitlines() if ln.startswith("[")][-1]
     assert last.startswith("[main] t=") and "motes=26" in last
+    assert "done at" in p.stdout.strip().splitlines()[-1]
 
 
 def test_fleet_with_two_processes_duration_exits_0() -> None:
@@ -46,7 +47,7 @@ def test_fleet_with_two_processes_duration_exits_0() -> None:
         "--listen", ep, "--hello",
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
-    assert f"router {ep}" in p.stdout
+    assert f"reachable at {ep}" in p.stdout
     done = [ln for ln in p.stdout.splitlines() if "done at" in ln]
     assert done and "frames tx=" in done[0] and "tx=0 " not in done[0]
 

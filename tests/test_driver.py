@@ -9,7 +9,7 @@ from collections.abc import AsyncIterator, Callable
 
 import pytest
 
-from awaremw.protocol.core import Transmission
+from awaremw.protocol.core import MoteCore, Transmission
 from awaremw.protocol.events import MalformedFrame
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.radio.model import CC2420, RadioModel
@@ -154,6 +154,27 @@ async def test_speed_factor_10_runs_timers_10x_faster(
     for k, ms in enumerate(lag.samples):
         assert max(ms, 0.0) == pytest.approx((core.ticks[k] - (k + 1)) / 10.0 * 1000.0, abs=1e-6)
     assert percentile(lag.samples, 50) < 50.0
+
+
+async def test_a_deadline_already_past_counts_lag_from_when_it_was_asked(
+    medium_factory: Callable[[float], ZenohMedium],
+) -> None:
+    m = medium_factory(1.0)
+    core = Ticker(1)
+    lag = LagStats()
+    r = MoteRunner(core, m, Static(0.0, 0.0), lag=lag)
+    r.start()
+
+    def overdue(c: MoteCore, now: float) -> None:
+        assert isinstance(c, Ticker)
+        c.next = now - 3.0  # e.g. an epoch boundary that passed before the mote heard of it
+
+    r.run_on(overdue)
+    await wait_for(lambda: len(core.ticks) >= 3)  # now - 3, now - 2, now - 1: at once
+    r.stop()
+    assert core.ticks[2] - core.ticks[0] < 0.5  # emulated s: not a second apart each
+    # The loop ran them as soon as it could: no 3,000 ms of "lag" the loop never had.
+    assert max(lag.samples[:3]) < 500.0, lag.samples
 
 
 async def test_one_timer_per_mote_rearmed_after_every_call(

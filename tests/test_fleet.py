@@ -18,13 +18,16 @@ from awaremw.protocol.hello import HelloMote
 from awaremw.runtime.deployment import Deployment, NodeSpec, load, parse_deployment
 from awaremw.runtime.events import MoteDown, MoteUp
 from awaremw.runtime.fleet import (
+    AnyFleet,
     Fleet,
     FleetLauncher,
     FleetSettings,
     LauncherSettings,
-    hello_core,
-    stripes,
+    open_fleet,
 )
+from awaremw.runtime.fleet.motes import hello_core
+from awaremw.runtime.fleet.stats import merged_links
+from awaremw.runtime.partition import stripes
 
 pytestmark = pytest.mark.zenoh
 
@@ -45,6 +48,42 @@ async def wait_for(pred: Callable[[], bool], timeout: float = 10.0) -> None:
         if time.monotonic() > deadline:
             raise AssertionError("condition not reached in time")
         await asyncio.sleep(0.01)
+
+
+# --------------------------------------------------------------------------- one interface
+
+
+async def drive(fleet: AnyFleet, duration: float) -> tuple[dict[int, int], int, int]:
+    """The one code path both fleets run through: frames sent per mote, the
+    processes that reported, the motes of the last snapshot."""
+    async with fleet:
+        await fleet.run(duration)
+        assert fleet.now() >= duration
+        await fleet.freeze(0.2)
+    snap = fleet.stats.snapshot()
+    tx = {n: c.frames_tx for n, c in fleet.counters().items()}
+    assert sum(tx.values()) == snap.frames_tx or snap.t < duration  # a launcher's is older
+    return tx, len(fleet.results), sum(r.motes for r in fleet.results)
+
+
+@pytest.mark.parametrize("processes", [1, 2])
+def test_one_process_or_many_through_one_interface(processes: int) -> None:
+    dep = deployment([static(i, 20.0 + 15.0 * i, 50.0) for i in range(8)])
+    settings = LauncherSettings(processes=processes, speed=4.0, progress_s=0.2, control=False)
+    fleet = open_fleet(dep, hello_core, settings)
+    assert isinstance(fleet, Fleet if processes == 1 else FleetLauncher)
+    tx, reported, motes = asyncio.run(drive(fleet, 3.0))
+    assert sorted(tx) == list(range(8)) and all(n >= 2 for n in tx.values()), tx
+    assert (reported, motes) == (processes, 8)
+    assert all(r.error is None and r.cpu_s > 0 for r in fleet.results)
+
+
+def test_a_part_or_a_client_session_is_refused_over_processes() -> None:
+    dep = deployment([static(1, 10.0, 10.0)])
+    with pytest.raises(ValueError, match="one process"):
+        LauncherSettings(processes=2, client=True, connect=("tcp/127.0.0.1:9",))
+    with pytest.raises(ValueError, match="one process"):
+        open_fleet(dep, hello_core, LauncherSettings(processes=2), part=stripes(dep, 2)[0])
 
 
 # --------------------------------------------------------------------------- stripes
@@ -88,7 +127,7 @@ async def test_two_processes_on_one_router_exchange_frames_only_within_range() -
         assert [r["fleet"] for r in replies if r["done"]] == ["w0"]
         await launcher.run(6.0)
     assert all(r.error is None for r in launcher.results)
-    links = launcher.links()
+    links = merged_links(launcher.results)
     pos = {s.id: s.position for s in dep.nodes} | {50: (85.0, 30.0)}
     rng = model.max_range_m(0.0)
     for (a, b), n in links.items():
@@ -134,10 +173,10 @@ async def test_fleet_add_kill_positions_and_events() -> None:
         assert f.motes.kill(2)
         assert not f.motes.kill(2) and not f.motes.kill(77)
         assert 2 not in f.cores and any(n == 2 and isinstance(e, MoteDown) for n, e in events)
-        await wait_for(lambda: f.counters[9].frames_tx >= 1)
-        tx2 = f.counters[2].frames_tx
+        await wait_for(lambda: f.counters()[9].frames_tx >= 1)
+        tx2 = f.counters()[2].frames_tx
         await f.wait_until(f.now() + 2.0)
-        assert f.counters[2].frames_tx == tx2  # killed: silent, counters kept
+        assert f.counters()[2].frames_tx == tx2  # killed: silent, counters kept
         f.motes.add(f.control.parse_node(static(2, 20.0, 12.0)))  # back again
         assert 2 in f.cores
 
@@ -172,11 +211,11 @@ async def test_battery_death_switches_the_mote_off() -> None:
         await wait_for(lambda: bool(downs))
         assert downs == [(1, "battery")]
         assert not f.alive(1) and f.alive(2)
-        spent = f.counters[1].energy_mj(dep.preset, 0.0)
+        spent = f.counters()[1].energy_mj(dep.preset, 0.0)
         assert 0.1 <= spent < 0.2
-        tx = f.counters[1].frames_tx
+        tx = f.counters()[1].frames_tx
         await f.wait_until(f.now() + 3.0)
-        assert f.counters[1].frames_tx == tx
+        assert f.counters()[1].frames_tx == tx
 
 
 class Broken(HelloMote):
@@ -202,7 +241,7 @@ async def test_a_core_bug_is_contained_counted_and_stops_only_that_mote() -> Non
         assert not f.failed
         assert downs == [(1, "fault")]
         assert f.medium.faults.get("handle_timer: ZeroDivisionError") == 1
-        assert f.alive(2) and f.counters[2].frames_tx > 0  # the other mote runs on
+        assert f.alive(2) and f.counters()[2].frames_tx > 0  # the other mote runs on
 
 
 def test_default_core_factory_builds_the_node_kinds() -> None:
@@ -224,7 +263,8 @@ def test_settings_are_frozen_picklable_data_with_clear_errors() -> None:
     import dataclasses
     import pickle
 
-    from awaremw.runtime.fleet import WorkerParams, XStripe
+    from awaremw.runtime.fleet.pool import WorkerParams
+    from awaremw.runtime.partition import XStripe
 
     s = FleetSettings(connect=["tcp/127.0.0.1:7447"], speed=2.0)  # type: ignore[arg-type]
     assert s.connect == ("tcp/127.0.0.1:7447",) and s.listen == ()

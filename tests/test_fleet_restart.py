@@ -28,16 +28,11 @@ from awaremw.nodes import KindsFactory, kind_names
 from awaremw.protocol.frames import DataRecord
 from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.deployment import load
-from awaremw.runtime.fleet import (
-    Fleet,
-    FleetLauncher,
-    FleetSettings,
-    LauncherSettings,
-    hello_core,
-    stripes,
-)
-from awaremw.runtime.fleet_clock import ClockSync
-from awaremw.runtime.workers import MAX_FRAMES_PER_S, RestartBudget, resume_counters
+from awaremw.runtime.fleet import Fleet, FleetLauncher, FleetSettings, LauncherSettings
+from awaremw.runtime.fleet.clock import ClockSync
+from awaremw.runtime.fleet.motes import hello_core
+from awaremw.runtime.fleet.pool import MAX_FRAMES_PER_S, RestartBudget, resume_counters
+from awaremw.runtime.partition import stripes
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
 from awaremw.world.clock import EmulatedClock
 

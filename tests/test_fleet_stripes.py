@@ -19,6 +19,7 @@ from awaremw.bench import aware_load
 from awaremw.bench.aware_load import AwarePlugin, RecordTally
 from awaremw.nodes import KindsFactory
 from awaremw.runtime.fleet import FleetLauncher, LauncherSettings
+from awaremw.runtime.fleet.stats import plugin_results
 from awaremw.runtime.partition import stripes
 
 pytestmark = pytest.mark.zenoh
@@ -48,7 +49,7 @@ def test_records_cross_stripe_boundaries_to_the_sink() -> None:
             await launcher.freeze(1.0)
         for r in launcher.results:
             assert r.error is None, f"{r.name}: {r.error}"
-        tallies = launcher.plugin_results()
+        tallies = plugin_results(launcher.results)
         assert len(tallies) == PROCESSES
         return tallies
 

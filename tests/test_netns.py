@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from awaremw.runtime.deployment import load, load_deployment
-from awaremw.runtime.fleet import stripes
+from awaremw.runtime.partition import stripes
 
 pytestmark = pytest.mark.slow
 

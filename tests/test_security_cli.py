@@ -272,7 +272,7 @@ async def test_router_fleet_and_gateway_with_secrets_bring_records_and_refuse_a_
     )  # fmt: skip
     procs.append(fleet)
     assert "authenticated radio, 12 B per frame" in fleet.wait_line("awaremw fleet: grid_small")
-    fleet.wait_line("awaremw fleet: workers", 90)
+    fleet.wait_line("awaremw fleet: running", 90)
     gateway = Proc(
         "gateway", "grid_small", "--connect", ep, "--secrets", sec,
         "--mqtt", mosquitto.url("gateway"), "--speed", str(SPEED), "--no-hbn",

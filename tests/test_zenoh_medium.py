@@ -233,7 +233,7 @@ async def test_rssi_follows_the_model_and_the_formula(router: str) -> None:
     # The sender's own counters: every beacon went on the air once. A frame is
     # published when it starts and counted by its sender when it ends: the one on
     # the air when fleet a closed may have been heard by b and never counted by a.
-    assert a.counters[1].frames_tx >= n - 1
+    assert a.counters()[1].frames_tx >= n - 1
 
 
 # --------------------------------------------------------------------------- loss
@@ -268,12 +268,12 @@ async def test_loss_rate_matches_the_prr_curve(router: str) -> None:
     n_sent = 400
     try:
         tx = core(a, 1)
-        await wait_for(lambda: a.counters[1].frames_tx >= n_sent, timeout=30)
+        await wait_for(lambda: a.counters()[1].frames_tx >= n_sent, timeout=30)
         a.medium.freeze()  # no new frame; the one on the air still lands
         await wait_for(lambda: not a.medium.radios[1].busy)
-        sent = a.counters[1].frames_tx
+        sent = a.counters()[1].frames_tx
         await wait_for(
-            lambda: sum(b.counters[2].as_dict()[k] for k in ("frames_rx", "dropped_loss")) >= sent
+            lambda: sum(b.counters()[2].as_dict()[k] for k in ("frames_rx", "dropped_loss")) >= sent
         )
     finally:
         await a.aclose()
@@ -289,7 +289,7 @@ async def test_loss_rate_matches_the_prr_curve(router: str) -> None:
         )[0]
     }
     assert {seq for _, seq, _, _ in rx.heard} == kept
-    assert b.counters[2].dropped_loss == sent - len(kept)
+    assert b.counters()[2].dropped_loss == sent - len(kept)
     # ... and their rate follows the PRR curve within statistical tolerance.
     sf = model.preset.fading_sigma_db
     probs = []
@@ -321,7 +321,7 @@ async def test_unicast_out_of_range_fails_after_retries_in_range_succeeds_once(
         a.run_on(1, lambda c, now: c.send(2))  # type: ignore[attr-defined]
         await wait_for(lambda: len(s.results) == 1)
         assert s.results == [(2, False)]
-        c1 = a.counters[1]
+        c1 = a.counters()[1]
         retries = dep.preset.max_retries
         assert (c1.frames_tx, c1.retries, c1.unicast_failed, c1.unicast_ok) == (
             1 + retries,
@@ -329,18 +329,18 @@ async def test_unicast_out_of_range_fails_after_retries_in_range_succeeds_once(
             1,
             0,
         )
-        assert b.counters[2].frames_rx == 0
-        assert b.counters[2].dropped_distance == 1 + retries
+        assert b.counters()[2].frames_rx == 0
+        assert b.counters()[2].dropped_distance == 1 + retries
 
         a.run_on(1, lambda c, now: c.send(3))  # type: ignore[attr-defined]
         await wait_for(lambda: len(s.results) == 2)
         assert s.results[1] == (3, True)
-        c1 = a.counters[1]
+        c1 = a.counters()[1]
         assert (c1.unicast_ok, c1.acks_rx) == (1, 1)
         r3 = core(b, 3)
         assert [(src, seq) for src, seq, _, _ in r3.heard] == [(1, 1)]  # delivered once
-        assert b.counters[3].acks_tx == b.counters[3].frames_rx
-        assert b.counters[3].frames_rx - b.counters[3].duplicates == 1
+        assert b.counters()[3].acks_tx == b.counters()[3].frames_rx
+        assert b.counters()[3].frames_rx - b.counters()[3].duplicates == 1
     finally:
         await a.aclose()
         await b.aclose()
@@ -359,7 +359,7 @@ async def test_unicast_inside_one_process_and_duplicates_on_a_lossy_link(router:
         for _ in range(n):
             f.run_on(1, lambda c, now: c.send(2))  # type: ignore[attr-defined]
         await wait_for(lambda: len(s.results) == n, timeout=30)
-        c1, c2 = f.counters[1], f.counters[2]
+        c1, c2 = f.counters()[1], f.counters()[2]
         r2 = core(f, 2)
         seqs = [seq for _, seq, _, _ in r2.heard]
         assert len(seqs) == len(set(seqs))  # never twice to the core
@@ -384,10 +384,10 @@ async def test_garbage_on_a_radio_key_is_counted_malformed_and_changes_nothing_e
         other = open_session(SessionSettings(connect=(router,)))
         try:
             await routed(other, f)
-            before = {i: c.as_dict() for i, c in f.counters.items()}
+            before = {i: c.as_dict() for i, c in f.counters().items()}
             other.put("aware/radio/0/0/77", b"\xc1 not an envelope")
             await wait_for(lambda: f.medium.stats.malformed_envelopes == 1)
-            after = {i: c.as_dict() for i, c in f.counters.items()}
+            after = {i: c.as_dict() for i, c in f.counters().items()}
             for i in (1, 2):
                 assert after[i].pop("malformed") == before[i].pop("malformed") + 1
                 assert after[i] == before[i]
@@ -400,7 +400,8 @@ async def test_garbage_on_a_radio_key_is_counted_malformed_and_changes_nothing_e
                 Kind.FRAME, 77, 10.0, 5.0, 0.0, 0, 0, f.now(), BROADCAST, b"\xc1\xc1"
             )
             other.put("aware/radio/0/0/77", env)
-            await wait_for(lambda: f.counters[1].malformed == 2 and f.counters[2].malformed == 2)
+            c = f.counters()
+            await wait_for(lambda: c[1].malformed == 2 and c[2].malformed == 2)
             assert core(f, 1).bad == [b"\xc1\xc1"]
             assert f.medium.stats.malformed_envelopes == 1
         finally:
@@ -481,7 +482,7 @@ async def test_tap_reports_every_attempt_and_reception_across_processes(router: 
         await b.aclose()
     # Counters and tap calls change together (same code path), so they agree
     # whatever was still in flight when the fleets closed.
-    c1 = a.counters[1]
+    c1 = a.counters()[1]
     assert [x for x in ta.air if x[0] == 1] == ta.air and len(ta.air) == c1.frames_tx
     assert any(att > 0 for *_, att in ta.air)  # retries are attempts on the air
     # b saw 1's frames (as it decided them); a frame is published at its start and
@@ -489,7 +490,7 @@ async def test_tap_reports_every_attempt_and_reception_across_processes(router: 
     assert len(set(tb.air) - set(ta.air)) <= 1 and tb.air
     lost_total = 0
     for mote in (2, 3):
-        c = b.counters[mote]
+        c = b.counters()[mote]
         mine = [(rssi, cause) for src, dst, rssi, cause in tb.rx if dst == mote and src == 1]
         got = [r for r, cause in mine if cause in (None, "duplicate")]
         assert len(got) == c.frames_rx > 0 and all(r is not None for r in got)

@@ -310,7 +310,7 @@ def inject_definitions(root: MoteCore, now: float) -> None:
 
 class AwarePlugin:
     """The aware load inside each worker process of a launcher
-    (:class:`~awaremw.runtime.fleet_settings.WorkerPlugin`): tallies the records of
+    (:class:`~awaremw.runtime.fleet.settings.WorkerPlugin`): tallies the records of
     the motes it runs and injects the definitions at :data:`DEFINE_AT_S` on the
     sinks it runs, exactly as in one process."""
 

@@ -4,7 +4,8 @@ Motes on a square grid (CC2420 preset: 12 m spacing, about ten neighbours
 that hear each beacon), each running :class:`~awaremw.protocol.hello.HelloMote`
 beaconing once per second, over real Zenoh sessions: in this process
 (``--processes 1``) or spread over worker processes in x stripes joined by an
-embedded router (``--processes N``). After ``--duration`` emulated seconds
+embedded router (``--processes N``), the same code either way
+(:func:`~awaremw.runtime.fleet.open_fleet`). After ``--duration`` emulated seconds
 every radio is frozen, frames in flight land for ``--grace`` wall seconds, and
 the counters are gathered.
 
@@ -38,7 +39,7 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   ``preset``, ``seed``, ``spacing_m``;
 * ``timer_lag_p50_ms``, ``timer_lag_p99_ms``, ``timer_lag_max_ms``: how late
   motes' timers ran (wall ms after their deadline), after ``--warmup``
-  emulated seconds;
+  emulated seconds; ``timer_lag_p99_per_process_ms``: the p99 of each process;
 * ``frames_tx``, ``frames_rx``; ``frames_expected``: receptions the loss model
   keeps among in-range receivers for the frames actually sent (recomputed
   from the seeded model, packet by packet); ``collisions`` (receptions the
@@ -59,7 +60,7 @@ JSON keys (one object; with ``--search`` the best passing run's keys plus
   (delivery below the target); ``workload``; with ``--workload aware``
   also ``records_produced``, ``records_delivered``, ``record_delivery`` (None
   when no record was produced), ``first_record_s`` (emulated time of the
-  first record), ``leaders``, ``leaders_per_process`` (with ``--processes N``),
+  first record), ``leaders``, ``leaders_per_process``,
   ``records_untracked``, ``channel_period_s``, ``sinks``, ``objects``,
   ``objects_tracked``, ``records_per_object``, ``ids_per_object``,
   ``records_unattributed`` (as ``bench virtual``). The search's ``search`` list
@@ -81,19 +82,13 @@ from awaremw.bench.medium import add_medium_arguments, medium_of
 from awaremw.bench.profiling import build_facts, profiled
 from awaremw.bench.virtual import check_motes
 from awaremw.nodes import KindsFactory
-from awaremw.protocol.core import MoteCore
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import CC2420, RadioModel, cell_of, packet_key, preset
-from awaremw.radio.zenoh_medium import Handler
 from awaremw.runtime.deployment import Deployment, NodeSpec
 from awaremw.runtime.driver import percentile
-from awaremw.runtime.fleet import (
-    Fleet,
-    FleetLauncher,
-    FleetSettings,
-    LauncherSettings,
-    hello_core,
-)
+from awaremw.runtime.fleet import LauncherSettings, open_fleet
+from awaremw.runtime.fleet.motes import hello_core
+from awaremw.runtime.fleet.stats import plugin_results
 
 SPACING_M = 12.0  # CC2420 at 0 dBm: about ten neighbours hear each beacon
 WORKLOADS = ("hello", "aware")
@@ -218,67 +213,31 @@ async def run_once(
     )
     # The medium's access and collision model (docs/radio.md), as a deployment sets it.
     dep = dataclasses.replace(dep, mac=mac, collisions=collisions)
-    tally = aware_load.RecordTally()
-    leaders_per_process: list[int] = []
-    h: Handler = "channel" if handler == "channel" else "callback"
-    cpu: list[float] = []
-    lag: list[float] = []
-    envelopes = 0
-    late = 0
+    settings = LauncherSettings(
+        processes=processes,
+        speed=speed,
+        handler="channel" if handler == "channel" else "callback",
+        layout="interleaved" if layout == "interleaved" else "stripes",
+        plugin=aware_load.AwarePlugin() if aware else None,
+        control=False,
+        lag_from_s=warmup,
+    )
     t0 = time.perf_counter()
-    if processes <= 1:
-        settings = FleetSettings(speed=speed, handler=h, control=False, freeze_gc=True)
-        factory = KindsFactory() if aware else hello_core
-        with profiled(profile):
-            async with Fleet(dep, factory, settings) as fleet:
-                cpu0 = time.process_time()  # from the start, like the workers' figure
-                if aware:
-                    fleet.on_event(tally.on_event)
-                    await fleet.wait_until(aware_load.DEFINE_AT_S)
-                    for sink in aware_load.sinks_of(dep):
-                        fleet.run_on(sink, _inject)
-                await fleet.wait_until(warmup)
-                assert fleet.lag is not None
-                fleet.lag.clear()
-                await fleet.run(duration)
-                fleet.medium.freeze()
-                await asyncio.sleep(grace)
-                counters = dict(fleet.counters)
-                lag = list(fleet.lag.samples)
-                envelopes = fleet.medium.stats.envelopes_rx
-                late = fleet.medium.stats.late
-            cpu.append(time.process_time() - cpu0)
-        gc.unfreeze()
-    else:
-        async with FleetLauncher(
-            dep,
-            KindsFactory() if aware else hello_core,
-            LauncherSettings(
-                processes=processes,
-                speed=speed,
-                handler=h,
-                layout="interleaved" if layout == "interleaved" else "stripes",
-                plugin=aware_load.AwarePlugin() if aware else None,
-            ),
-        ) as launcher:
-            await launcher.run(warmup)
-            launcher.reset_lag()
-            await launcher.run(duration)
-            await launcher.freeze(grace)
-        counters = launcher.counters()
-        if aware:
-            tallies = launcher.plugin_results()
-            if len(tallies) != processes:
-                raise RuntimeError(f"{processes - len(tallies)} worker(s) returned no tally")
-            leaders_per_process = [len(t.leaders) for t in tallies]
-            tally.merge(tallies)
-        for r in launcher.results:
-            if r.error:
-                raise RuntimeError(f"worker {r.name}: {r.error}")
-            cpu.append(r.cpu_s)
-            lag.extend(r.lag_ms)
-            envelopes += r.stats.get("envelopes_rx", 0)
-            late += r.stats.get("late", 0)
+    with profiled(profile):  # this process only
+        async with open_fleet(dep, KindsFactory() if aware else hello_core, settings) as fleet:
+            await fleet.run(duration)
+            await fleet.freeze(grace)
+    gc.unfreeze()
+    counters = fleet.counters()
+    results = fleet.results
+    for r in results:
+        if r.error:
+            raise RuntimeError(f"process {r.name}: {r.error}")
+    tallies = plugin_results(results)
+    if aware and len(tallies) != len(results):
+        raise RuntimeError(f"{len(results) - len(tallies)} process(es) returned no tally")
+    tally = aware_load.RecordTally().merge(tallies)
+    lag = [v for r in results for v in r.lag_ms]
     wall = time.perf_counter() - t0
     tot = MoteCounters()
     for c in counters.values():
@@ -294,8 +253,7 @@ async def run_once(
         }
         ratio = records["record_delivery"]
         ok_delivery = ratio is not None and ratio >= min_delivery
-        if processes > 1:
-            records["leaders_per_process"] = leaders_per_process
+        records["leaders_per_process"] = [len(t.leaders) for t in tallies]
     else:
         expected = expected_receptions(dep, {i: c.frames_tx for i, c in counters.items()})
         delivery = (tot.frames_rx + tot.collisions) / expected if expected else math.nan
@@ -307,8 +265,8 @@ async def run_once(
         "processes": processes,
         "duration_s": duration,
         "speed": speed,
-        "handler": h,
-        "layout": layout if processes > 1 else None,
+        "handler": settings.handler,
+        "layout": settings.layout,
         "preset": dep.radio,
         "seed": seed,
         "spacing_m": round(dep.nodes[1].position[0] - dep.nodes[0].position[0], 3)
@@ -318,19 +276,20 @@ async def run_once(
         "timer_lag_p99_ms": round(p99, 3),
         "timer_lag_max_ms": round(max(lag), 3) if lag else math.nan,
         "timer_samples": len(lag),
+        "timer_lag_p99_per_process_ms": [round(percentile(r.lag_ms, 99), 1) for r in results],
         "frames_tx": tot.frames_tx,
         "frames_rx": tot.frames_rx,
         "frames_expected": expected,
         "mac": dep.mac,
         "collisions_model": dep.collisions,
         "collisions": tot.collisions,
-        "late": late,
+        "late": sum(r.stats.get("late", 0) for r in results),
         "delivery_ratio": None if delivery is None else round(delivery, 5),
         "rx_per_tx": round(tot.frames_rx / tot.frames_tx, 2) if tot.frames_tx else 0.0,
-        "envelopes_rx": envelopes,
+        "envelopes_rx": sum(r.stats.get("envelopes_rx", 0) for r in results),
         "malformed": tot.malformed,
-        "cpu_s": round(sum(cpu), 2),
-        "cpu_per_process": [round(c, 2) for c in cpu],
+        "cpu_s": round(sum(r.cpu_s for r in results), 2),
+        "cpu_per_process": [round(r.cpu_s, 2) for r in results],
         "wall_s": round(wall, 2),
         "meets_target": reason is None,
         "reason": reason,
@@ -362,10 +321,6 @@ def failure_reason(
     if not ok_delivery:
         return "records_lost" if records else "frames_lost"
     return None
-
-
-def _inject(core: MoteCore, now: float) -> None:
-    aware_load.inject_definitions(core, now)
 
 
 async def search(args: argparse.Namespace) -> dict[str, Any]:

@@ -21,7 +21,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import math
 import signal
 import sys
 from typing import Any
@@ -190,14 +189,8 @@ def run_fleet(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"awaremw fleet: --part {args.part}: {e}", file=sys.stderr)
         return 2
-    if args.zenoh_mode == "client" and (not args.connect or args.listen or args.processes != 1):
-        print(
-            "awaremw fleet: --zenoh-mode client needs --connect, one process and no --listen",
-            file=sys.stderr,
-        )
-        return 2
-    if args.part_filter is not None and args.processes != 1:
-        print("awaremw fleet: --part and --processes do not combine", file=sys.stderr)
+    if args.zenoh_mode == "client" and (not args.connect or args.listen):
+        print("awaremw fleet: --zenoh-mode client needs --connect and no --listen", file=sys.stderr)
         return 2
     args.role_config = args.router_config = args.security = None
     if args.secrets is not None:
@@ -217,9 +210,6 @@ def run_fleet(args: argparse.Namespace) -> int:
         if loaded is None:
             return 2
         args.role_config, args.router_config, args.security = loaded
-        if args.part_filter is not None and not args.connect:
-            print("awaremw fleet: --part with --secrets needs --connect", file=sys.stderr)
-            return 2
     else:
         from awaremw.security.material import warn_open
 
@@ -239,7 +229,7 @@ def _part_filter(part: str | None, dep: Any) -> Any:
     """The node filter of ``--part K/N``: stripe K (1-based) of N along x."""
     if part is None:
         return None
-    from awaremw.runtime.fleet import stripes
+    from awaremw.runtime.partition import stripes
 
     k_s, sep, n_s = part.partition("/")
     if not sep or not k_s.isdigit() or not n_s.isdigit():
@@ -254,16 +244,10 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     import zenoh
 
     from awaremw.nodes import KindsFactory
-    from awaremw.runtime.fleet import (
-        CoreFactory,
-        Fleet,
-        FleetLauncher,
-        FleetSettings,
-        FleetSnapshot,
-        LaunchError,
-        LauncherSettings,
-        hello_core,
-    )
+    from awaremw.runtime.fleet import LauncherSettings, open_fleet
+    from awaremw.runtime.fleet.motes import CoreFactory, hello_core
+    from awaremw.runtime.fleet.pool import LaunchError
+    from awaremw.runtime.fleet.stats import merged_links
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
@@ -278,149 +262,66 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         f"{_secured(args.security)}",
         flush=True,
     )
-
-    def show(s: FleetSnapshot) -> None:
-        print(s.line(), flush=True)
-
-    async def wait_end(fleet: Fleet) -> None:
-        """Until --duration (emulated), a signal or a failure; progress lines meanwhile."""
-        while not stop.is_set() and not fleet.failed:
-            left = math.inf
-            if args.duration is not None:
-                left = (args.duration - fleet.now()) / args.speed
-                if left <= 0:
-                    return
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), min(left, args.progress))
-            if not stop.is_set() and left > args.progress:
-                show(fleet.stats.snapshot())
-
-    skip = frozenset(args.without_kind)
-    # With --secrets and no --connect the motes run behind an embedded router that
-    # applies the access rules: the launcher's layout, even with one process.
-    if args.processes == 1 and args.router_config is None:
-        session = None
-        if args.role_config is not None:
-            session = SessionSettings("client", tuple(args.connect), config_file=args.role_config)
-        elif args.zenoh_mode == "client":  # everything through the router (e.g. across networks)
-            session = SessionSettings("client", tuple(args.connect))
-        try:
-            settings = FleetSettings(
-                speed=args.speed,
-                prefix=args.prefix,
-                connect=tuple(args.connect),
-                listen=tuple(listen),
-                start_wall=args.start_at,
-                freeze_gc=True,
-                track_links=args.links_json is not None,
-                session=session,
-                security=args.security,
-            )
-            fleet = Fleet(dep, factory, settings, node_filter=_combine(args.part_filter, skip))
-            await fleet.__aenter__()
-        except zenoh.ZError as e:
-            raise _StartError(
-                f"cannot open the Zenoh session on {where}: {zenoh_message(e)}"
-            ) from None
-        capture = None
-        if args.pcap is not None:
-            # The medium's own tap: every frame its motes send or hear, with receptions.
-            from awaremw.radio.capture import Capture
-
-            capture = Capture.to_file(args.pcap, epoch=fleet.clock.start_wall)
-            fleet.medium.tap = capture
-        try:
-            await wait_end(fleet)
-            fleet.raise_errors()
-            show(fleet.stats.snapshot())
-            if args.links_json is not None:
-                links = fleet.medium.links or {}
-                with open(args.links_json, "w", encoding="utf-8") as f:
-                    json.dump([[s, d, n] for (s, d), n in sorted(links.items())], f)
-        finally:
-            await fleet.aclose()
-            if capture is not None:
-                capture.close()
-                print(f"awaremw fleet: {capture.packets} packets to {args.pcap}", flush=True)
-        return 0
-
-    launcher = FleetLauncher(
-        dep,
-        factory,
-        LauncherSettings(
+    try:
+        # With --secrets and no --connect the motes run behind an embedded router
+        # that applies the access rules: worker processes, even with one.
+        settings = LauncherSettings(
             processes=args.processes,
             speed=args.speed,
             prefix=args.prefix,
             connect=tuple(args.connect),
             listen=tuple(listen),
             progress_s=args.progress,
-            exclude_kinds=skip,
+            track_links=args.links_json is not None,
+            exclude_kinds=frozenset(args.without_kind),
             router_config_file=args.router_config,
             worker_config_file=args.role_config,
             security=args.security,
-        ),
-        on_progress=show,
-    )
-    try:
-        await launcher.__aenter__()
-    except zenoh.ZError as e:
-        raise _StartError(f"cannot start the Zenoh router on {where}: {zenoh_message(e)}") from None
-    except LaunchError as e:
+            pcap=args.pcap,
+            start_wall=args.start_at,
+            client=args.zenoh_mode == "client",
+        )
+        fleet = open_fleet(dep, factory, settings, part=args.part_filter)
+    except ValueError as e:
         raise _StartError(str(e)) from None
-    print(
-        f"awaremw fleet: workers {launcher.motes_per_worker} motes, router {launcher.endpoint}",
-        flush=True,
-    )
     code = 0
-    sniff = None
-    if args.pcap is not None:
-        # Worker processes: a sniffer on the launcher's router (what goes through Zenoh).
-        sniff = await _launcher_sniffer(args, launcher.endpoint)
-    try:
-        run = asyncio.create_task(launcher.run(args.duration))
+    async with contextlib.AsyncExitStack() as stack:
+        try:
+            await stack.enter_async_context(fleet)
+        except zenoh.ZError as e:
+            raise _StartError(f"cannot start Zenoh on {where}: {zenoh_message(e)}") from None
+        except LaunchError as e:
+            raise _StartError(str(e)) from None
+        print(f"awaremw fleet: running, reachable at {fleet.endpoint}", flush=True)
+        run = asyncio.create_task(fleet.run(args.duration))
         stopper = asyncio.create_task(stop.wait())
-        done, _ = await asyncio.wait({run, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        while not run.done() and not stop.is_set():
+            await asyncio.wait(
+                {run, stopper}, timeout=args.progress, return_when=asyncio.FIRST_COMPLETED
+            )
+            if not run.done() and not stop.is_set():
+                print(fleet.stats.snapshot().line(), flush=True)
         for t in (run, stopper):
-            if t not in done:
-                t.cancel()
-        if run in done and run.exception() is not None:
+            t.cancel()
+        if run.done() and not run.cancelled() and run.exception() is not None:
             print(f"awaremw fleet: {run.exception()}", file=sys.stderr)
             code = 1
-    finally:
-        await launcher.__aexit__(None, None, None)
-        if sniff is not None:
-            await _close_sniffer(sniff, args.pcap)
-    tot = launcher.counters()
+        print(fleet.stats.snapshot().line(), flush=True)
+    tot = fleet.counters()
     tx = sum(c.frames_tx for c in tot.values())
     rx = sum(c.frames_rx for c in tot.values())
-    print(f"awaremw fleet: done at t={launcher.now():.1f}s: frames tx={tx} rx={rx}", flush=True)
-    for r in launcher.results:
+    print(f"awaremw fleet: done at t={fleet.now():.1f}s: frames tx={tx} rx={rx}", flush=True)
+    for r in fleet.results:
         if r.error:
-            print(f"awaremw fleet: worker {r.name}: {r.error}", file=sys.stderr)
+            print(f"awaremw fleet: process {r.name}: {r.error}", file=sys.stderr)
             code = 1
+    if fleet.capture is not None:
+        print(f"awaremw fleet: {fleet.capture.packets} packets to {args.pcap}", flush=True)
+    if args.links_json is not None:
+        links = merged_links(fleet.results)
+        with open(args.links_json, "w", encoding="utf-8") as f:
+            json.dump([[s, d, n] for (s, d), n in sorted(links.items())], f)
     return code
-
-
-async def _launcher_sniffer(args: argparse.Namespace, endpoint: str) -> Any:
-    from awaremw.radio.capture import Capture
-    from awaremw.radio.sniffer import Sniffer
-    from awaremw.runtime.zenoh_session import SessionSettings, open_session
-
-    settings = SessionSettings("peer", (endpoint,))
-    if args.role_config is not None:
-        settings = SessionSettings("client", (endpoint,), config_file=args.role_config)
-    session = await asyncio.to_thread(open_session, settings)
-    sniffer = Sniffer(session, Capture.to_file(args.pcap, receptions=False), prefix=args.prefix)
-    sniffer.start()
-    return sniffer
-
-
-async def _close_sniffer(sniffer: Any, path: str) -> None:
-    from awaremw.runtime.zenoh_session import close_quietly
-
-    sniffer.close()
-    await asyncio.to_thread(close_quietly, sniffer.session)
-    print(f"awaremw fleet: {sniffer.capture.packets} packets to {path}", flush=True)
 
 
 def _secured(security: Any) -> str:
@@ -430,16 +331,6 @@ def _secured(security: Any) -> str:
         f" (role fleet, access control on; authenticated radio, {security.overhead} B "
         "per frame; signed items verified)"
     )
-
-
-def _combine(part: Any, skip: frozenset[str]) -> Any:
-    if part is None and not skip:
-        return None
-
-    def keep(spec: Any) -> bool:
-        return spec.kind not in skip and (part is None or bool(part(spec)))
-
-    return keep
 
 
 # --------------------------------------------------------------------------- fleet-ctl

@@ -159,7 +159,7 @@ class RealtimeRun:
         out: set[int] = set()
         for f in self.fleets:
             assert isinstance(f, Fleet)
-            out.update(n for n, c in f.counters.items() if c.acks_tx > 0)
+            out.update(n for n, c in f.counters().items() if c.acks_tx > 0)
         return out
 
     def traffic(self) -> dict[int, tuple[int, int, float]]:
@@ -169,7 +169,7 @@ class RealtimeRun:
         out: dict[int, tuple[int, int, float]] = {}
         for f in self.fleets:
             assert isinstance(f, Fleet)
-            for n, c in f.counters.items():
+            for n, c in f.counters().items():
                 txp = d.tx_power_of(d.node(n))
                 out[n] = (c.frames_tx, c.frames_rx, c.energy_mj(d.preset, txp))
         return out
@@ -349,7 +349,7 @@ def _energy_probe(fleet: object, d: Deployment, node: int) -> Callable[[], float
     txp = d.tx_power_of(d.node(node))
 
     def probe() -> float:
-        c = fleet.counters.get(node)
+        c = fleet.counters().get(node)
         return 0.0 if c is None else c.energy_mj(d.preset, txp) / 1000.0
 
     return probe

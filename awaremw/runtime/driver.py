@@ -12,7 +12,8 @@ A :class:`MoteRunner` is the thin adapter between a sans-IO core
   ``core.next_deadline()`` (converted to loop time by the
   :class:`~awaremw.world.clock.EmulatedClock`), or cancelled;
 * it records timer lag -- how late (in wall milliseconds) a timer ran compared
-  with the deadline the core asked for -- into a shared :class:`LagStats`.
+  with the deadline the core asked for (or with the moment it asked, for a
+  deadline already past) -- into a shared :class:`LagStats`.
 
 Every call happens on the event loop's thread; nothing here blocks.
 """
@@ -109,6 +110,7 @@ class MoteRunner:
     __slots__ = (
         "_armed",
         "_boot_t",
+        "_due",
         "_fire_count",
         "_fire_t",
         "_handle",
@@ -152,6 +154,7 @@ class MoteRunner:
         self.alive = False
         self.stopped = False  # switched off for good (killed, battery, stopped)
         self._armed: float | None = None
+        self._due = 0.0  # emulated time the armed timer could run at first (lag counts from it)
         self._handle: asyncio.TimerHandle | asyncio.Handle | None = None
         self._fire_t = -math.inf
         self._fire_count = 0
@@ -316,6 +319,9 @@ class MoteRunner:
             self._handle = None
         self._armed = dl
         if dl is not None:
+            # A deadline the core set in the past (an overdue epoch, a late link
+            # result) can run no earlier than now: the loop is late only after that.
+            self._due = max(dl, self.clock.now())
             self._handle = self.loop.call_at(self.clock.to_monotonic(dl), self._fire)
 
     def _fire(self) -> None:
@@ -327,7 +333,7 @@ class MoteRunner:
         clock = self.clock
         now = clock.now()
         if self.lag is not None:
-            self.lag.add((now - dl) / clock.speed * 1000.0)
+            self.lag.add((now - self._due) / clock.speed * 1000.0)
         # The loop may wake a hair early (clock resolution): never hand the core a
         # "now" before the deadline it asked for.
         if now < dl:

@@ -21,12 +21,13 @@ from typing import Any
 
 from awaremw.protocol.core import MoteCore
 from awaremw.runtime.deployment import Deployment, NodeSpec
-from awaremw.runtime.fleet_settings import FleetSettings, WorkerPlugin
+from awaremw.runtime.fleet.settings import FleetSettings
+from awaremw.runtime.fleet.stats import WorkerResult, lost
 from awaremw.runtime.partition import IdModulo, XStripe
 
 log = logging.getLogger(__name__)
 
-WORKER_CMD = "from awaremw.runtime.fleet import worker_entry; worker_entry()"
+WORKER_CMD = "from awaremw.runtime.fleet.worker import main; main()"
 MAX_PENDING = 4096  # other messages from workers not yet taken (progress is folded in)
 _ESSENTIAL = frozenset({"ready", "result", "gone"})  # at most one each per worker
 
@@ -63,31 +64,11 @@ class WorkerParams:
     stripe: XStripe | IdModulo
     exclude_kinds: frozenset[str] = frozenset()
     progress_s: float | None = None
-    plugin: WorkerPlugin | None = None
     resume: Resume = field(default_factory=Resume)
 
     @property
     def name(self) -> str:
         return self.settings.name
-
-
-@dataclass
-class WorkerResult:
-    """What a worker sends back when it stops."""
-
-    name: str
-    motes: int
-    counters: dict[int, dict[str, int]]
-    stats: dict[str, int]
-    lag_ms: list[float]
-    cpu_s: float
-    wall_s: float
-    error: str | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-def lost(name: str) -> WorkerResult:
-    return WorkerResult(name, 0, {}, {}, [], 0.0, 0.0, error="no result (process lost)")
 
 
 Message = tuple[int, str, Any]  # (worker index, kind, argument)

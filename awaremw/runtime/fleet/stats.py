@@ -1,11 +1,13 @@
-"""A fleet's progress figures: :class:`FleetSnapshot` and the :class:`FleetStats`
-that takes them (totals of the per-mote counters, timer-lag percentiles)."""
+"""A fleet's figures: progress (:class:`FleetSnapshot`, taken by
+:class:`FleetStats` in a process and merged over processes by
+:class:`MergedStats`) and what each process returns when it stops
+(:class:`WorkerResult`)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from awaremw.radio.counters import MoteCounters
@@ -102,3 +104,56 @@ class FleetStats:
             lag_p50_ms=p50,
             lag_p99_ms=p99,
         )
+
+
+class MergedStats:
+    """A launcher's progress: the latest snapshot of each worker, merged."""
+
+    def __init__(self) -> None:
+        self.latest: dict[int, FleetSnapshot] = {}  # worker index -> its last snapshot
+
+    def snapshot(self) -> FleetSnapshot:
+        return merge_snapshots(self.latest.values())
+
+
+@dataclass
+class WorkerResult:
+    """What one process of a fleet returns when it stops (a launcher's worker,
+    or a fleet run in this process)."""
+
+    name: str
+    motes: int
+    counters: dict[int, dict[str, int]]
+    stats: dict[str, int]
+    lag_ms: list[float]
+    cpu_s: float
+    wall_s: float
+    error: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def lost(name: str) -> WorkerResult:
+    return WorkerResult(name, 0, {}, {}, [], 0.0, 0.0, error="no result (process lost)")
+
+
+def merged_counters(results: Iterable[WorkerResult]) -> dict[int, MoteCounters]:
+    """Per-mote counters over every process's result."""
+    out: dict[int, MoteCounters] = {}
+    for r in results:
+        for nid, d in r.counters.items():
+            out.setdefault(nid, MoteCounters()).add(MoteCounters(**d))
+    return out
+
+
+def plugin_results(results: Iterable[WorkerResult]) -> list[Any]:
+    """Each process's ``plugin.result()`` in order (one that returned none left out)."""
+    return [r.extra["plugin"] for r in results if "plugin" in r.extra]
+
+
+def merged_links(results: Iterable[WorkerResult]) -> dict[tuple[int, int], int]:
+    """Frames delivered per (src, dst) over every process (with ``track_links``)."""
+    out: dict[tuple[int, int], int] = {}
+    for r in results:
+        for a, b, n in r.extra.get("links", ()):
+            out[(a, b)] = out.get((a, b), 0) + n
+    return out

@@ -5,7 +5,7 @@ launcher hands a worker its fleet's settings as they are."""
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from awaremw.radio.security import RadioSecurity
@@ -25,8 +25,8 @@ class WorkerPlugin(Protocol):
     """Code a launcher runs inside every worker beside its fleet (picklable: each
     worker gets its own copy), e.g. a benchmark's event tally.
 
-    ``fleet`` is the worker's :class:`~awaremw.runtime.fleet.Fleet` (typed
-    ``Any`` here: this module is below ``fleet``). ``setup(fleet)`` once the
+    ``fleet`` is the process's :class:`~awaremw.runtime.fleet.local.Fleet` (typed
+    ``Any`` here: this module is below it). ``setup(fleet)`` once the
     fleet is set up (motes built, before the start): register event hooks
     here. ``started(fleet)`` right after the shared start
     (schedule work on the loop here). ``result()`` when the worker stops: a
@@ -57,6 +57,9 @@ class FleetSettings:
     ``security``: the radio is secured (frames sealed and checked with its
     network key; docs/security.md). The core factory must then build motes
     for the payload MTU (``awaremw.nodes.KindsFactory(security=...)``).
+    ``plugin``: a :class:`WorkerPlugin` run beside the fleet. ``pcap``: the
+    medium's tap writes every frame and reception to this file (pcapng).
+    ``lag_from_s``: timer lag is sampled from this emulated time on (a warm-up).
     """
 
     name: str = "main"
@@ -73,6 +76,9 @@ class FleetSettings:
     track_links: bool = False
     session: SessionSettings | None = None
     security: RadioSecurity | None = None
+    plugin: WorkerPlugin | None = None
+    pcap: str | None = None
+    lag_from_s: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "connect", _endpoints(self.connect))
@@ -81,7 +87,9 @@ class FleetSettings:
 
 @dataclass(frozen=True, slots=True)
 class LauncherSettings:
-    """How a :class:`~awaremw.runtime.fleet.FleetLauncher` runs its workers.
+    """How a fleet runs over ``processes`` processes (:func:`~awaremw.runtime.fleet.open_fleet`):
+    one runs in this process, more are the workers of a
+    :class:`~awaremw.runtime.fleet.launcher.FleetLauncher`.
 
     ``connect``: join that router (e.g. ``awaremw router``) instead of starting
     an embedded one on ``listen`` (default: a free loopback port).
@@ -97,7 +105,13 @@ class LauncherSettings:
     (pickled to it) beside its fleet (benchmarks: tallies, injections).
     ``max_restarts``: a worker that dies is started again, at most this many
     times within ``restart_window_s`` wall seconds (then the run fails); 0: a
-    dead worker fails the run at once.
+    dead worker fails the run at once. ``pcap``: a capture of the radio (one
+    process: the medium's tap, receptions included; more: a sniffer on the
+    router, docs/capture.md). ``lag_from_s``: as :attr:`FleetSettings.lag_from_s`.
+
+    In this process only (one process, no ``router_config_file``):
+    ``start_wall`` (the shared start of fleets on several hosts) and
+    ``client`` (the session in Zenoh client mode through ``connect``).
     """
 
     processes: int = 1
@@ -119,15 +133,31 @@ class LauncherSettings:
     plugin: WorkerPlugin | None = None
     max_restarts: int = 5
     restart_window_s: float = 600.0
+    control: bool = True
+    pcap: str | None = None
+    lag_from_s: float = 0.0
+    start_wall: float | None = None
+    client: bool = False
 
     def __post_init__(self) -> None:
         if self.max_restarts < 0:
             raise ValueError("max_restarts must be >= 0")
         if self.processes < 1:
             raise ValueError("processes must be >= 1")
+        if not self.local and (self.client or self.start_wall is not None):
+            raise ValueError(
+                "Zenoh client mode and a start time are for one process without a router "
+                "of its own (no more processes, no access rules here)"
+            )
         object.__setattr__(self, "connect", _endpoints(self.connect))
         object.__setattr__(self, "listen", _endpoints(self.listen))
         object.__setattr__(self, "exclude_kinds", frozenset(self.exclude_kinds))
+
+    @property
+    def local(self) -> bool:
+        """The fleet runs in this process: one process, and no router of its own
+        to apply access rules."""
+        return self.processes == 1 and self.router_config_file is None
 
     def fleet(self, name: str, connect: tuple[str, ...]) -> FleetSettings:
         """The settings of worker ``name``'s fleet, joined to ``connect``."""
@@ -139,11 +169,29 @@ class LauncherSettings:
             listen=("tcp/127.0.0.1:0",),  # lets peers link directly (gossip)
             handler=self.handler,
             autostart=False,
+            control=self.control,
             collect_lag=self.collect_lag,
             freeze_gc=True,
             track_links=self.track_links,
-            session=None
-            if self.worker_config_file is None
-            else SessionSettings("client", connect, config_file=self.worker_config_file),
+            session=self._client(connect),
             security=self.security,
+            plugin=self.plugin,
+            lag_from_s=self.lag_from_s,
         )
+
+    def in_process(self) -> FleetSettings:
+        """The settings of the one fleet when it runs in this process (:attr:`local`)."""
+        client = SessionSettings("client", self.connect) if self.client else None
+        return replace(
+            self.fleet("main", self.connect),
+            listen=self.listen,
+            autostart=True,
+            start_wall=self.start_wall,
+            session=self._client(self.connect) or client,
+            pcap=self.pcap,
+        )
+
+    def _client(self, connect: tuple[str, ...]) -> SessionSettings | None:
+        if self.worker_config_file is None:
+            return None
+        return SessionSettings("client", connect, config_file=self.worker_config_file)

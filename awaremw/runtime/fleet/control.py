@@ -21,8 +21,8 @@ from awaremw.protocol.frames import ItemKind
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.zenoh_medium import ZenohMedium
 from awaremw.runtime.deployment import DeploymentError, NodeSpec, parse_deployment
-from awaremw.runtime.fleet_motes import FleetMotes
-from awaremw.runtime.fleet_stats import FleetStats
+from awaremw.runtime.fleet.motes import FleetMotes
+from awaremw.runtime.fleet.stats import FleetStats
 
 log = logging.getLogger(__name__)
 
