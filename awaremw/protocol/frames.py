@@ -425,10 +425,6 @@ class Frame:
         _node("src", self.src)
         _addr("dst", self.dst)
 
-    @property
-    def is_broadcast(self) -> bool:
-        return self.dst == BROADCAST
-
     def body(self) -> list[Any]:
         raise NotImplementedError
 

@@ -106,10 +106,6 @@ class Envelope:
     frame: bytes
 
     @property
-    def is_ack(self) -> bool:
-        return self.kind is Kind.ACK
-
-    @property
     def is_unicast(self) -> bool:
         return self.dest != BROADCAST
 

@@ -85,11 +85,6 @@ SHIFT: Final = 64 - _NORMAL_BITS
 U32: Final = 1.0 / 4294967296.0
 
 
-def normal_deviate(h: int) -> float:
-    """Standard normal deviate from the top 12 bits of a 64-bit hash."""
-    return NORMAL[h >> SHIFT]
-
-
 def uniform(h: int) -> float:
     """Uniform deviate in [0, 1) from the low 32 bits of a 64-bit hash."""
     return (h & 0xFFFFFFFF) * U32

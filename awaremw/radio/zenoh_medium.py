@@ -442,12 +442,6 @@ class ZenohMedium:
                 n += 1
         return n
 
-    def prime_local(self) -> int:
-        """:meth:`prime` for every static local mote."""
-        return self.prime(
-            (r.node_id, r.x, r.y, r.tx_power) for r in self.radios.values() if r.static
-        )
-
     @property
     def counters(self) -> dict[int, MoteCounters]:
         """Per-mote counters (every mote ever attached here), bulk drops folded in."""

@@ -379,15 +379,6 @@ class World:
         bot = lat(ix, iy + 1) * (1 - fx) + lat(ix + 1, iy + 1) * fx
         return self.variation * (top * (1 - fy) + bot * fy)
 
-    def active_sources(self, t: float) -> list[tuple[str, SourceState]]:
-        """Names and states of the sources that exist at ``t`` (for views and plots)."""
-        out: list[tuple[str, SourceState]] = []
-        for s in (*self.fires, *self.gas_sources, *self.lights):
-            st = s.state(t)
-            if st is not None:
-                out.append((s.name, st))
-        return out
-
     # ------------------------------------------------------------------ parsing
 
     @classmethod

@@ -71,9 +71,6 @@ class FleetMotes:
         """Register ``hook(node_id, event, now)`` for every core event (and MoteUp/Down)."""
         self._hooks.append(hook)
 
-    def remove_event_hook(self, hook: EventHook) -> None:
-        self._hooks.remove(hook)
-
     # ------------------------------------------------------------------ lifecycle
 
     def attach(self, medium: ZenohMedium) -> None:
