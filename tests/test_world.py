@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from awaremw.world.fields import Keyframe, Source, World, WorldError, gauss_hash
+from awaremw.world.table import world_from_table
 
 
 def fire(name: str, *keys: tuple[float, float, float, float, float], edge: float = 1.0) -> Source:
@@ -68,7 +69,7 @@ def test_humidity_drops_as_temperature_rises() -> None:
 
 
 def test_gas_and_light_come_from_fires_and_sources() -> None:
-    w = World.from_table(
+    w = world_from_table(
         {
             "ambient_light": 300,
             "fires": [
@@ -135,7 +136,7 @@ def test_texture_is_small_smooth_and_seeded() -> None:
     t=st.floats(0, 500),
 )
 def test_fields_are_finite_and_in_range(x: float, y: float, t: float) -> None:
-    w = World.from_table(
+    w = world_from_table(
         {
             "variation": 0.3,
             "fires": [
@@ -187,11 +188,11 @@ def test_fields_are_finite_and_in_range(x: float, y: float, t: float) -> None:
 )
 def test_bad_world_tables_are_clear_errors(table: dict[str, object], needle: str) -> None:
     with pytest.raises(WorldError, match=needle):
-        World.from_table(table)
+        world_from_table(table)
 
 
 def test_unknown_world_keys_are_kept_for_others() -> None:
-    w = World.from_table({"area": [12.5, 11]}, seed=3)
+    w = world_from_table({"area": [12.5, 11]}, seed=3)
     assert w.extra == {"area": [12.5, 11]} and w.seed == 3
 
 

@@ -37,6 +37,7 @@ from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.deployment import Deployment, DeploymentError, NodeSpec
 from awaremw.world.fields import World, WorldError
+from awaremw.world.table import world_from_table
 
 __all__ = [
     "ALIASES",
@@ -67,7 +68,7 @@ def kind_names() -> list[str]:
 def world_of(deployment: Deployment) -> World:
     """The deployment's world (``[world]`` table, seeded by the deployment's seed)."""
     try:
-        return World.from_table(deployment.world, deployment.seed)
+        return world_from_table(deployment.world, deployment.seed)
     except WorldError as e:
         raise DeploymentError(f"{_file(deployment)}: {e}") from None
 
