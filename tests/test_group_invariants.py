@@ -81,16 +81,11 @@ def topologies(
     return seed, sites, discs
 
 
-@settings(
-    max_examples=30,
-    deadline=None,
-    suppress_health_check=[HealthCheck.too_slow],
-    phases=[Phase.explicit, Phase.reuse, Phase.generate],  # shrinking a run costs minutes
-)
-@given(topologies())
-def test_invariants_after_convergence_on_random_topologies(
+def defined_on(
     topo: tuple[int, list[tuple[int, int]], list[tuple[float, float, float]]],
-) -> None:
+) -> tuple[Scenario, Region]:
+    """Motes on the lattice ``sites``, hot inside the ``discs``; group type 1 (hot)
+    defined at t = 1 s."""
     seed, sites, discs = topo
 
     def region(p: Point, t: float) -> bool:
@@ -103,6 +98,20 @@ def test_invariants_after_convergence_on_random_topologies(
     # Injected at one mote (as the gateway does), so that dissemination must carry
     # it: every mote connected to mote 1 must have learnt it (this can fail).
     sc.define_group(1, HOT, everywhere=False, at=[1])
+    return sc, region
+
+
+@settings(
+    max_examples=30,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+    phases=[Phase.explicit, Phase.reuse, Phase.generate],  # shrinking a run costs minutes
+)
+@given(topologies())
+def test_invariants_after_convergence_on_random_topologies(
+    topo: tuple[int, list[tuple[int, int]], list[tuple[float, float, float]]],
+) -> None:
+    sc, region = defined_on(topo)
     for t in range(2, 41, 2):
         sc.run_until(float(t))
         assert sc.loops(1) == [], f"loop at t={t}"
@@ -396,16 +405,7 @@ EDGE_MEMBER = (
     "starves a member whose only link is a relay that takes itself for a leaf",
 )
 def test_a_member_whose_only_link_is_one_relay_keeps_its_group() -> None:
-    seed, sites, discs = EDGE_MEMBER
-
-    def region(p: Point, t: float) -> bool:
-        return any(math.hypot(p[0] - x, p[1] - y) <= r for x, y, r in discs)
-
-    sc = Scenario(seed=seed)
-    for i, (a, b) in enumerate(sites):
-        sc.add(i + 1, (a * LATTICE, b * LATTICE), {TEMPERATURE: indicator(region)})
-    sc.run_until(1.0)
-    sc.define_group(1, HOT, everywhere=False, at=[1])
+    sc, _ = defined_on(EDGE_MEMBER)
     sc.run_until(80.0)
     lost = [t for t, n, ev in sc.events if n == 21 and t > 30 and isinstance(ev, GroupLeft)]
     assert lost == []
