@@ -7,11 +7,7 @@ Same contract as MQTT, on key expressions instead of topics:
 * subscribe to ``aware/hbn/data/<channel>/<type>/<group_id>`` (records) and
   ``aware/hbn/groups/<type>/<group_id>`` (group state; a ``delete`` when the
   group is gone), ``aware/hbn/gateway/status``;
-* refusals are put on ``aware/hbn/errors`` (same JSON as MQTT), from a thread
-  of their own with congestion control BLOCK: Zenoh's default for a put drops
-  it when the link's queue stays full for a millisecond, which a loaded machine
-  does; the loop never waits for the link (at most ``MAX_REPORTS`` wait, and
-  what does not fit is counted and summed up in one report); a payload
+* refusals are put on ``aware/hbn/errors`` (same JSON as MQTT); a payload
   larger than ``max_payload_bytes`` is not copied out of Zenoh at all (only its
   size goes to the loop, to be refused as ``payload_too_large``);
 * what arrives waits for the loop in an :class:`~awaremw.gateway.inbox.Inbox`:
@@ -36,7 +32,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import queue
 import threading
 import time
 from collections import deque
@@ -59,60 +54,8 @@ log = logging.getLogger(__name__)
 # (rel_topic, payload, retained, key, size): ``size`` is the payload's size as
 # put; a payload over the limit arrives empty, to be refused by its size alone.
 OnMessage = Callable[[str, bytes, bool, str, int], object]
-MAX_REPORTS = 1_000  # refusals (or reports) waiting to be reported, on either side of the loop
+MAX_REPORTS = 1_000  # refusals of the Zenoh threads waiting to be reported by the loop
 HANDLE_SLICE_S = 0.02  # the loop handles the inbox in slices this long (wall seconds)
-
-
-class ErrorPutter:
-    """Puts error reports on one key from a thread of its own, with congestion
-    control BLOCK: a congested link delays a report instead of dropping it, and
-    the caller never waits. At most :data:`MAX_REPORTS` wait; the ones beyond
-    are counted in ``lost`` and summed up in one report once there is room."""
-
-    def __init__(self, session: zenoh.Session, key: str) -> None:
-        self.session = session
-        self.key = key
-        self.lost = 0
-        self._queue: queue.Queue[bytes | None] = queue.Queue(maxsize=MAX_REPORTS)
-        self._lost_lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="hbn-errors", daemon=True)
-        self._thread.start()
-
-    def put(self, payload: bytes) -> None:
-        try:
-            self._queue.put_nowait(payload)
-        except queue.Full:
-            with self._lost_lock:
-                self.lost += 1
-
-    def close(self, timeout: float = 2.0) -> None:
-        """Put what waits, then stop (a link that takes nothing for ``timeout``
-        seconds loses the rest: the thread is a daemon)."""
-        if self._thread is None:
-            return
-        with contextlib.suppress(queue.Full):
-            self._queue.put(None, timeout=timeout)
-        self._thread.join(timeout)
-        self._thread = None
-
-    def _run(self) -> None:
-        block = zenoh.CongestionControl.BLOCK
-        while (payload := self._queue.get()) is not None:
-            with self._lost_lock:
-                lost, self.lost = self.lost, 0
-            todo = [payload]
-            if lost:
-                summary = ErrorReport(self.key, OVERFLOW, f"{lost} error reports not sent", "")
-                todo.append(summary.to_json())
-            for p in todo:
-                try:
-                    self.session.put(self.key, p, congestion_control=block)
-                except zenoh.ZError as e:  # the session closed under us
-                    log.debug("error report: %s", e)
-                    return
 
 
 class HbnApi:
@@ -150,7 +93,6 @@ class HbnApi:
         self._scheduled = False  # a drain is due on the loop
         self._lock = threading.Lock()
         self._overflow_log = RateLimitedLog(log)
-        self._errors = ErrorPutter(session, self.key("errors"))
 
     @property
     def dropped(self) -> int:
@@ -172,11 +114,9 @@ class HbnApi:
             )
         )
         self._decls.append(self.session.declare_queryable(self.key("**"), self._on_query))
-        self._errors.start()
         log.info("Zenoh HBN API on %s/**", self.base)
 
     def close(self) -> None:
-        self._errors.close()
         decls, self._decls = self._decls, []
         for d in decls:
             try:
@@ -194,7 +134,7 @@ class HbnApi:
             self.session.put(key, p.payload)
 
     def publish_error(self, e: ErrorReport) -> None:
-        self._errors.put(e.to_json())
+        self.session.put(self.key("errors"), e.to_json())
 
     def set_state(self, state: Mapping[str, bytes]) -> None:
         """Replace what the queryable answers (relative keys -> JSON payloads)."""
@@ -242,7 +182,8 @@ class HbnApi:
             summary = ErrorReport(
                 f"{self.base}/**", OVERFLOW, f"{unreported} more samples not taken: inbox full", ""
             )
-            self.publish_error(summary)
+            with contextlib.suppress(zenoh.ZError):
+                self.publish_error(summary)
         end = time.monotonic() + HANDLE_SLICE_S
         while True:
             with self._lock:
@@ -265,7 +206,10 @@ class HbnApi:
             "input_overflow", "Zenoh HBN input full: %s not taken (reported on %s/errors)",
             m.topic[:200], self.base,
         )  # fmt: skip
-        self.publish_error(overflow_report(m, "the Zenoh HBN inbox", refetched=False))
+        try:
+            self.publish_error(overflow_report(m, "the Zenoh HBN inbox", refetched=False))
+        except zenoh.ZError as e:
+            log.debug("overflow report: %s", e)
 
     def _deliver(self, m: Incoming) -> None:
         self.received += 1
