@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import struct
 import sys
-import zlib
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -23,6 +22,11 @@ from test_architecture import LAYERS, ROOT, graph, modules, rank
 
 PICTURE = ROOT.parent / "docs" / "img" / "architecture.png"
 KEY = "awaremw-structure"
+
+
+def short(name: str) -> str:
+    """A module's name inside its floor ('' for the floor's package)."""
+    return name.split(".", 2)[-1] if name.count(".") > 1 else ""
 
 
 def structure() -> dict[str, dict[str, list[str]]]:
@@ -34,7 +38,7 @@ def structure() -> dict[str, dict[str, list[str]]]:
         if r < 0:
             continue
         floor = LAYERS[r]
-        floors[floor]["modules"].append(name.split(".", 2)[-1] if name.count(".") > 1 else "")
+        floors[floor]["modules"].append(short(name))
         below = {LAYERS[rank(d)] for d in g[name] if 0 <= rank(d) < r}
         floors[floor]["imports"] = sorted(set(floors[floor]["imports"]) | below, key=LAYERS.index)
     return floors
@@ -52,8 +56,7 @@ def draw(path: Path = PICTURE) -> None:
     lines: dict[str, dict[str, int]] = {f: {} for f in LAYERS}
     for name, p in files.items():
         if rank(name) >= 0:
-            short = name.split(".", 2)[-1] if name.count(".") > 1 else ""
-            lines[LAYERS[rank(name)]][short] = len(p.read_text(encoding="utf-8").splitlines())
+            lines[LAYERS[rank(name)]][short(name)] = len(p.read_text(encoding="utf-8").splitlines())
     widest = max(sum(v.values()) for v in lines.values())
     width, gap = 10.0, 0.04
     fig, ax = plt.subplots(figsize=(15, 0.75 * len(LAYERS) + 0.6))
@@ -93,9 +96,6 @@ def read_structure(path: Path = PICTURE) -> dict[str, dict[str, list[str]]] | No
         body = data[pos + 8 : pos + 8 + length]
         if kind == b"tEXt" and body.startswith(KEY.encode() + b"\0"):
             return json.loads(body.split(b"\0", 1)[1].decode("latin-1"))  # type: ignore[no-any-return]
-        if kind == b"zTXt" and body.startswith(KEY.encode() + b"\0"):
-            text = zlib.decompress(body.split(b"\0", 1)[1][1:])
-            return json.loads(text.decode("latin-1"))  # type: ignore[no-any-return]
         pos += 12 + length
     return None
 
