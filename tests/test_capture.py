@@ -4,6 +4,7 @@ Zenoh, and what Debian's tshark (with the shipped Lua dissector) makes of them."
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import shutil
@@ -184,6 +185,18 @@ def test_dissector_names_every_frame_type() -> None:
     named = dict(re.findall(r'\[(\d+)\] = "(\w+)"', text))
     assert {int(k): v for k, v in named.items()} == {
         t: cls.__name__ for t, cls in FRAME_TYPES.items()
+    }
+
+
+def test_dissector_labels_every_body_field_in_order() -> None:
+    text = dissector_path().read_text(encoding="utf-8")
+    labels = {
+        int(t): re.findall(r'"(\w+)"', names)
+        for t, names in re.findall(r"\[(\d+)\] = \{([^}]*)\}", text)
+    }
+    assert labels == {
+        t: [f.name for f in dataclasses.fields(cls)][2:]  # after src and dst
+        for t, cls in FRAME_TYPES.items()
     }
 
 

@@ -104,7 +104,7 @@ frames: st.SearchStrategy[Frame] = st.one_of(
     ),
     st.builds(CtpBeacon, node, addr, u16, addr, st.booleans()),
     st.builds(CtpData, node, addr, node, u16, u8, u16, records | reports),
-    st.builds(LeaderBeacon, node, addr, u8, gid, node, u32, u16, u8),
+    st.builds(LeaderBeacon, node, addr, u8, gid, node, u32, u16, u8, st.booleans(), addr),
     st.builds(Handover, node, addr, u8, gid, u32, u16),
     st.builds(Partial, node, addr, u8, u8, gid, u32, u8, u32, st.lists(f32, max_size=4).map(tuple)),
 )
@@ -173,7 +173,7 @@ def test_mtu_is_enforced_on_encode() -> None:
 
 
 def test_typical_frames_fit_the_cc1000_mtu() -> None:
-    beacon = LeaderBeacon(1, BROADCAST, 1, 0xFFFE, 32767, 0xFFFFFFFF, 0xFFFF, 255)
+    beacon = LeaderBeacon(1, BROADCAST, 1, 0xFFFE, 32767, 0xFFFFFFFF, 0xFFFF, 255, parent=32767)
     data = CtpData(1, 2, 3, 4, 5, 6, DataRecord(1, 1, 513, 100, int(AggId.AVG), 21.5, 12, 7))
     for f in (beacon, data, Partial(1, 2, 0, 1, 513, 9, 0, 3, (1.0, 2.0))):
         assert len(encode(f, 64)) <= 64

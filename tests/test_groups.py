@@ -144,8 +144,9 @@ def beacon(
     seq: int = 1,
     hops: int = 0,
     gtype: int = 1,
+    parent: int = BROADCAST,
 ) -> LeaderBeacon:
-    return LeaderBeacon(src, BROADCAST, gtype, gid, leader, weight, seq, hops)
+    return LeaderBeacon(src, BROADCAST, gtype, gid, leader, weight, seq, hops, parent=parent)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -563,6 +564,39 @@ def test_good_link_beats_fewer_hops_until_the_hop_count_is_on_the_air() -> None:
     assert f.hops == 1
     h.hear(beacon(src=9, seq=4, hops=1), rssi=-70.0)
     assert h.g.membership(1).parent == 8  # type: ignore[union-attr]
+
+
+def test_a_leaf_skips_covered_forwards_but_not_while_a_child_depends_on_it() -> None:
+    """Counter-based forwarding without partials: a forward names the parent only
+    when it was the only member heard with that seq; the parent then forwards for
+    a leader timeout even when covered (docs/protocol-groups.md, Quiet beacons)."""
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    period, jitter = h.cfg.beacon_period, h.cfg.forward_jitter
+
+    def seq(n: int, covered: bool, child: bool = False) -> list[LeaderBeacon]:
+        h.advance((n - 1) * period)
+        h.hear(beacon(src=7, seq=n, hops=1))  # our parent
+        if covered:
+            h.hear(beacon(src=8, seq=n, hops=2))  # a member as far out as we are
+        h.advance(h.now + jitter)
+        sent = [f for f in h.sent() if isinstance(f, LeaderBeacon)]
+        if child and sent:
+            h.hear(beacon(src=30, seq=n, hops=3, parent=10))  # it took it from us
+        return sent
+
+    (f,) = seq(1, covered=False)
+    assert (f.hops, f.parent) == (2, 7)  # 7 was all we heard: we depend on it
+    assert seq(2, covered=True) == []  # a leaf, covered: skipped
+    (f,) = seq(3, covered=False, child=True)
+    assert f.parent == 7
+    # Covered now, but a child named us: forward for a leader timeout (3.5
+    # periods) after its last naming; a forward that heard 8 too names nobody.
+    for n in (4, 5, 6):
+        (f,) = seq(n, covered=True)
+        assert f.parent == BROADCAST
+    assert seq(7, covered=True) == []
+    assert h.g.stats.beacons_suppressed == 2
 
 
 def test_member_switches_to_heavier_group_and_ignores_lighter() -> None:

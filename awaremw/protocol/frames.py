@@ -617,6 +617,9 @@ class LeaderBeacon(Frame):
     # A would-be group's announcement (docs/protocol-groups.md, "Tentative ids"):
     # nobody joins it or forwards it; an established group answers it.
     tentative: bool = False
+    # A member's forward names the member it took the beacon from (its parent in
+    # the group tree), which then keeps forwarding; BROADCAST: none (the leader).
+    parent: int = BROADCAST
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
@@ -628,14 +631,15 @@ class LeaderBeacon(Frame):
         _u8("hops", self.hops)
         if not isinstance(self.tentative, bool):
             raise ValueError("tentative must be a bool")
+        _addr("parent", self.parent)
 
     def body(self) -> list[Any]:
         return [self.group_type, self.group_id, self.leader, self.weight, self.seq, self.hops,
-                self.tentative]  # fmt: skip
+                self.tentative, self.parent]  # fmt: skip
 
     @classmethod
     def from_body(cls, src: int, dst: int, body: list[Any]) -> LeaderBeacon:
-        return cls(src, dst, *_arity(body, 7, "leader beacon"))
+        return cls(src, dst, *_arity(body, 8, "leader beacon"))
 
 
 @dataclass(frozen=True, slots=True)

@@ -183,7 +183,9 @@ class _TypeState:
     # counter-based suppression (see on_timer "fwd").
     copies: list[tuple[int, int]] = field(default_factory=list)
     must_forward: bool = False  # the beacon we joined on announces the group: no suppression
-    child_at: float = -math.inf  # last partial a child sent us (a member with children)
+    # A member with children forwards every seq until then (see _covered): a child
+    # named us in its forward, or sent us a partial, lately.
+    child_until: float = -math.inf
     # Leader: its beacon interval now; member: the interval it saw between the
     # leader's beacons (0: none seen yet). See _gap and docs/protocol-groups.md.
     gap: float = 0.0
@@ -373,7 +375,8 @@ class Groups(Component):
         of a leader; for a member, proof that it is a parent in the group tree."""
         st = self._types.get(group_type)
         if st is not None and st.role is Role.MEMBER:
-            st.child_at = now
+            # A partial comes every epoch: proof for one beacon interval.
+            st.child_until = max(st.child_until, now + self._gap(st))
             return
         if st is None or st.role is not Role.LEADER:
             return
@@ -537,10 +540,11 @@ class Groups(Component):
             self._beacon(st, now)
         elif kind == "fwd" and st.role is Role.MEMBER:
             if self._covered(st, now):
-                # A leaf (no child sent us a partial since the last beacon), and
+                # A leaf (no child named us or sent us a partial lately), and
                 # members at least as far out as we are already carried this seq
                 # to our neighbourhood: skip ours (counter-based flooding). Parents
-                # always forward, so that the tree and its hop counts stay put.
+                # always forward, so that the tree and its hop counts stay put and
+                # a child that hears no other member keeps its group.
                 self.stats.beacons_suppressed += 1
             else:
                 self._forward(st)
@@ -715,6 +719,7 @@ class Groups(Component):
         st.upstream = {src: _Up(seq, hops, heard_at, rssi)}
         st.failed = {}
         st.children = {}
+        st.child_until = -math.inf
         st.suspect_at = None
         st.leader_ok = heard_at
         st.leader_direct = heard_at if src == leader else -math.inf
@@ -973,11 +978,11 @@ class Groups(Component):
         self.timers.set(("beacon", st.gtype), now + st.gap)
 
     def _covered(self, st: _TypeState, now: float) -> bool:
-        """Skip our forward of the current seq? Only a leaf (no child sent us a
-        partial since the last beacon) that heard ``beacon_forward_cover`` copies
-        from members at least as far from the leader as we are (not our parent)."""
+        """Skip our forward of the current seq? Only a leaf (no child lately, see
+        child_until) that heard ``beacon_forward_cover`` copies from members at
+        least as far from the leader as we are (not our parent)."""
         k = self.ctx.config.beacon_forward_cover
-        if k <= 0 or st.must_forward or now - st.child_at <= self._gap(st):
+        if k <= 0 or st.must_forward or now <= st.child_until:
             return False
         return sum(1 for src, h in st.copies if h >= st.hops and src != st.parent) >= k
 
@@ -990,6 +995,15 @@ class Groups(Component):
             j = self.ctx.config.forward_jitter
             band = self._band(st.parent_rssi)
             self.timers.set(name, now + band * j + self.ctx.rng.uniform(0, j))
+
+    def _named_parent(self, st: _TypeState) -> int:
+        """The parent our forward names: only one we depend on (the only member we
+        heard this seq from), which then keeps forwarding for us (_same_group). A
+        member that heard others too ties no parent down (docs/protocol-groups.md)."""
+        p = st.parent
+        if p is None or any(src != p for src, _ in st.copies):
+            return BROADCAST
+        return p
 
     def _forward(self, st: _TypeState, count: bool = True) -> None:
         st.forwarded = True
@@ -1004,6 +1018,7 @@ class Groups(Component):
                 st.weight,
                 st.seq,
                 0 if st.role is Role.LEADER else st.hops,
+                parent=self._named_parent(st),
             )
         )
         if count:
@@ -1091,6 +1106,13 @@ class Groups(Component):
         )  # fmt: skip
         if not newer and f.leader != st.leader:
             return  # a stale beacon, or a lighter claimant of our id: not our tree
+        if f.parent == self.ctx.node_id:
+            # A child took the beacon from us: forward the next seqs for it, for
+            # as long as it would wait for one before giving the leader up (a
+            # copy or two lost on the way must not starve it). It names us again
+            # at each forward while we are all it hears; a child that stops (it
+            # left, took another parent, or hears other members) ages out.
+            st.child_until = max(st.child_until, now + self._member_timeout(st))
         st.upstream[f.src] = _Up(f.seq, f.hops, now, lr)
         if newer:
             # The first copy of a new seq sets the parent ...
