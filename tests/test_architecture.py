@@ -342,6 +342,6 @@ def test_the_checker_finds_a_private_import(tmp_path: Path) -> None:
     assert sorted(private_imports(root)) == [
         "awaremw.radio.medium (line 1) imports awaremw.radio.model._M64",
         "awaremw.radio.medium (line 4) imports awaremw.radio.model._own",
-        "awaremw.runtime.virtual (line 3) uses awaremw.radio.model._M64",
-        "awaremw.runtime.virtual (line 3) uses awaremw.radio.model._own",
+        "awaremw.radio.virtual_medium (line 3) uses awaremw.radio.model._M64",
+        "awaremw.radio.virtual_medium (line 3) uses awaremw.radio.model._own",
     ]
