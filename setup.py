@@ -22,7 +22,7 @@ import sys
 
 from setuptools import find_packages, setup
 
-# The protocol core, the virtual-clock driver, the radio's link layer and
+# The protocol core, the virtual medium and its clock, the radio's link layer and
 # propagation model and the world's fields: where a run spends its time. Pure
 # modules with precise types (mypy --strict), nothing monkeypatched.
 COMPILED = [
@@ -42,9 +42,9 @@ COMPILED = [
     "awaremw/radio/model.py",
     "awaremw/radio/neighbourhood.py",
     "awaremw/radio/reception.py",
-    "awaremw/runtime/timerq.py",
-    "awaremw/runtime/virtual.py",
+    "awaremw/radio/virtual_medium.py",
     "awaremw/world/fields.py",
+    "awaremw/world/timerq.py",
 ]
 
 

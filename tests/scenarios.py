@@ -1,6 +1,6 @@
 """Scripted virtual-clock scenarios of AwareMote fleets (shared test helper).
 
-Builds motes on engineer A's :class:`~awaremw.runtime.virtual.VirtualNetwork`
+Builds motes on engineer A's :class:`~awaremw.radio.virtual_medium.VirtualNetwork`
 with a scripted application whose attributes are functions of ``(position,
 t)`` (so regions can move across a static grid, or motes across a region),
 records every event, injects definitions the way a gateway does and checks
@@ -27,7 +27,7 @@ from awaremw.protocol.frames import ChannelDef, CommandDef, GroupTypeDef, ItemBo
 from awaremw.protocol.groups import Membership
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import PRESETS, RadioModel, RadioPreset
-from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Mobility, Static
 
 Point = tuple[float, float]

@@ -161,6 +161,18 @@ def test_no_module_imports_one_that_imports_it_back() -> None:
     assert circles(graph(ROOT)) == []
 
 
+def test_both_media_sit_side_by_side_on_the_radio_floor() -> None:
+    """The media -- the modules that run radio/reception.py's rules on every
+    frame -- are on one floor, named so that a folder listing tells them apart
+    (docs/architecture.md). A medium that stops calling the rules, a third
+    one, or a medium module back in runtime/ fails here."""
+    g = graph(ROOT)
+    media = sorted(m for m, edges in g.items() if "awaremw.radio.reception" in edges)
+    assert media == ["awaremw.radio.virtual_medium", "awaremw.radio.zenoh_medium"]
+    runtime = [m for m in g if m.startswith("awaremw.runtime.")]
+    assert [m for m in runtime if "medium" in m or m.endswith(".virtual")] == []
+
+
 def test_every_module_sits_in_a_layer() -> None:
     for name in modules(ROOT):
         rank(name)  # raises for a module outside the layers
@@ -332,7 +344,7 @@ def test_the_checker_finds_a_private_import(tmp_path: Path) -> None:
                 "    from .model import _own\n"
             ),
             "runtime/__init__.py": "",
-            "runtime/virtual.py": (
+            "runtime/driver.py": (
                 "from awaremw.radio import model\n"
                 "import awaremw.radio.model as m\n"
                 "x = model._M64 + m.PUBLIC + m._own\n"
@@ -342,6 +354,6 @@ def test_the_checker_finds_a_private_import(tmp_path: Path) -> None:
     assert sorted(private_imports(root)) == [
         "awaremw.radio.medium (line 1) imports awaremw.radio.model._M64",
         "awaremw.radio.medium (line 4) imports awaremw.radio.model._own",
-        "awaremw.runtime.virtual (line 3) uses awaremw.radio.model._M64",
-        "awaremw.runtime.virtual (line 3) uses awaremw.radio.model._own",
+        "awaremw.runtime.driver (line 3) uses awaremw.radio.model._M64",
+        "awaremw.runtime.driver (line 3) uses awaremw.radio.model._own",
     ]

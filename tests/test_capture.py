@@ -30,8 +30,8 @@ from awaremw.radio.capture import (
     PcapngWriter,
     mac_header,
 )
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.runtime.deployment import load
-from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
 
 AWAREMW = [sys.executable, "-m", "awaremw"]

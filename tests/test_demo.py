@@ -236,8 +236,7 @@ def test_describe_events() -> None:
     assert describe(1, HandoverSent(1, 1, 7, 4, 2.0), 2.0) == (
         "mote 1 handed group 7 over to mote 4"
     )
-    from awaremw.protocol.events import ParentChanged
-    from awaremw.runtime.events import MoteDown
+    from awaremw.protocol.events import MoteDown, ParentChanged
 
     assert describe(1, ParentChanged(None, 2, 10), 0.0) is None  # not news
     assert describe(3, MoteDown("battery"), 4.0) == "mote 3 is down (battery)"

@@ -10,12 +10,11 @@ from collections.abc import AsyncIterator, Callable
 import pytest
 
 from awaremw.protocol.core import MoteCore, Transmission
-from awaremw.protocol.events import MalformedFrame
+from awaremw.protocol.events import MalformedFrame, MoteDown, MoteUp
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.radio.model import CC2420, RadioModel
 from awaremw.radio.zenoh_medium import ZenohMedium
 from awaremw.runtime.driver import LagStats, MoteRunner, percentile
-from awaremw.runtime.events import MoteDown, MoteUp
 from awaremw.runtime.zenoh_session import close_quietly, open_session
 from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Static

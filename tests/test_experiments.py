@@ -23,11 +23,11 @@ from awaremw.protocol.events import (
     GroupLeft,
     LeaderElected,
     LeaveReason,
+    MoteDown,
 )
 from awaremw.protocol.frames import Condition, DataRecord, GroupTypeDef, Op
 from awaremw.radio.model import CC2420, RadioModel
 from awaremw.runtime.deployment import DeploymentError, parse_deployment
-from awaremw.runtime.events import MoteDown
 from awaremw.world.fields import Keyframe, Source, World
 from awaremw.world.mobility import Path as MPath
 from awaremw.world.mobility import Static

@@ -14,9 +14,9 @@ import pytest
 from awaremw.cli.fleet import control_query
 from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.core import MoteCore
+from awaremw.protocol.events import MoteDown, MoteUp
 from awaremw.protocol.hello import HelloMote
 from awaremw.runtime.deployment import Deployment, NodeSpec, load, parse_deployment
-from awaremw.runtime.events import MoteDown, MoteUp
 from awaremw.runtime.fleet import (
     AnyFleet,
     Fleet,

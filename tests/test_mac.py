@@ -12,8 +12,8 @@ from test_virtual import Recorder
 from awaremw.protocol.core import Transmission
 from awaremw.radio.mac import GIVE_UP, SENSE, TRANSMIT, Air, MacSender, mac_params
 from awaremw.radio.model import CC1000, CC2420, RadioModel
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.runtime.deployment import DeploymentError, load_deployment
-from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.world.mobility import Static
 
 # No shadowing, no fading: received power is a function of distance alone, so

@@ -28,9 +28,9 @@ from awaremw.protocol.frames import BROADCAST
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.envelope import Kind, encode_envelope
 from awaremw.radio.model import CC2420, RadioModel, cell_of
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.radio.zenoh_medium import MacSettings, Radio, ZenohMedium
 from awaremw.runtime.router import EmbeddedRouter
-from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.runtime.zenoh_session import (
     SessionSettings,
     close_quietly,

@@ -36,7 +36,7 @@ from awaremw.protocol.signing import ItemSigner, item_message
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import PRESETS
 from awaremw.radio.security import MAX_SENDERS, FrameGuard, RadioSecurity
-from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.radio.virtual_medium import VirtualNetwork
 
 KEY = bytes(range(16))
 SEC = RadioSecurity(KEY)

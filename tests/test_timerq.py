@@ -7,7 +7,7 @@ import random
 
 import pytest
 
-from awaremw.runtime.timerq import TimerQueue
+from awaremw.world.timerq import TimerQueue
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -10,12 +10,11 @@ import random
 import pytest
 
 from awaremw.protocol.core import Transmission
-from awaremw.protocol.events import PingResult
+from awaremw.protocol.events import MoteDown, PingResult
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.protocol.hello import HelloMote
 from awaremw.radio.model import CC2420, RadioModel, cell_of, packet_key
-from awaremw.runtime.events import MoteDown
-from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Path, Static
 
 # --------------------------------------------------------------------------- helpers

@@ -59,8 +59,8 @@ from awaremw.protocol.frames import (
     Op,
 )
 from awaremw.protocol.mote import AwareMote
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.runtime.deployment import Deployment, parse_deployment
-from awaremw.runtime.virtual import VirtualNetwork
 from awaremw.world.mobility import square_loop
 
 if TYPE_CHECKING:

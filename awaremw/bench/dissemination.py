@@ -73,7 +73,7 @@ from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.energy import MoteEnergy, role_of, role_table
 from awaremw.radio.model import RadioModel, preset
 from awaremw.radio.security import RadioSecurity
-from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Static
 
 Event = tuple[int, object, float]

@@ -61,7 +61,7 @@ from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.hello import HelloMote
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.model import RadioModel, preset
-from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Static
 
 SPACING_M = 12.0

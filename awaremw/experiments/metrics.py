@@ -31,8 +31,8 @@ from awaremw.experiments.scenario import Scenario
 from awaremw.experiments.truth import GroundTruth
 from awaremw.nodes import config_for
 from awaremw.protocol import events as ev
+from awaremw.protocol.events import MoteDown, MoteEvent, MoteUp
 from awaremw.protocol.frames import DataRecord, GroupTypeDef
-from awaremw.runtime.events import MoteDown, MoteEvent, MoteUp
 
 RecordKey = tuple[int, int, int, int]  # channel, group type, group id, epoch
 SAMPLE_DT = 0.5  # s between scored instants

@@ -36,9 +36,9 @@ from awaremw.gateway.mqtt import MqttSettings
 from awaremw.nodes import KindsFactory, app_of
 from awaremw.protocol.attributes import rssi_attribute
 from awaremw.protocol.core import MoteCore
+from awaremw.protocol.events import EventHook, MoteEvent
 from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.deployment import Deployment, NodeSpec
-from awaremw.runtime.events import EventHook, MoteEvent
 from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """Run a scenario on the virtual clock (fast, deterministic).
 
-The whole deployment runs on :class:`~awaremw.runtime.virtual.VirtualNetwork`
+The whole deployment runs on :class:`~awaremw.radio.virtual_medium.VirtualNetwork`
 with the cores :func:`awaremw.nodes.build_core` builds (the same as the
 fleet's). At ``define_at_s`` the gateway mote is given the scenario's
 definitions as the gateway would inject them (versioned Drip items) and the
@@ -23,7 +23,7 @@ from awaremw.protocol.core import MoteCore, Transmission
 from awaremw.protocol.events import CoreEvent
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.security import RadioSecurity
-from awaremw.runtime.virtual import VirtualNetwork
+from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.security.material import load_gateway_keys
 
 

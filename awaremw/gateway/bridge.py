@@ -49,6 +49,7 @@ from awaremw.gateway.schema import (
 from awaremw.gateway.store import StoredItem, VersionStore, payload_hash, unwrap, wire_version
 from awaremw.protocol import events as ev
 from awaremw.protocol.attributes import attribute_name, unit_of
+from awaremw.protocol.events import MoteDown, MoteEvent, MoteUp
 from awaremw.protocol.frames import (
     ANY_GROUP_TYPE,
     ChannelDef,
@@ -58,7 +59,6 @@ from awaremw.protocol.frames import (
     ItemBody,
     ItemKind,
 )
-from awaremw.runtime.events import MoteDown, MoteEvent, MoteUp
 
 log = logging.getLogger(__name__)
 BodyFn = Callable[[int, ItemKind, int], ItemBody | None]  # (node, kind, item id): what it holds

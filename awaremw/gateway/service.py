@@ -48,9 +48,9 @@ from awaremw.gateway.mqtt import (
 from awaremw.gateway.schema import Limits
 from awaremw.gateway.store import VersionStore, wire_version
 from awaremw.protocol.config import MiddlewareConfig
+from awaremw.protocol.events import MoteEvent
 from awaremw.protocol.frames import ItemBody, ItemKind
 from awaremw.protocol.mote import AwareMote
-from awaremw.runtime.events import MoteEvent
 from awaremw.runtime.fleet import Fleet
 
 log = logging.getLogger(__name__)

@@ -1,14 +1,15 @@
 """Every event a mote's core reports, in one place: typed frozen dataclasses.
 
-A core hands them out with ``events()`` (protocol/core.py); the runtime passes
-each, with the runtime's own ``MoteUp`` / ``MoteDown`` (runtime/events.py), to
-the ``on_event(node_id, event, now)`` hooks. :data:`CoreEvent` is their union:
+A core hands them out with ``events()`` (protocol/core.py); its driver passes
+each, with the driver's own ``MoteUp`` / ``MoteDown`` (below), to the
+``on_event(node_id, event, now)`` hooks. :data:`CoreEvent` is their union:
 a consumer matches on it and ends with ``case _: assert_never(event)``, so that
 mypy names every consumer a new event type has to be decided in.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import TypeAlias
@@ -220,3 +221,27 @@ AwareEvent: TypeAlias = (
 )  # fmt: skip
 HelloEvent: TypeAlias = MalformedFrame | NeighbourFound | NeighbourLost | PingResult
 CoreEvent: TypeAlias = AwareEvent | HelloEvent
+
+
+# The driver's own events about a mote, beside its core's: the asyncio driver
+# (awaremw.runtime.driver) and the virtual medium (awaremw.radio.virtual_medium)
+# emit the same types. Consumers dispatch on the type (``match event: case
+# MoteDown(reason=r): ...``), never on class names.
+@dataclass(frozen=True, slots=True)
+class MoteUp:
+    """The mote booted and is on the air."""
+
+
+@dataclass(frozen=True, slots=True)
+class MoteDown:
+    """The mote was switched off: ``killed`` (by a user or a scenario),
+    ``battery`` (its budget ran out), ``stopped`` (its fleet closed) or
+    ``fault`` (a contained core bug)."""
+
+    reason: str
+
+
+# What a driver reports itself, and everything an on_event hook is given.
+RuntimeEvent: TypeAlias = MoteUp | MoteDown
+MoteEvent: TypeAlias = CoreEvent | RuntimeEvent
+EventHook: TypeAlias = Callable[[int, MoteEvent, float], None]  # (node id, event, now)

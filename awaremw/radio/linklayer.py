@@ -1,7 +1,7 @@
 """One mote's link layer, as both media run it (``docs/radio.md`` rules 2, 6, 7, 9).
 
 The Zenoh medium (:mod:`awaremw.radio.zenoh_medium`) and the virtual-clock
-driver (:mod:`awaremw.runtime.virtual`) schedule differently (asyncio timers
+driver (:mod:`awaremw.radio.virtual_medium`) schedule differently (asyncio timers
 vs. an event heap) but keep the same per-mote state, :class:`LinkStation`,
 and change it through these functions only: taking the next frame and its
 link sequence number, the attempt's channel access (:func:`attempt`,

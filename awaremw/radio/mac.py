@@ -2,7 +2,7 @@
 
 Sans-IO, like the protocol core: time goes in, decisions and deadlines come
 out, nothing here reads a clock, sleeps or draws from a global random. Both
-radio media (the virtual-clock driver, :mod:`awaremw.runtime.virtual`, and
+radio media (the virtual-clock driver, :mod:`awaremw.radio.virtual_medium`, and
 the Zenoh medium) drive the same two objects, so that from the same seed they
 decide the same things (``docs/radio.md``, "Medium access and collisions"):
 

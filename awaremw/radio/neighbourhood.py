@@ -1,7 +1,7 @@
 """Who hears whom: the cell grid of one medium's motes and per-sender receiver caches.
 
 Both radio media -- the Zenoh medium (:mod:`awaremw.radio.zenoh_medium`) and
-the virtual-clock driver (:mod:`awaremw.runtime.virtual`) -- find the
+the virtual-clock driver (:mod:`awaremw.radio.virtual_medium`) -- find the
 receivers of a frame (rules 3 and 4 of ``docs/radio.md``, "Medium
 semantics") through this module, and decide each reception in
 :mod:`awaremw.radio.reception`:

@@ -8,7 +8,7 @@ destroyed by overlapping frames (``collisions``), received (``frames_rx``,
 ``bytes_rx``), refused by link security (a bad MIC, a replay), a unicast's
 duplicate filter and auto-ACK, the capture tap's record of each, and the
 battery check after each reception. The virtual medium
-(:mod:`awaremw.runtime.virtual`) and the Zenoh medium
+(:mod:`awaremw.radio.virtual_medium`) and the Zenoh medium
 (:mod:`awaremw.radio.zenoh_medium`) both call a :class:`Reception` for every
 frame; what stays theirs is when a frame is decided (an event heap, or a
 Zenoh envelope and a guard timer) and what a delivery does (a core's

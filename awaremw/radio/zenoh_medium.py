@@ -4,7 +4,7 @@ One :class:`ZenohMedium` per process. It owns the process's radio
 subscriptions and a :class:`Radio` per local mote (its link layer: transmit
 queue, MAC backoff, airtime, sequence numbers, ACK wait and retries, duplicate
 filter, counters, battery). The rules are those of the virtual-clock driver
-(``docs/radio.md``, "Medium semantics"; :mod:`awaremw.runtime.virtual`), and
+(``docs/radio.md``, "Medium semantics"; :mod:`awaremw.radio.virtual_medium`), and
 the code that applies them is shared with it: who hears whom, cached receiver
 lists and bulk-counted drops in :mod:`awaremw.radio.neighbourhood`, every
 reception decision and its accounting in :mod:`awaremw.radio.reception`, the

@@ -27,11 +27,10 @@ from array import array
 from collections.abc import Callable
 
 from awaremw.protocol.core import MoteCore, Transmission
-from awaremw.protocol.events import MalformedFrame
+from awaremw.protocol.events import EventHook, MalformedFrame, MoteDown, MoteEvent, MoteUp
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.zenoh_medium import Radio, ZenohMedium
-from awaremw.runtime.events import EventHook, MoteDown, MoteEvent, MoteUp
 from awaremw.world.clock import EmulatedClock
 from awaremw.world.mobility import Mobility
 

@@ -16,7 +16,7 @@ from rich.live import Live
 from rich.text import Text
 
 from awaremw.protocol import events as ev
-from awaremw.runtime.events import MoteDown, MoteEvent, MoteUp
+from awaremw.protocol.events import MoteDown, MoteEvent, MoteUp
 from awaremw.view.render import render
 from awaremw.view.snapshot import RecordLine, Snapshot
 

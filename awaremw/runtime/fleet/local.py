@@ -30,13 +30,13 @@ from types import TracebackType
 import zenoh
 
 from awaremw.protocol.core import MoteCore
+from awaremw.protocol.events import EventHook
 from awaremw.radio.capture import Capture
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import RadioModel
 from awaremw.radio.zenoh_medium import MacSettings, ZenohMedium
 from awaremw.runtime.deployment import Deployment
 from awaremw.runtime.driver import LagStats
-from awaremw.runtime.events import EventHook
 from awaremw.runtime.fleet.clock import ClockSync
 from awaremw.runtime.fleet.control import ControlService
 from awaremw.runtime.fleet.guard import LoopGuard

@@ -8,10 +8,10 @@ import random
 from collections.abc import Callable
 
 from awaremw.protocol.core import MoteCore
+from awaremw.protocol.events import EventHook, MoteEvent
 from awaremw.radio.zenoh_medium import ZenohMedium
 from awaremw.runtime.deployment import Deployment, NodeSpec
 from awaremw.runtime.driver import LagStats, MoteRunner
-from awaremw.runtime.events import EventHook, MoteEvent
 
 CoreFactory = Callable[[NodeSpec, Deployment], MoteCore]
 NodeFilter = Callable[[NodeSpec], bool]

@@ -1,4 +1,5 @@
-"""The virtual-clock driver: MoteCores on an in-memory medium, as fast as possible.
+"""The virtual medium: MoteCores on an in-memory radio and a virtual clock, as
+fast as possible (the Zenoh medium's twin: :mod:`awaremw.radio.zenoh_medium`).
 
 A discrete-event simulator: a queue of ``(time, seq, kind, node, data)``
 entries, processed in order; ``seq`` (insertion order) breaks ties, so a run is
@@ -14,7 +15,7 @@ drops) is :mod:`awaremw.radio.neighbourhood`; every reception decision and its
 accounting :mod:`awaremw.radio.reception`; the link layer's state and rules
 (sequence numbers, duplicates, ACKs, retries) :mod:`awaremw.radio.linklayer`:
 the same code the Zenoh medium runs. What is this driver's own is the event
-queue (:mod:`awaremw.runtime.timerq`, a calendar of time slots), and what a
+queue (:mod:`awaremw.world.timerq`, a calendar of time slots), and what a
 delivery does (the receiver's core takes the frame).
 
 Channel access and collisions are :mod:`awaremw.radio.mac`'s, driven through
@@ -34,7 +35,7 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from awaremw.protocol.core import IdleCheck, MoteCore, Transmission
-from awaremw.protocol.events import CoreEvent, MalformedFrame
+from awaremw.protocol.events import CoreEvent, EventHook, MalformedFrame, MoteDown
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio import linklayer
 from awaremw.radio.capture import RadioTap
@@ -55,9 +56,8 @@ from awaremw.radio.model import RadioModel, expect_motes
 from awaremw.radio.neighbourhood import Neighbourhood
 from awaremw.radio.reception import Reception
 from awaremw.radio.security import FrameGuard, RadioSecurity
-from awaremw.runtime.events import EventHook, MoteDown
-from awaremw.runtime.timerq import TimerQueue
 from awaremw.world.mobility import Mobility, Static
+from awaremw.world.timerq import TimerQueue
 
 log = logging.getLogger(__name__)
 
