@@ -13,7 +13,8 @@ one frame share it), ``timer`` (timer firings of the cores) and
 events, ``ItemAdopted`` among them). The last line sums it up: ``total_cpu``,
 ``max_cpu`` (the costliest slice) and the totals. The counting wraps a few
 public functions, so its CPU figures are a little higher: measure CPU without
-``--count``. At ``--speed 0.1`` a fleet has ``step / 0.1`` wall seconds for a
+``--count`` (and count with the pure-Python build: compiled classes cannot be
+wrapped). At ``--speed 0.1`` a fleet has ``step / 0.1`` wall seconds for a
 slice of ``step`` emulated seconds: a slice that costs more CPU than that
 needs more than one core (docs/scale.md, "The real-time emulation at 10,000
 motes").

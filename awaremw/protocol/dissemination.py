@@ -302,8 +302,8 @@ class Dissemination(Component):
             return
         if name == "answer":
             # In table order: the items no neighbour sent at our version meanwhile.
-            for key in [k for k in self._items if k in self._answer]:
-                self._broadcast(key)
+            for k in [k for k in self._items if k in self._answer]:
+                self._broadcast(k)
             self._answer.clear()
             return
         assert isinstance(name, tuple) and name[0] == "item", name
