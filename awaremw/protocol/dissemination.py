@@ -29,7 +29,12 @@ it re-broadcasts everything; the newcomer adopts what is newer, and whatever it
 holds that is newer makes the neighbour's copies look old to it, which resets
 its own Trickles. A neighbour that holds *fewer* items than the summary's
 sender may be behind it: it answers with its own summary (rate-limited), so
-the sender resets its Trickles. See docs/protocol-dissemination.md.
+the sender resets its Trickles. A mote that adopts an item says so in a
+summary; a neighbour holding fewer items asks (its summary), again if the
+answers miss it, and the motes holding more answer within
+``drip_answer_delay``, leaving out what another answered meanwhile. A boot
+summary echoed by ``drip_k`` neighbours is skipped. See
+docs/protocol-dissemination.md.
 
 Signed items (``config.gateway_public_key`` set): every item version carries
 the gateway's Ed25519 signature (:mod:`awaremw.protocol.signing`), sent after
