@@ -25,6 +25,9 @@ class MiddlewareConfig:
     drip_summary_repeats: int = 2  # boot summary sent again this many times (lost frames)
     drip_summary_spacing: float = 2.0  # s before the first repeat; doubles for each next one
     drip_summary_min_gap: float = 1.0  # s between two summaries answering summaries
+    # A mote that hears a summary with fewer items than it holds answers after a
+    # uniform wait in [0, this] s, leaving out what a neighbour sent meanwhile.
+    drip_answer_delay: float = 0.05
     # Unsigned items only: a version heard more than this many steps away from the
     # one held (either way) is a jump no gateway makes; it is refused unless no
     # other mote ever echoed the held version (docs/protocol-dissemination.md).

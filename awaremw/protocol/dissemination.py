@@ -29,7 +29,12 @@ it re-broadcasts everything; the newcomer adopts what is newer, and whatever it
 holds that is newer makes the neighbour's copies look old to it, which resets
 its own Trickles. A neighbour that holds *fewer* items than the summary's
 sender may be behind it: it answers with its own summary (rate-limited), so
-the sender resets its Trickles. See docs/protocol-dissemination.md.
+the sender resets its Trickles. A mote that adopts an item says so in a
+summary; a neighbour holding fewer items asks (its summary), again if the
+answers miss it, and the motes holding more answer within
+``drip_answer_delay``, leaving out what another answered meanwhile. A boot
+summary echoed by ``drip_k`` neighbours is skipped. See
+docs/protocol-dissemination.md.
 
 Signed items (``config.gateway_public_key`` set): every item version carries
 the gateway's Ed25519 signature (:mod:`awaremw.protocol.signing`), sent after
@@ -155,9 +160,20 @@ class Dissemination(Component):
         self._summary_spacing = 0.0
         self._last_summary = float("-inf")
         self._last_answer = float("-inf")
+        # Summaries identical to the one we would send, heard since our digest last
+        # changed or we last sent one: at drip_k of them ours is skipped (Trickle's
+        # suppression, applied to summaries; see _send_summary).
+        self._summary_echoes = 0
+        self._summary_asks = False  # the summary timer is an ask (_summary_soon)
+        self._wanted = 0  # the most items a neighbour's summary announced
+        self._ask_retries = 0  # asks left while we hold fewer than that
+        # Items of an answer waiting for its jitter (see _on_summary); an item a
+        # neighbour sends at our version meanwhile leaves it.
+        self._answer: set[ItemKey] = set()
         self.refused = 0  # counters for observers
         self.item_tx = 0
         self.summary_tx = 0
+        self.summaries_skipped = 0
         self.sig_tx = 0
         key = ctx.config.gateway_public_key
         self.verifier: ItemVerifier | None = None if key is None else ItemVerifier(key)
@@ -276,11 +292,24 @@ class Dissemination(Component):
 
     def on_timer(self, name: object, now: float) -> None:
         if name == "summary":
-            self._send_summary(now)
+            asked = self._summary_asks
+            self._send_summary(now, may_skip=not asked)
+            self._summary_asks = False
             if self._summary_repeats_left > 0:
                 self._summary_repeats_left -= 1
                 self.timers.set("summary", now + self._summary_spacing)
                 self._summary_spacing *= 2.0
+            if asked and len(self._items) < self._wanted and self._ask_retries > 0:
+                # Still behind a neighbour that announced more: the answers to our
+                # ask may all have been dropped for one we did not hear. Ask again.
+                self._ask_retries -= 1
+                self._summary_soon(now)
+            return
+        if name == "answer":
+            # In table order: the items no neighbour sent at our version meanwhile.
+            for k in [k for k in self._items if k in self._answer]:
+                self._broadcast(k)
+            self._answer.clear()
             return
         assert isinstance(name, tuple) and name[0] == "item", name
         key: ItemKey = (name[1], name[2])
@@ -310,6 +339,7 @@ class Dissemination(Component):
         if cur is not None and f.version == cur.version:
             self._anchored.add(key)  # another mote holds our version: anchored
             self._trickles[key].hear_consistent()
+            self._answer.discard(key)  # a neighbour answered with it: ours is redundant
             return
         if cur is not None and self.verifier is None and self._is_jump(f.version, cur.version):
             if key in self._anchored:
@@ -387,22 +417,30 @@ class Dissemination(Component):
     def _on_summary(self, f: DripSummary, now: float) -> None:
         n = len(self._items)
         if f.digest == self._digest and f.n_items == n:
+            self._summary_echoes += 1
             return
         if n:
             # We may be ahead of the sender: speak up about everything soon.
             for key, trickle in self._trickles.items():
                 trickle.reset(now)
                 self._arm(key)
-            if f.n_items < n and now - self._last_answer >= self.ctx.config.drip_summary_min_gap:
+            cfg = self.ctx.config
+            if f.n_items < n and now - self._last_answer >= cfg.drip_summary_min_gap:
                 # The sender holds fewer items: it lacks some. Trickle would let our
-                # neighbours' transmissions suppress ours, yet the sender may hear
-                # only us (a hidden "have-not" at the edge of the items' spread), so
-                # answer at once, unsuppressed, at most once per min_gap.
+                # neighbours' transmissions suppress ours for a whole interval, yet
+                # the sender may hear only us (a hidden "have-not" at the edge of the
+                # items' spread), so answer within drip_answer_delay, at most once
+                # per min_gap. Every have of its neighbourhood heard the same summary:
+                # an item one of them sends at our version during our wait is dropped
+                # from our answer (the sender asks again if it still lacks it, at the
+                # next larger summary it hears, and our Trickles were reset above).
                 self._last_answer = now
-                for key in self._items:
-                    self._broadcast(key)
+                self._answer = set(self._items)
+                self.timers.set("answer", now + self.ctx.rng.uniform(0.0, cfg.drip_answer_delay))
         if f.n_items > n:
             # The sender may be ahead of us: ask it to speak up (it holds items).
+            self._wanted = max(self._wanted, f.n_items)
+            self._ask_retries = self.ctx.config.drip_summary_repeats
             self._summary_soon(now)
 
     def _summary_soon(self, now: float) -> None:
@@ -415,8 +453,21 @@ class Dissemination(Component):
         cur = self.timers.get("summary")
         if cur is None or due < cur:
             self.timers.set("summary", due)
+            self._summary_asks = True
 
-    def _send_summary(self, now: float) -> None:
+    def _send_summary(self, now: float, may_skip: bool = False) -> None:
+        echoes, self._summary_echoes = self._summary_echoes, 0
+        if may_skip and echoes >= self.ctx.config.drip_k:
+            # A boot summary or its repeat, and drip_k neighbours said the same
+            # since our digest last changed: their summaries made the have-nots
+            # around ask and the haves answer (a network that boots at once would
+            # otherwise send a summary per mote, and the repeats 2 s later fall in
+            # the wave of its first definitions). Asks and the summary announcing
+            # an adoption (_summary_soon) are never skipped: they are how the
+            # have-nots at a wave's edge learn of items and get them (skipping
+            # those slowed a wave by half, bench dissemination).
+            self.summaries_skipped += 1
+            return
         self._last_summary = now
         self.summary_tx += 1
         n = min(len(self._items), 0xFFFF)
@@ -436,6 +487,7 @@ class Dissemination(Component):
         else:
             self._digest = (self._digest - digest_term(f.kind, f.item_id, cur.version)) & _M32
         self._digest = (self._digest + digest_term(f.kind, f.item_id, f.version)) & _M32
+        self._summary_echoes = 0  # echoes of the digest we held no longer count
         self._items[key] = Item(f.version, f.item)
         if sig is None:
             self._sigs.pop(key, None)
