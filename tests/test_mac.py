@@ -329,3 +329,21 @@ def test_the_air_answers_from_the_cells_around_and_forgets_in_order() -> None:
     air.prune(0.03)
     kept = [f for f in frames if f.end >= 0.02]
     assert air.frames == kept and len(air) == len(kept)
+
+
+def test_a_static_senders_frames_share_its_mean_powers_but_not_a_moving_receivers() -> None:
+    model = RadioModel(CC2420, 3)
+    air = Air(model, 4.0, 0.01)
+    shared: dict[int, float] = {}
+    a = air.add(1, 0.0, 0.0, 0.0, 0.0, 0.004, mw=shared)
+    b = air.add(1, 0.0, 0.0, 0.0, 0.01, 0.014, mw=shared)  # the same sender, standing still
+    fresh = air.add(1, 0.0, 0.0, 0.0, 0.02, 0.024)  # its own map
+    want = 10.0 ** (model.mean_rssi(1, 2, 10.0, 0.0) / 10.0)
+    assert air.power_mw(a, 2, 10.0, 0.0) == want == air.power_mw(fresh, 2, 10.0, 0.0)
+    assert shared == {2: want} and b.mw_cache is shared  # b reads what a computed
+    # A moving receiver's power is kept for the frame only: the next frame of the
+    # sender computes it where the receiver stands then.
+    here = air.power_mw(a, 5, 20.0, 0.0, moving=True)
+    there = air.power_mw(b, 5, 30.0, 0.0, moving=True)
+    assert 5 not in shared and here > there > 0.0
+    assert there == 10.0 ** (model.mean_rssi(1, 5, 30.0, 0.0) / 10.0)

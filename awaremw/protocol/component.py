@@ -16,7 +16,7 @@ from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.events import CoreEvent
 from awaremw.protocol.frames import BROADCAST, NODE_MASK, RSSI_BASE, Frame, encode, note_sent
-from awaremw.protocol.timers import TimerSet
+from awaremw.protocol.timers import TimerSet, TimerWatch
 
 
 class RssiSample:
@@ -60,6 +60,9 @@ class MoteContext:
         self.outbox: list[Transmission] = []
         self.pending: dict[int, tuple[Component, Frame]] = {}
         self.event_list: list[CoreEvent] = []
+        # The mote's timers mark it; send and emit set its ``queued`` (the mote's
+        # idle check reads this one object, not the two lists).
+        self.watch = TimerWatch()
         # The application's read_bounds (ReadBounds), looked up again if app changes.
         self._bounds_app: Application | None = None
         self._bounds: Callable[[int, float], tuple[float, float] | None] | None = None
@@ -74,10 +77,12 @@ class MoteContext:
             tx = Transmission.unicast(data, frame.dst)
             self.pending[tx.tx_id] = (owner, frame)
         self.outbox.append(tx)
+        self.watch.queued = True
         return tx
 
     def emit(self, event: CoreEvent) -> None:
         self.event_list.append(event)
+        self.watch.queued = True
 
     def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
         """An interval :meth:`read` is certain to fall in now, with no side effect

@@ -49,7 +49,7 @@ from awaremw.protocol.frames import (
     decode_shared,
 )
 from awaremw.protocol.groups import Groups
-from awaremw.protocol.timers import TimerSet, TimerWatch
+from awaremw.protocol.timers import TimerSet
 
 _INF = float("inf")
 
@@ -102,7 +102,7 @@ class AwareMote:
         # others have no timer: the timer loops skip them); rebuilt on TimerWatch.grew.
         self._live: tuple[tuple[Component, TimerSet], ...] = ()
         self._live_sets: tuple[TimerSet, ...] = ()
-        self._timer_watch = TimerWatch()
+        self._timer_watch = self.ctx.watch
         for c in self._components:
             c.timers.watch(self._timer_watch)
         self._next_deadline: float | None = None  # valid while not _timer_watch.changed
@@ -192,16 +192,13 @@ class AwareMote:
     def idle(self) -> bool:
         """:class:`~awaremw.protocol.core.IdleCheck`: nothing queued, no timer changed
         (always False in a subclass that overrides what it vouches for)."""
-        ctx = self.ctx
-        return (
-            self._idle_exact
-            and not ctx.outbox
-            and not ctx.event_list
-            and not self._timer_watch.changed
-        )
+        w = self._timer_watch  # its queued flag: a frame or an event may be waiting
+        return self._idle_exact and not w.queued and not w.changed
 
     def drain(self) -> list[Transmission]:
-        out, self.ctx.outbox = self.ctx.outbox, []
+        ctx = self.ctx
+        out, ctx.outbox = ctx.outbox, []
+        ctx.watch.queued = bool(ctx.event_list)
         return out
 
     def link_result(self, tx: Transmission, acked: bool, now: float) -> None:
@@ -212,7 +209,9 @@ class AwareMote:
         owner.on_link_result(frame, acked, now)
 
     def events(self) -> list[CoreEvent]:
-        out, self.ctx.event_list = self.ctx.event_list, []
+        ctx = self.ctx
+        out, ctx.event_list = ctx.event_list, []
+        ctx.watch.queued = bool(ctx.outbox)
         return out
 
     # ----------------------------------------------------------------- API for the gateway

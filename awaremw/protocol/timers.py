@@ -20,13 +20,17 @@ _INF = math.inf
 
 class TimerWatch:
     """Marked (``changed = True``) by every change of the sets watching it, and
-    ``grew = True`` when one of them gets its first timer ever (``armed``)."""
+    ``grew = True`` when one of them gets its first timer ever (``armed``).
+    ``queued``: the mote's own flag, True when a frame or event may be waiting
+    for its driver (set by :class:`~awaremw.protocol.component.MoteContext`), so
+    that the mote says it is idle from this one object."""
 
-    __slots__ = ("changed", "grew")
+    __slots__ = ("changed", "grew", "queued")
 
     def __init__(self) -> None:
         self.changed = True
         self.grew = True
+        self.queued = False
 
 
 class TimerSet:

@@ -124,7 +124,8 @@ def assess(st: LinkStation, air: Air, p: MacParams, now: float) -> tuple[int, fl
     if st.static and not air.any_near(st.node_id, st.cell, t0, now):
         busy = False  # no frame of another mote near enough during the assessment
     else:
-        busy = air.busy(st.node_id, st.x, st.y, t0, now, p.cca_threshold_dbm, p.carrier_sense)
+        busy = air.busy(st.node_id, st.x, st.y, t0, now, p.cca_threshold_dbm, p.carrier_sense,
+                        not st.static)  # fmt: skip
     if busy:
         st.counters.cca_busy += 1
     return st.mac.cca(busy, now)  # type: ignore[union-attr]
@@ -136,14 +137,21 @@ def airtime_end(preset: RadioPreset, start: float, n: int) -> float:
     return start + (n + preset.phy_overhead_bytes) * (8.0 / preset.bitrate_bps)
 
 
-def put_on_air(st: LinkStation, air: Air | None, preset: RadioPreset, start: float) -> float:
+def put_on_air(
+    st: LinkStation,
+    air: Air | None,
+    preset: RadioPreset,
+    start: float,
+    mw: dict[int, float] | None = None,
+) -> float:
     """The current attempt goes on the air at ``start`` (``st`` located): with an
-    ``air`` (carrier sense or collisions on) it is added to it as ``st.onair``.
+    ``air`` (carrier sense or collisions on) it is added to it as ``st.onair``
+    (``mw``: a static sender's shared mean powers, :meth:`Air.add`).
     Returns its end."""
     end = airtime_end(preset, start, len(st.air))
     if air is not None:
         key = packet_key(st.cur_seq, st.cur_attempt)
-        st.onair = air.add(st.node_id, st.x, st.y, st.tx_power, start, end, key)
+        st.onair = air.add(st.node_id, st.x, st.y, st.tx_power, start, end, key, mw)
     return end
 
 

@@ -200,9 +200,19 @@ class MacSender:
 
 
 class OnAir:
-    """A frame on the air: who sent it, from where, at what power, when."""
+    """A frame on the air: who sent it, from where, at what power, when.
 
-    __slots__ = ("cell", "end", "key", "mw_cache", "n", "src", "start", "tx_power", "x", "y")
+    ``mw_cache`` maps a receiver id to the frame's mean power there (mW). A
+    static sender's frames share one (``shared``, its receiver cache's: the
+    value is a pure function of two fixed positions and the power), so each
+    link is computed once, not once per frame; a moving receiver's values then
+    go to the frame's own ``mw_moving``.
+    """
+
+    __slots__ = (
+        "cell", "end", "key", "mw_cache", "mw_moving", "n", "shared", "src", "start", "tx_power",
+        "x", "y",
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -214,6 +224,7 @@ class OnAir:
         start: float,
         end: float,
         key: int = 0,
+        mw: dict[int, float] | None = None,
     ) -> None:
         self.src = src
         self.x = x
@@ -223,7 +234,10 @@ class OnAir:
         self.start = start
         self.end = end
         self.key = key  # the sender's link sequence number << 8 | attempt << 1 (packet_key)
-        self.mw_cache: dict[int, float] = {}  # receiver id -> mean received power (mW)
+        # receiver id -> mean received power (mW): the sender's (shared) or this frame's
+        self.mw_cache: dict[int, float] = {} if mw is None else mw
+        self.shared = mw is not None
+        self.mw_moving: dict[int, float] | None = None  # moving receivers' (shared only)
         self.n = 0  # the Air's insertion number (its frames' order, whatever their cells)
 
 
@@ -279,14 +293,24 @@ class Air:
         return sorted((f for fs in self._by_cell.values() for f in fs), key=_ORDER)
 
     def add(
-        self, src: int, x: float, y: float, tx_power: float, start: float, end: float, key: int = 0
+        self,
+        src: int,
+        x: float,
+        y: float,
+        tx_power: float,
+        start: float,
+        end: float,
+        key: int = 0,
+        mw: dict[int, float] | None = None,
     ) -> OnAir:
-        """Put a frame on the air (in any order of start times)."""
+        """Put a frame on the air (in any order of start times). ``mw``: the mean
+        powers of a static sender's frames at static receivers, shared by its
+        frames while it stands still (:attr:`OnAir.mw_cache`; None: the frame's own)."""
         if end < start:
             raise ValueError(f"frame of {src} ends ({end}) before it starts ({start})")
         if self._count >= MAX_ON_AIR:
             raise RuntimeError(f"more than {MAX_ON_AIR} frames on the air: frames never pruned")
-        f = OnAir(src, x, y, cell_of(x, y, self.cell_size), tx_power, start, end, key)
+        f = OnAir(src, x, y, cell_of(x, y, self.cell_size), tx_power, start, end, key, mw)
         self._n += 1
         f.n = self._n
         lst = self._by_cell.get(f.cell)
@@ -380,13 +404,18 @@ class Air:
                             return True
         return False
 
-    def power_mw(self, o: OnAir, rid: int, rx: float, ry: float) -> float:
+    def power_mw(self, o: OnAir, rid: int, rx: float, ry: float, moving: bool = False) -> float:
         """Mean power (mW) of frame ``o`` at receiver ``rid`` standing at ``(rx, ry)``;
-        0 if ``rid`` does not listen to ``o``'s cell."""
-        v = o.mw_cache.get(rid)
+        0 if ``rid`` does not listen to ``o``'s cell. ``moving``: the receiver
+        moves (its value is kept for this frame only)."""
+        cache = o.mw_cache
+        if moving and o.shared:
+            m = o.mw_moving
+            if m is None:
+                m = o.mw_moving = {}
+            cache = m
+        v = cache.get(rid)
         if v is None:
-            # No cache across frames: most (sender, receiver) pairs meet once or
-            # twice per run, and a table of them cost more (memory) than it saved.
             # cell_of and _mw inlined (the same operations).
             cs = self.cell_size
             oc = o.cell
@@ -395,14 +424,15 @@ class Air:
             else:
                 d = math.hypot(rx - o.x, ry - o.y)
                 v = 10.0 ** (self.model.mean_rssi(o.src, rid, d, o.tx_power) / 10.0)
-            o.mw_cache[rid] = v
+            cache[rid] = v
         return v
 
     def busy(self, rid: int, x: float, y: float, t0: float, t1: float, threshold_dbm: float,
-             carrier_sense: bool) -> bool:  # fmt: skip
+             carrier_sense: bool, moving: bool = False) -> bool:  # fmt: skip
         """Carrier sense by ``rid`` at ``(x, y)`` over ``[t0, t1]``: the energy of the
         frames of others on the air then reaches ``threshold_dbm``, or (with
-        ``carrier_sense``) one of them is received at or above the sensitivity."""
+        ``carrier_sense``) one of them is received at or above the sensitivity.
+        ``moving``: ``rid`` moves (:meth:`power_mw`)."""
         total = 0.0
         sens = self._sens_mw
         cs = self.cell_size
@@ -410,23 +440,31 @@ class Air:
         for o in self.near((math.floor(x / cs), math.floor(y / cs)), 1):
             if o.end <= t0 or o.start >= t1 or o.src == rid:  # most frames ended before t0
                 continue
-            p = self.power_mw(o, rid, x, y)
+            p = self.power_mw(o, rid, x, y, moving)
             if carrier_sense and p >= sens:
                 return True
             total += p
         return total > 0.0 and total >= _mw(threshold_dbm)
 
     def survives(
-        self, f: OnAir, rssi_dbm: float, rid: int, rx: float, ry: float, others: list[OnAir]
+        self,
+        f: OnAir,
+        rssi_dbm: float,
+        rid: int,
+        rx: float,
+        ry: float,
+        others: list[OnAir],
+        moving: bool = False,
     ) -> bool:
         """Did frame ``f``, received at ``rssi_dbm`` by ``rid`` at ``(rx, ry)``, survive
         the ``others`` (:meth:`overlapping`)? False if ``rid`` itself transmitted
-        during it (deaf) or its SINR fell below the capture threshold at any instant."""
+        during it (deaf) or its SINR fell below the capture threshold at any instant.
+        ``moving``: ``rid`` moves (:meth:`power_mw`)."""
         if len(others) == 1:  # the usual case (after the driver's cell filter): no spans
             o = others[0]
             if o.src == rid:
                 return False  # half duplex: a transmitting radio hears nothing
-            p1 = self.power_mw(o, rid, rx, ry)
+            p1 = self.power_mw(o, rid, rx, ry, moving)
             if p1 <= 0.0:
                 return True
             cap1 = self.capture_mw
@@ -436,7 +474,7 @@ class Air:
         for o in others:
             if o.src == rid:
                 return False  # half duplex: a transmitting radio hears nothing
-            p = self.power_mw(o, rid, rx, ry)
+            p = self.power_mw(o, rid, rx, ry, moving)
             if p > 0.0:
                 spans.append((max(o.start, f.start), min(o.end, f.end), p))
         if not spans:

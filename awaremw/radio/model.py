@@ -279,13 +279,6 @@ def cell_of(x: float, y: float, cell_size_m: float) -> tuple[int, int]:
     return math.floor(x / cell_size_m), math.floor(y / cell_size_m)
 
 
-def expect_motes(model: RadioModel, motes: int) -> None:
-    """A medium holds ``motes`` motes: size ``model``'s link caches for them (about
-    :data:`LINKS_PER_MOTE` links each, never below the default bound), so that a
-    large network does not clear and recompute them over and over."""
-    model.link_cache_max = max(model.link_cache_max, LINKS_PER_MOTE * motes)
-
-
 # --------------------------------------------------------------------------- BER / PRR
 
 # Below this BER * bits, the PRR differs from 1 by less than 1e-12: we return 1.0
@@ -293,8 +286,6 @@ def expect_motes(model: RadioModel, motes: int) -> None:
 _PRR_ONE_EPS: Final = 1e-12
 _PRR_CACHE_MAX: Final = 1 << 17
 _RANGE_CACHE_MAX: Final = 64  # distinct tx powers (a mote uses one; presets a handful)
-_LINK_CACHE_MAX: Final = 1 << 18  # links (local receivers x senders heard), at least
-LINKS_PER_MOTE: Final = 128  # the link caches' bound grows with the motes (expect_motes)
 _OQPSK_COEF: Final[tuple[tuple[float, float], ...]] = tuple(
     ((-1) ** k * math.comb(16, k), 20.0 * (1.0 / k - 1.0)) for k in range(2, 17)
 )
@@ -326,14 +317,11 @@ class RadioModel:
         "_bn_over_r",
         "_d0",
         "_d_min",
-        "_fading_link",
         "_max_fade",
         "_pl_d0",
         "_range_cache",
         "_seed_mix",
-        "_shadow",
         "_ten_n",
-        "link_cache_max",
         "one_snr_db",
         "preset",
         "prr_memo",
@@ -348,9 +336,6 @@ class RadioModel:
         self._bn_over_r = preset.noise_bandwidth_hz / preset.bitrate_bps
         # Bounds (entries; each cache is cleared when full, its values are pure
         # functions, so clearing only costs recomputation):
-        self._shadow: dict[int, float] = {}  # per link: link_cache_max (expect_motes)
-        self._fading_link: dict[int, int] = {}  # per directed link: link_cache_max
-        self.link_cache_max = _LINK_CACHE_MAX
         self._range_cache: dict[float, float] = {}  # per tx power heard: _RANGE_CACHE_MAX
         # prr_bits' cache, also read by a caller's inlined lookup (read only): the PRR
         # at snr_db = rssi - noise floor (below the PRR-one SNR) of `bits` bits is
@@ -376,52 +361,34 @@ class RadioModel:
         return p.pl_d0_db + 10.0 * p.path_loss_exponent * math.log10(d / p.d0_m)
 
     def static_shadow_db(self, src: int, dst: int) -> float:
-        """The per-link, time-invariant shadowing loss (dB), cached."""
+        """The per-link, time-invariant shadowing loss (dB).
+
+        Computed, not cached: its callers keep what they need (a sender's
+        receiver cache, the Air's mean powers), and a table of every link heard
+        grew with the network (6 KiB a mote) and missed the CPU's caches."""
         if src > dst and self.symmetric:
             a, b = dst, src
         else:
             a, b = src, dst
-        k = (a << 16) | b
-        v = self._shadow.get(k)
-        if v is None:
-            sigma = self.preset.shadowing_sigma_db
-            # link_hash(self.seed, DOMAIN_SHADOW, a, b), the seed's round done once.
-            h = splitmix64(
-                self._seed_mix ^ ((DOMAIN_SHADOW << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
-            )
-            v = sigma * NORMAL[h >> SHIFT]
-            if len(self._shadow) >= self.link_cache_max:
-                self._shadow.clear()  # keyed by remote sender ids: bounded, recomputable
-            self._shadow[k] = v
-        return v
+        # link_hash(self.seed, DOMAIN_SHADOW, a, b), the seed's round done once.
+        h = splitmix64(
+            self._seed_mix ^ ((DOMAIN_SHADOW << 40) | ((a & 0xFFFF) << 16) | (b & 0xFFFF))
+        )
+        return self.preset.shadowing_sigma_db * NORMAL[h >> SHIFT]
 
     def fading_link_hash(self, src: int, dst: int) -> int:
-        """Hash of the directed link for per-packet draws (cached)."""
-        k = (src << 16) | dst
-        h = self._fading_link.get(k)
-        if h is None:
-            # link_hash(self.seed, DOMAIN_FADING, src, dst), the seed's round done once.
-            h = splitmix64(
-                self._seed_mix ^ ((DOMAIN_FADING << 40) | ((src & 0xFFFF) << 16) | (dst & 0xFFFF))
-            )
-            if len(self._fading_link) >= self.link_cache_max:
-                self._fading_link.clear()  # keyed by remote sender ids: bounded, recomputable
-            self._fading_link[k] = h
-        return h
+        """Hash of the directed link for per-packet draws (computed: callers keep it)."""
+        # link_hash(self.seed, DOMAIN_FADING, src, dst), the seed's round done once.
+        return splitmix64(
+            self._seed_mix ^ ((DOMAIN_FADING << 40) | ((src & 0xFFFF) << 16) | (dst & 0xFFFF))
+        )
 
     def mean_rssi(self, src: int, dst: int, distance: float, tx_power: float) -> float:
         """Noise-free ground truth: P_tx - PL(d) - static shadow (no per-packet part)."""
         # path_loss_db inlined (the same operations in the same order: same bits).
         d = distance if distance > self._d_min else self._d_min
         pl = self._pl_d0 + self._ten_n * math.log10(d / self._d0)
-        # static_shadow_db's cache looked up inline first (the same key).
-        if src > dst and self.symmetric:
-            shadow = self._shadow.get((dst << 16) | src)
-        else:
-            shadow = self._shadow.get((src << 16) | dst)
-        if shadow is None:
-            shadow = self.static_shadow_db(src, dst)
-        return tx_power - pl - shadow
+        return tx_power - pl - self.static_shadow_db(src, dst)
 
     def rssi(self, src: int, dst: int, distance: float, tx_power: float, packet_key: int) -> float:
         """RSSI of one packet: mean RSSI minus the packet's fading draw."""

@@ -114,7 +114,9 @@ class SenderCache(Generic[S]):
     (:meth:`Neighbourhood.touch`) and the sender stays where it is.
     """
 
-    __slots__ = ("cell", "far_dist", "far_loss", "links", "near", "pending", "src", "txp", "x", "y")
+    __slots__ = (
+        "cell", "far_dist", "far_loss", "links", "mw", "near", "pending", "src", "txp", "x", "y",
+    )  # fmt: skip
 
     def __init__(self, src: int, x: float, y: float, txp: float, cell: Cell) -> None:
         self.src = src
@@ -128,6 +130,9 @@ class SenderCache(Generic[S]):
         self.pending = 0  # broadcasts not yet folded into the far_* receivers' counters
         # Unicast links to static receivers (None: not listening to the sender's cell).
         self.links: dict[int, Link[S] | None] = {}
+        # Mean power (mW) of its frames at static receivers, filled by the Air's
+        # collision and carrier-sense checks (radio/mac.py, OnAir.mw_cache).
+        self.mw: dict[int, float] = {}
 
     def flush(self) -> None:
         """Fold the bulk-counted broadcasts into the far receivers' counters."""

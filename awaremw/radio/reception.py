@@ -280,7 +280,11 @@ class Reception(Generic[R]):
             if tap is not None:
                 tap.reception(now, src, r.node_id, None, "path_loss")
             return None
-        if f is not None and others and not self.air.survives(f, rssi, r.node_id, r.x, r.y, others):
+        if (
+            f is not None
+            and others
+            and not self.air.survives(f, rssi, r.node_id, r.x, r.y, others, not r.static)
+        ):
             rc.collisions += 1
             if tap is not None:
                 tap.reception(now, src, r.node_id, None, "collision")

@@ -52,7 +52,7 @@ from awaremw.radio.mac import (
     OnAir,
     mac_params,
 )
-from awaremw.radio.model import RadioModel, expect_motes
+from awaremw.radio.model import RadioModel
 from awaremw.radio.neighbourhood import Neighbourhood
 from awaremw.radio.reception import Reception
 from awaremw.radio.security import FrameGuard, RadioSecurity
@@ -197,7 +197,6 @@ class VirtualNetwork:
         node.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self._nodes[nid] = node
         self._cores[nid] = core
-        expect_motes(self.model, len(self._nodes))
         self._push(t, _START, node, None)
 
     def kill(self, node_id: int, reason: str = "killed") -> None:
@@ -397,12 +396,15 @@ class VirtualNetwork:
     def _go(self, node: _Node, start: float) -> None:
         """The attempt goes on the air at ``start`` (known to the Air from now on)."""
         air = None
+        mw = None
         if self._track:
             air = self._air
             air.prune(self._now)
-            if not node.static:
+            if node.static:  # its frames share its mean powers at static receivers
+                mw = self._nb.sender(node.node_id, node.x, node.y, node.tx_power).mw
+            else:
                 self._nb.locate(node, self._now)
-        end = linklayer.put_on_air(node, air, self.preset, start)
+        end = linklayer.put_on_air(node, air, self.preset, start, mw)
         self._queue.push(end, _TX_END, node, None)
 
     def _cca(self, node: _Node) -> None:

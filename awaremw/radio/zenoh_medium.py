@@ -103,7 +103,7 @@ from awaremw.radio.mac import (
     OnAir,
     mac_params,
 )
-from awaremw.radio.model import RadioModel, cell_of, expect_motes, packet_key
+from awaremw.radio.model import RadioModel, cell_of, packet_key
 from awaremw.radio.neighbourhood import Cell, Neighbourhood
 from awaremw.radio.reception import Reception
 from awaremw.radio.security import FrameGuard, RadioSecurity
@@ -412,7 +412,6 @@ class ZenohMedium:
         r = Radio(self, sink, mobility, txp, self.model.max_range_m(txp), battery, counters)
         r.mac = MacSender(self.mac_params, self.model.backoff_link_hash(nid))
         self.radios[nid] = r
-        expect_motes(self.model, len(self.radios))
         self._nb.add(r, self.clock.now())
         if not r.static:
             self._ensure_mobility_tick()
