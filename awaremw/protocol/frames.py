@@ -17,9 +17,10 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
-from typing import Any, ClassVar, TypeAlias
+from operator import attrgetter
+from typing import Any, ClassVar, NamedTuple, Self, TypeAlias
 
 import msgpack
 
@@ -120,6 +121,83 @@ def _addr(name: str, v: object) -> None:
         _node(name, v)
 
 
+# --------------------------------------------------------------------------- wire codec
+
+
+def _arity(w: Any, n: int, what: str) -> list[Any]:
+    if not isinstance(w, list) or len(w) != n:
+        raise BadField(f"{what}: expected an array of {n} fields, got {w!r:.60}")
+    return w
+
+
+class _Codec(NamedTuple):
+    """How a field that is not a plain int, bool, str or bytes goes on the wire."""
+
+    put: Callable[[Any], Any]  # field value -> wire value
+    take: Callable[[Any], Any]  # wire value -> field value; a malformed one raises BadField
+
+
+def _real_codec(name: str) -> _Codec:
+    # float(): an int in a float field still goes on the air as a float32
+    return _Codec(float, lambda v: _wire_real(name, v))
+
+
+def _enum_codec(enum: type[IntEnum], what: str) -> _Codec:
+    def take(v: Any) -> IntEnum:
+        # isinstance first: 1.0 would find Op.LE in the value map
+        if not isinstance(v, int) or v not in enum._value2member_map_:
+            raise BadField(f"{what} {v!r}")
+        return enum(v)
+
+    return _Codec(int, take)
+
+
+def _array_codec(item: _Codec, what: str) -> _Codec:
+    def take(w: Any) -> tuple[Any, ...]:
+        if not isinstance(w, list):
+            raise BadField(f"{what} is not an array")
+        return tuple(item.take(v) for v in w)
+
+    return _Codec(lambda vs: [item.put(v) for v in vs], take)
+
+
+class _Fields:
+    """A value whose wire form is the array of its dataclass fields in declaration
+    order, each as is or through its class's ``WIRE`` codec. :func:`_bind` fills
+    the per-class tables once the dataclass exists."""
+
+    __slots__ = ()
+    WIRE: ClassVar[dict[str, _Codec]] = {}
+    _get: ClassVar[Callable[[Any], tuple[Any, ...]]]
+    _puts: ClassVar[tuple[tuple[int, Callable[[Any], Any]], ...]]
+    _takes: ClassVar[tuple[tuple[int, Callable[[Any], Any]], ...]]
+    _arity: ClassVar[int]
+
+    def to_wire(self) -> list[Any]:
+        vals = list(type(self)._get(self))
+        for i, put in self._puts:
+            vals[i] = put(vals[i])
+        return vals
+
+    @classmethod
+    def from_wire(cls, w: Any) -> Self:
+        _arity(w, cls._arity, cls.__name__)
+        if cls._takes:
+            w = list(w)  # the caller's array stays as it was
+            for i, take in cls._takes:
+                w[i] = take(w[i])
+        return cls(*w)
+
+
+def _bind(cls: type[_Fields]) -> None:
+    names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
+    assert len(names) >= 2 and set(cls.WIRE) <= set(names), cls  # attrgetter gives a tuple
+    cls._get = attrgetter(*names)
+    cls._puts = tuple((i, cls.WIRE[n].put) for i, n in enumerate(names) if n in cls.WIRE)
+    cls._takes = tuple((i, cls.WIRE[n].take) for i, n in enumerate(names) if n in cls.WIRE)
+    cls._arity = len(names)
+
+
 # --------------------------------------------------------------------------- enums
 
 
@@ -178,12 +256,17 @@ class GroupStatus(IntEnum):
 
 
 @dataclass(frozen=True, slots=True)
-class Condition:
+class Condition(_Fields):
     """``attribute op value``; attribute ids per ``attributes.py``."""
 
     attr: int
     op: Op
     value: float
+
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "op": _enum_codec(Op, "condition operator"),
+        "value": _real_codec("value"),
+    }
 
     def __post_init__(self) -> None:
         _int("attr", self.attr, 0, MAX_ATTRIBUTE_ID)
@@ -191,23 +274,18 @@ class Condition:
             object.__setattr__(self, "op", Op(self.op))
         _real("value", self.value)
 
-    def to_wire(self) -> list[Any]:
-        return [self.attr, int(self.op), float(self.value)]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> Condition:
-        a, o, v = _arity(w, 3, "condition")
-        if not isinstance(o, int) or o not in Op._value2member_map_:
-            raise BadField(f"condition operator {o!r}")
-        return cls(a, Op(o), _wire_real("value", v))
-
 
 @dataclass(frozen=True, slots=True)
-class GroupTypeDef:
+class GroupTypeDef(_Fields):
     """Conjunction of conditions; ``hysteresis`` relaxes thresholds for members."""
 
     conditions: tuple[Condition, ...]
     hysteresis: float = 0.0
+
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "conditions": _array_codec(_Codec(Condition.to_wire, Condition.from_wire), "conditions"),
+        "hysteresis": _real_codec("hysteresis"),
+    }
 
     def __post_init__(self) -> None:
         if not 1 <= len(self.conditions) <= MAX_CONDITIONS:
@@ -216,19 +294,9 @@ class GroupTypeDef:
         if self.hysteresis < 0:
             raise ValueError("hysteresis must be >= 0")
 
-    def to_wire(self) -> list[Any]:
-        return [[c.to_wire() for c in self.conditions], float(self.hysteresis)]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> GroupTypeDef:
-        conds, hyst = _arity(w, 2, "group type")
-        if not isinstance(conds, list):
-            raise BadField("conditions is not an array")
-        return cls(tuple(Condition.from_wire(c) for c in conds), _wire_real("hysteresis", hyst))
-
 
 @dataclass(frozen=True, slots=True)
-class ChannelDef:
+class ChannelDef(_Fields):
     """Which attribute, from which groups, how often, aggregated how."""
 
     attr: int
@@ -244,19 +312,17 @@ class ChannelDef:
         _int("period_ms", self.period_ms, 1, 0xFFFFFFFF)
         _u8("agg", self.agg)
 
-    def to_wire(self) -> list[Any]:
-        return [self.attr, self.group_type, self.group_id, self.period_ms, self.agg]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> ChannelDef:
-        return cls(*_arity(w, 5, "channel"))
-
 
 ArgValue: TypeAlias = int | float | str | bool
 
 
+def _take_arg(w: Any) -> tuple[Any, Any]:
+    k, v = _arity(w, 2, "command arg")
+    return k, _wire_real("command arg", v)
+
+
 @dataclass(frozen=True, slots=True)
-class CommandDef:
+class CommandDef(_Fields):
     """A command for the node kind's handler on each targeted mote."""
 
     name: str
@@ -264,6 +330,11 @@ class CommandDef:
     target_a: int = 0  # node id, or group type
     target_b: int = 0  # group id (TargetKind.GROUP)
     args: tuple[tuple[str, ArgValue], ...] = ()
+
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "target_kind": _enum_codec(TargetKind, "command target kind"),
+        "args": _array_codec(_Codec(list, _take_arg), "command args"),
+    }
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not 1 <= len(self.name) <= MAX_COMMAND_NAME:
@@ -277,28 +348,6 @@ class CommandDef:
         for k, v in self.args:
             if not isinstance(k, str) or not isinstance(v, int | float | str | bool):
                 raise ValueError(f"command argument {k!r}={v!r} is not a scalar")
-
-    def to_wire(self) -> list[Any]:
-        return [
-            self.name,
-            int(self.target_kind),
-            self.target_a,
-            self.target_b,
-            [[k, v] for k, v in self.args],
-        ]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> CommandDef:
-        name, tk, a, b, args = _arity(w, 5, "command")
-        if not isinstance(tk, int) or tk not in TargetKind._value2member_map_:
-            raise BadField(f"command target kind {tk!r}")
-        if not isinstance(args, list):
-            raise BadField("command args is not an array")
-        pairs = tuple(
-            (p[0], _wire_real("command arg", p[1]))
-            for p in (_arity(x, 2, "command arg") for x in args)
-        )
-        return cls(name, TargetKind(tk), a, b, pairs)
 
 
 ItemBody: TypeAlias = GroupTypeDef | ChannelDef | CommandDef
@@ -315,7 +364,7 @@ _BODY_TYPE: dict[ItemKind, type] = {
 
 
 @dataclass(frozen=True, slots=True)
-class DataRecord:
+class DataRecord(_Fields):
     """One aggregated result of one channel, group and epoch, for the gateway."""
 
     channel: int
@@ -327,7 +376,8 @@ class DataRecord:
     count: int
     leader: int
 
-    TAG: ClassVar[int] = 0
+    TAG: ClassVar[int] = 0  # its payload tag in a CtpData frame
+    WIRE: ClassVar[dict[str, _Codec]] = {"value": _real_codec("value")}
 
     def __post_init__(self) -> None:
         _u8("channel", self.channel)
@@ -339,22 +389,9 @@ class DataRecord:
         _u32("count", self.count)
         _node("leader", self.leader)
 
-    def to_wire(self) -> list[Any]:
-        return [
-            self.TAG,
-            self.channel,
-            self.group_type,
-            self.group_id,
-            self.epoch,
-            self.agg,
-            float(self.value),
-            self.count,
-            self.leader,
-        ]
-
 
 @dataclass(frozen=True, slots=True)
-class GroupReport:
+class GroupReport(_Fields):
     """A leader's report of its group's state (heartbeat, or gone / merged)."""
 
     group_type: int
@@ -368,6 +405,7 @@ class GroupReport:
     successor: int = 0
 
     TAG: ClassVar[int] = 1
+    WIRE: ClassVar[dict[str, _Codec]] = {"status": _enum_codec(GroupStatus, "group status")}
 
     def __post_init__(self) -> None:
         _u8("group_type", self.group_type)
@@ -379,18 +417,6 @@ class GroupReport:
             object.__setattr__(self, "status", GroupStatus(self.status))
         _u16("successor", self.successor)
 
-    def to_wire(self) -> list[Any]:
-        return [
-            self.TAG,
-            self.group_type,
-            self.group_id,
-            self.leader,
-            self.weight,
-            self.readings,
-            int(self.status),
-            self.successor,
-        ]
-
 
 Payload: TypeAlias = DataRecord | GroupReport
 
@@ -400,21 +426,21 @@ def _payload_from_wire(w: Any) -> Payload:
         raise BadField("collection payload is not a tagged array")
     tag, *rest = w
     if tag == DataRecord.TAG:
-        ch, gt, gid, epoch, agg, value, count, leader = _arity(rest, 8, "data record")
-        return DataRecord(ch, gt, gid, epoch, agg, _wire_real("value", value), count, leader)
+        return DataRecord.from_wire(rest)
     if tag == GroupReport.TAG:
-        g = _arity(rest, 7, "group report")
-        if not isinstance(g[5], int) or g[5] not in GroupStatus._value2member_map_:
-            raise BadField(f"group status {g[5]!r}")
-        return GroupReport(g[0], g[1], g[2], g[3], g[4], GroupStatus(g[5]), g[6])
+        return GroupReport.from_wire(rest)
     raise BadField(f"unknown collection payload tag {tag!r}")
+
+
+_PAYLOAD = _Codec(lambda p: [p.TAG, *p.to_wire()], _payload_from_wire)
+_ITEM_KIND = _enum_codec(ItemKind, "item kind")
 
 
 # --------------------------------------------------------------------------- frames
 
 
 @dataclass(frozen=True, slots=True)
-class Frame:
+class Frame(_Fields):
     """Link header shared by every frame. Subclasses add body fields."""
 
     TYPE: ClassVar[int] = -1
@@ -424,13 +450,6 @@ class Frame:
     def __post_init__(self) -> None:
         _node("src", self.src)
         _addr("dst", self.dst)
-
-    def body(self) -> list[Any]:
-        raise NotImplementedError
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Frame:
-        raise NotImplementedError
 
 
 @dataclass(frozen=True, slots=True)
@@ -444,13 +463,6 @@ class Hello(Frame):
         Frame.__post_init__(self)
         _u16("seq", self.seq)
 
-    def body(self) -> list[Any]:
-        return [self.seq]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Hello:
-        return cls(src, dst, *_arity(body, 1, "hello"))
-
 
 @dataclass(frozen=True, slots=True)
 class DripItem(Frame):
@@ -462,6 +474,12 @@ class DripItem(Frame):
     version: int = 0
     item: ItemBody | None = None
 
+    # the item's decoding depends on the kind: from_wire below
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "kind": _ITEM_KIND,
+        "item": _Codec(lambda b: None if b is None else b.to_wire(), lambda w: w),
+    }
+
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
         if not isinstance(self.kind, ItemKind):
@@ -471,20 +489,10 @@ class DripItem(Frame):
         if self.item is not None and not isinstance(self.item, _BODY_TYPE[self.kind]):
             raise ValueError(f"{self.kind.name} item carries a {type(self.item).__name__}")
 
-    def body(self) -> list[Any]:
-        return [
-            int(self.kind),
-            self.item_id,
-            self.version,
-            None if self.item is None else self.item.to_wire(),
-        ]
-
     @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripItem:
-        kind, item_id, version, item = _arity(body, 4, "drip item")
-        if not isinstance(kind, int) or kind not in ItemKind._value2member_map_:
-            raise BadField(f"item kind {kind!r}")
-        k = ItemKind(kind)
+    def from_wire(cls, w: Any) -> Self:
+        src, dst, kind, item_id, version, item = _arity(w, 6, "DripItem")
+        k = _ITEM_KIND.take(kind)
         return cls(src, dst, k, item_id, version, None if item is None else _BODY_OF[k](item))
 
 
@@ -507,6 +515,8 @@ class DripSig(Frame):
     part: int = 0
     chunk: bytes = b""
 
+    WIRE: ClassVar[dict[str, _Codec]] = {"kind": _ITEM_KIND}
+
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
         if not isinstance(self.kind, ItemKind):
@@ -516,16 +526,6 @@ class DripSig(Frame):
         _int("part", self.part, 0, SIG_PARTS - 1)
         if not isinstance(self.chunk, bytes) or len(self.chunk) != SIG_PART_BYTES:
             raise ValueError(f"a signature part is {SIG_PART_BYTES} bytes")
-
-    def body(self) -> list[Any]:
-        return [int(self.kind), self.item_id, self.version, self.part, self.chunk]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripSig:
-        kind, item_id, version, part, chunk = _arity(body, 5, "drip signature")
-        if not isinstance(kind, int) or kind not in ItemKind._value2member_map_:
-            raise BadField(f"item kind {kind!r}")
-        return cls(src, dst, ItemKind(kind), item_id, version, part, chunk)
 
 
 @dataclass(frozen=True, slots=True)
@@ -540,13 +540,6 @@ class DripSummary(Frame):
         Frame.__post_init__(self)
         _u32("digest", self.digest)
         _u16("n_items", self.n_items)
-
-    def body(self) -> list[Any]:
-        return [self.digest, self.n_items]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripSummary:
-        return cls(src, dst, *_arity(body, 2, "drip summary"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -565,13 +558,6 @@ class CtpBeacon(Frame):
         if not isinstance(self.pull, bool):
             raise ValueError("pull must be a bool")
 
-    def body(self) -> list[Any]:
-        return [self.cost, self.parent, self.pull]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> CtpBeacon:
-        return cls(src, dst, *_arity(body, 3, "ctp beacon"))
-
 
 @dataclass(frozen=True, slots=True)
 class CtpData(Frame):
@@ -584,6 +570,8 @@ class CtpData(Frame):
     cost: int = NO_ROUTE  # the forwarder's cost, for loop detection
     payload: Payload | None = None
 
+    WIRE: ClassVar[dict[str, _Codec]] = {"payload": _PAYLOAD}
+
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
         _node("origin", self.origin)
@@ -592,15 +580,6 @@ class CtpData(Frame):
         _u16("cost", self.cost)
         if not isinstance(self.payload, DataRecord | GroupReport):
             raise ValueError("CtpData needs a DataRecord or GroupReport payload")
-
-    def body(self) -> list[Any]:
-        assert self.payload is not None
-        return [self.origin, self.seqno, self.thl, self.cost, self.payload.to_wire()]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> CtpData:
-        origin, seqno, thl, cost, payload = _arity(body, 5, "ctp data")
-        return cls(src, dst, origin, seqno, thl, cost, _payload_from_wire(payload))
 
 
 @dataclass(frozen=True, slots=True)
@@ -629,14 +608,6 @@ class LeaderBeacon(Frame):
         if not isinstance(self.tentative, bool):
             raise ValueError("tentative must be a bool")
 
-    def body(self) -> list[Any]:
-        return [self.group_type, self.group_id, self.leader, self.weight, self.seq, self.hops,
-                self.tentative]  # fmt: skip
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> LeaderBeacon:
-        return cls(src, dst, *_arity(body, 7, "leader beacon"))
-
 
 @dataclass(frozen=True, slots=True)
 class Handover(Frame):
@@ -655,13 +626,6 @@ class Handover(Frame):
         _u32("weight", self.weight)
         _u16("seq", self.seq)
 
-    def body(self) -> list[Any]:
-        return [self.group_type, self.group_id, self.weight, self.seq]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Handover:
-        return cls(src, dst, *_arity(body, 4, "handover"))
-
 
 @dataclass(frozen=True, slots=True)
 class Partial(Frame):
@@ -676,6 +640,10 @@ class Partial(Frame):
     count: int = 0
     state: tuple[float, ...] = field(default=())
 
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "state": _array_codec(_real_codec("state"), "partial state")
+    }
+
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
         _u8("channel", self.channel)
@@ -689,40 +657,6 @@ class Partial(Frame):
         for i, v in enumerate(self.state):
             _real(f"state[{i}]", v)
 
-    def body(self) -> list[Any]:
-        return [
-            self.channel,
-            self.group_type,
-            self.group_id,
-            self.epoch,
-            self.agg,
-            self.count,
-            [float(v) for v in self.state],
-        ]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Partial:
-        ch, gt, gid, epoch, agg, count, state = _arity(body, 7, "partial")
-        if not isinstance(state, list):
-            raise BadField("partial state is not an array")
-        return cls(
-            src,
-            dst,
-            ch,
-            gt,
-            gid,
-            epoch,
-            agg,
-            count,
-            tuple(_wire_real("state", v) for v in state),
-        )
-
-
-# The frame types whose fields are all ints and bools: msgpack gives them back
-# equal (a float field would come back rounded to float32).
-_LOSSLESS: frozenset[type[Frame]] = frozenset(
-    (Hello, DripSummary, CtpBeacon, LeaderBeacon, Handover)
-)
 
 FRAME_TYPES: dict[int, type[Frame]] = {
     t.TYPE: t
@@ -740,20 +674,21 @@ FRAME_TYPES: dict[int, type[Frame]] = {
 }
 
 
+# The frame types whose fields are all ints and bools (no codec): msgpack gives
+# them back equal (a float field would come back rounded to float32).
+_LOSSLESS: frozenset[type[Frame]] = frozenset(t for t in FRAME_TYPES.values() if not t.WIRE)
+
+for _cls in (Condition, GroupTypeDef, ChannelDef, CommandDef, DataRecord, GroupReport,
+             *FRAME_TYPES.values()):  # fmt: skip
+    _bind(_cls)
+
+
 # --------------------------------------------------------------------------- codec
-
-
-def _arity(w: Any, n: int, what: str) -> list[Any]:
-    if not isinstance(w, list) or len(w) != n:
-        raise BadField(f"{what}: expected an array of {n} fields, got {w!r:.60}")
-    return w
 
 
 def encode(frame: Frame, mtu: int | None = None) -> bytes:
     """Encode ``frame``; raise :class:`FrameTooLarge` if it exceeds ``mtu`` bytes."""
-    data: bytes = msgpack.packb(
-        [frame.TYPE, frame.src, frame.dst, *frame.body()], use_single_float=True
-    )
+    data: bytes = msgpack.packb([frame.TYPE, *frame.to_wire()], use_single_float=True)
     if mtu is not None and len(data) > mtu:
         raise FrameTooLarge(frame, len(data), mtu)
     return data
@@ -783,12 +718,12 @@ def _unpack(data: bytes) -> list[Any]:
 
 def decode(data: bytes) -> Frame:
     """Decode one frame. Any malformed input raises a :class:`FrameError`."""
-    t, src, dst, *body = _unpack(data)
-    cls = FRAME_TYPES.get(t)
+    obj = _unpack(data)
+    cls = FRAME_TYPES.get(obj[0])
     if cls is None:
-        raise UnknownFrameType(f"frame type {t}")
+        raise UnknownFrameType(f"frame type {obj[0]}")
     try:
-        return cls.from_body(src, dst, body)
+        return cls.from_wire(obj[1:])
     except FrameError:
         raise
     except (ValueError, TypeError, KeyError, IndexError, OverflowError) as e:
@@ -815,7 +750,7 @@ def note_sent(data: bytes, frame: Frame) -> None:
     """``data`` is ``encode(frame)``, about to go on the air (see :data:`_sent`)."""
     if type(frame) not in _LOSSLESS or type(frame.src) is not int or type(frame.dst) is not int:
         return
-    for v in frame.body():
+    for v in frame.to_wire():
         if type(v) is not int and type(v) is not bool:
             return  # e.g. an IntEnum: the decoded frame would hold a plain int
     if len(_sent) >= _SENT_MAX:
