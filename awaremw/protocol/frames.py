@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from enum import IntEnum
 from operator import attrgetter
-from typing import Any, ClassVar, NamedTuple, Self, TypeAlias
+from typing import Annotated, Any, ClassVar, NamedTuple, Self, TypeAlias, get_type_hints
 
 import msgpack
 
@@ -121,6 +121,23 @@ def _addr(name: str, v: object) -> None:
         _node(name, v)
 
 
+def _bool(name: str, v: object) -> None:
+    if not isinstance(v, bool):
+        raise ValueError(f"{name} must be a bool")
+
+
+# Field types that carry their check: every value's construction runs it.
+U8: TypeAlias = Annotated[int, _u8]
+U16: TypeAlias = Annotated[int, _u16]
+U32: TypeAlias = Annotated[int, _u32]
+NodeId: TypeAlias = Annotated[int, _node]
+Addr: TypeAlias = Annotated[int, _addr]  # a node id or BROADCAST
+GroupId: TypeAlias = Annotated[int, lambda name, v: _int(name, v, 1, 0xFFFE)]
+AttrId: TypeAlias = Annotated[int, lambda name, v: _int(name, v, 0, MAX_ATTRIBUTE_ID)]
+Real: TypeAlias = Annotated[float, _real]
+Bool: TypeAlias = Annotated[bool, _bool]
+
+
 # --------------------------------------------------------------------------- wire codec
 
 
@@ -162,16 +179,22 @@ def _array_codec(item: _Codec, what: str) -> _Codec:
 
 
 class _Fields:
-    """A value whose wire form is the array of its dataclass fields in declaration
-    order, each as is or through its class's ``WIRE`` codec. :func:`_bind` fills
-    the per-class tables once the dataclass exists."""
+    """A value whose fields are checked by their types (:data:`U8` ...) and whose
+    wire form is the array of its dataclass fields in declaration order, each as
+    is or through its class's ``WIRE`` codec. :func:`_bind` fills the per-class
+    tables once the dataclass exists."""
 
     __slots__ = ()
     WIRE: ClassVar[dict[str, _Codec]] = {}
+    _checks: ClassVar[tuple[tuple[str, Callable[[str, Any], None]], ...]]
     _get: ClassVar[Callable[[Any], tuple[Any, ...]]]
     _puts: ClassVar[tuple[tuple[int, Callable[[Any], Any]], ...]]
     _takes: ClassVar[tuple[tuple[int, Callable[[Any], Any]], ...]]
     _arity: ClassVar[int]
+
+    def __post_init__(self) -> None:
+        for name, check in self._checks:
+            check(name, getattr(self, name))
 
     def to_wire(self) -> list[Any]:
         vals = list(type(self)._get(self))
@@ -196,6 +219,8 @@ def _bind(cls: type[_Fields]) -> None:
     cls._puts = tuple((i, cls.WIRE[n].put) for i, n in enumerate(names) if n in cls.WIRE)
     cls._takes = tuple((i, cls.WIRE[n].take) for i, n in enumerate(names) if n in cls.WIRE)
     cls._arity = len(names)
+    hints = get_type_hints(cls, include_extras=True)
+    cls._checks = tuple((n, c) for n in names for c in getattr(hints[n], "__metadata__", ()))
 
 
 # --------------------------------------------------------------------------- enums
@@ -259,9 +284,9 @@ class GroupStatus(IntEnum):
 class Condition(_Fields):
     """``attribute op value``; attribute ids per ``attributes.py``."""
 
-    attr: int
+    attr: AttrId
     op: Op
-    value: float
+    value: Real
 
     WIRE: ClassVar[dict[str, _Codec]] = {
         "op": _enum_codec(Op, "condition operator"),
@@ -269,10 +294,9 @@ class Condition(_Fields):
     }
 
     def __post_init__(self) -> None:
-        _int("attr", self.attr, 0, MAX_ATTRIBUTE_ID)
+        _Fields.__post_init__(self)
         if not isinstance(self.op, Op):
             object.__setattr__(self, "op", Op(self.op))
-        _real("value", self.value)
 
 
 @dataclass(frozen=True, slots=True)
@@ -280,7 +304,7 @@ class GroupTypeDef(_Fields):
     """Conjunction of conditions; ``hysteresis`` relaxes thresholds for members."""
 
     conditions: tuple[Condition, ...]
-    hysteresis: float = 0.0
+    hysteresis: Real = 0.0
 
     WIRE: ClassVar[dict[str, _Codec]] = {
         "conditions": _array_codec(_Codec(Condition.to_wire, Condition.from_wire), "conditions"),
@@ -288,9 +312,9 @@ class GroupTypeDef(_Fields):
     }
 
     def __post_init__(self) -> None:
+        _Fields.__post_init__(self)
         if not 1 <= len(self.conditions) <= MAX_CONDITIONS:
             raise ValueError(f"a group type needs 1..{MAX_CONDITIONS} conditions")
-        _real("hysteresis", self.hysteresis)
         if self.hysteresis < 0:
             raise ValueError("hysteresis must be >= 0")
 
@@ -299,18 +323,15 @@ class GroupTypeDef(_Fields):
 class ChannelDef(_Fields):
     """Which attribute, from which groups, how often, aggregated how."""
 
-    attr: int
-    group_type: int  # ANY_GROUP_TYPE for any
-    group_id: int  # ANY_GROUP_ID for any
+    attr: AttrId
+    group_type: U8  # ANY_GROUP_TYPE for any
+    group_id: U16  # ANY_GROUP_ID for any
     period_ms: int
-    agg: int  # AggId or an extension id registered in aggregation.py
+    agg: U8  # AggId or an extension id registered in aggregation.py
 
     def __post_init__(self) -> None:
-        _int("attr", self.attr, 0, MAX_ATTRIBUTE_ID)
-        _u8("group_type", self.group_type)
-        _u16("group_id", self.group_id)
+        _Fields.__post_init__(self)
         _int("period_ms", self.period_ms, 1, 0xFFFFFFFF)
-        _u8("agg", self.agg)
 
 
 ArgValue: TypeAlias = int | float | str | bool
@@ -327,8 +348,8 @@ class CommandDef(_Fields):
 
     name: str
     target_kind: TargetKind = TargetKind.ALL
-    target_a: int = 0  # node id, or group type
-    target_b: int = 0  # group id (TargetKind.GROUP)
+    target_a: U16 = 0  # node id, or group type
+    target_b: U16 = 0  # group id (TargetKind.GROUP)
     args: tuple[tuple[str, ArgValue], ...] = ()
 
     WIRE: ClassVar[dict[str, _Codec]] = {
@@ -337,12 +358,11 @@ class CommandDef(_Fields):
     }
 
     def __post_init__(self) -> None:
+        _Fields.__post_init__(self)
         if not isinstance(self.name, str) or not 1 <= len(self.name) <= MAX_COMMAND_NAME:
             raise ValueError(f"command name must be 1..{MAX_COMMAND_NAME} characters")
         if not isinstance(self.target_kind, TargetKind):
             object.__setattr__(self, "target_kind", TargetKind(self.target_kind))
-        _u16("target_a", self.target_a)
-        _u16("target_b", self.target_b)
         if len(self.args) > MAX_COMMAND_ARGS:
             raise ValueError(f"at most {MAX_COMMAND_ARGS} command arguments")
         for k, v in self.args:
@@ -367,55 +387,40 @@ _BODY_TYPE: dict[ItemKind, type] = {
 class DataRecord(_Fields):
     """One aggregated result of one channel, group and epoch, for the gateway."""
 
-    channel: int
-    group_type: int
-    group_id: int
-    epoch: int
-    agg: int
-    value: float
-    count: int
-    leader: int
+    channel: U8
+    group_type: U8
+    group_id: U16
+    epoch: U32
+    agg: U8
+    value: Real
+    count: U32
+    leader: NodeId
 
     TAG: ClassVar[int] = 0  # its payload tag in a CtpData frame
     WIRE: ClassVar[dict[str, _Codec]] = {"value": _real_codec("value")}
-
-    def __post_init__(self) -> None:
-        _u8("channel", self.channel)
-        _u8("group_type", self.group_type)
-        _u16("group_id", self.group_id)
-        _u32("epoch", self.epoch)
-        _u8("agg", self.agg)
-        _real("value", self.value)
-        _u32("count", self.count)
-        _node("leader", self.leader)
 
 
 @dataclass(frozen=True, slots=True)
 class GroupReport(_Fields):
     """A leader's report of its group's state (heartbeat, or gone / merged)."""
 
-    group_type: int
-    group_id: int
-    leader: int
-    weight: int
-    readings: int  # readings aggregated in the leader's last epoch, 0 when unknown
+    group_type: U8
+    group_id: U16
+    leader: NodeId
+    weight: U32
+    readings: U16  # readings aggregated in the leader's last epoch, 0 when unknown
     status: GroupStatus = GroupStatus.ALIVE
     # GONE: the group id it merged into (0: dissolved); ALIVE: the id of the group
     # it split from (a group created when its members lost that group's leader), or 0
-    successor: int = 0
+    successor: U16 = 0
 
     TAG: ClassVar[int] = 1
     WIRE: ClassVar[dict[str, _Codec]] = {"status": _enum_codec(GroupStatus, "group status")}
 
     def __post_init__(self) -> None:
-        _u8("group_type", self.group_type)
-        _u16("group_id", self.group_id)
-        _node("leader", self.leader)
-        _u32("weight", self.weight)
-        _u16("readings", self.readings)
+        _Fields.__post_init__(self)
         if not isinstance(self.status, GroupStatus):
             object.__setattr__(self, "status", GroupStatus(self.status))
-        _u16("successor", self.successor)
 
 
 Payload: TypeAlias = DataRecord | GroupReport
@@ -444,12 +449,8 @@ class Frame(_Fields):
     """Link header shared by every frame. Subclasses add body fields."""
 
     TYPE: ClassVar[int] = -1
-    src: int
-    dst: int
-
-    def __post_init__(self) -> None:
-        _node("src", self.src)
-        _addr("dst", self.dst)
+    src: NodeId
+    dst: Addr
 
 
 @dataclass(frozen=True, slots=True)
@@ -457,11 +458,7 @@ class Hello(Frame):
     """Neighbour-discovery beacon; also the beacon a robot's mote emits."""
 
     TYPE: ClassVar[int] = 1
-    seq: int = 0
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u16("seq", self.seq)
+    seq: U16 = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -470,8 +467,8 @@ class DripItem(Frame):
 
     TYPE: ClassVar[int] = 2
     kind: ItemKind = ItemKind.GROUP_TYPE
-    item_id: int = 0
-    version: int = 0
+    item_id: U16 = 0
+    version: U32 = 0
     item: ItemBody | None = None
 
     # the item's decoding depends on the kind: from_wire below
@@ -484,8 +481,6 @@ class DripItem(Frame):
         Frame.__post_init__(self)
         if not isinstance(self.kind, ItemKind):
             object.__setattr__(self, "kind", ItemKind(self.kind))
-        _u16("item_id", self.item_id)
-        _u32("version", self.version)
         if self.item is not None and not isinstance(self.item, _BODY_TYPE[self.kind]):
             raise ValueError(f"{self.kind.name} item carries a {type(self.item).__name__}")
 
@@ -510,8 +505,8 @@ class DripSig(Frame):
 
     TYPE: ClassVar[int] = 16
     kind: ItemKind = ItemKind.GROUP_TYPE
-    item_id: int = 0
-    version: int = 0
+    item_id: U16 = 0
+    version: U32 = 0
     part: int = 0
     chunk: bytes = b""
 
@@ -521,8 +516,6 @@ class DripSig(Frame):
         Frame.__post_init__(self)
         if not isinstance(self.kind, ItemKind):
             object.__setattr__(self, "kind", ItemKind(self.kind))
-        _u16("item_id", self.item_id)
-        _u32("version", self.version)
         _int("part", self.part, 0, SIG_PARTS - 1)
         if not isinstance(self.chunk, bytes) or len(self.chunk) != SIG_PART_BYTES:
             raise ValueError(f"a signature part is {SIG_PART_BYTES} bytes")
@@ -533,13 +526,8 @@ class DripSummary(Frame):
     """Digest of everything a mote holds; a mismatch makes neighbours speak up."""
 
     TYPE: ClassVar[int] = 3
-    digest: int = 0
-    n_items: int = 0
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u32("digest", self.digest)
-        _u16("n_items", self.n_items)
+    digest: U32 = 0
+    n_items: U16 = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -547,16 +535,9 @@ class CtpBeacon(Frame):
     """Collection-tree routing beacon: the sender's path cost to a root."""
 
     TYPE: ClassVar[int] = 4
-    cost: int = NO_ROUTE  # path ETX x 10; 0 at a root
-    parent: int = BROADCAST
-    pull: bool = False  # "I have no route": neighbours answer soon
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u16("cost", self.cost)
-        _addr("parent", self.parent)
-        if not isinstance(self.pull, bool):
-            raise ValueError("pull must be a bool")
+    cost: U16 = NO_ROUTE  # path ETX x 10; 0 at a root
+    parent: Addr = BROADCAST
+    pull: Bool = False  # "I have no route": neighbours answer soon
 
 
 @dataclass(frozen=True, slots=True)
@@ -564,20 +545,16 @@ class CtpData(Frame):
     """A payload travelling up the collection tree, hop by hop (unicast)."""
 
     TYPE: ClassVar[int] = 5
-    origin: int = 0
-    seqno: int = 0
-    thl: int = 0  # time has lived: hops so far
-    cost: int = NO_ROUTE  # the forwarder's cost, for loop detection
+    origin: NodeId = 0
+    seqno: U16 = 0
+    thl: U8 = 0  # time has lived: hops so far
+    cost: U16 = NO_ROUTE  # the forwarder's cost, for loop detection
     payload: Payload | None = None
 
     WIRE: ClassVar[dict[str, _Codec]] = {"payload": _PAYLOAD}
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
-        _node("origin", self.origin)
-        _u16("seqno", self.seqno)
-        _u8("thl", self.thl)
-        _u16("cost", self.cost)
         if not isinstance(self.payload, DataRecord | GroupReport):
             raise ValueError("CtpData needs a DataRecord or GroupReport payload")
 
@@ -587,26 +564,15 @@ class LeaderBeacon(Frame):
     """A group leader's beacon, flooded by members (hops counts the flood)."""
 
     TYPE: ClassVar[int] = 6
-    group_type: int = 0
-    group_id: int = 1
-    leader: int = 0
-    weight: int = 0
-    seq: int = 0
-    hops: int = 0
+    group_type: U8 = 0
+    group_id: GroupId = 1
+    leader: NodeId = 0
+    weight: U32 = 0
+    seq: U16 = 0
+    hops: U8 = 0
     # A would-be group's announcement (docs/protocol-groups.md, "Tentative ids"):
     # nobody joins it or forwards it; an established group answers it.
-    tentative: bool = False
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u8("group_type", self.group_type)
-        _int("group_id", self.group_id, 1, 0xFFFE)
-        _node("leader", self.leader)
-        _u32("weight", self.weight)
-        _u16("seq", self.seq)
-        _u8("hops", self.hops)
-        if not isinstance(self.tentative, bool):
-            raise ValueError("tentative must be a bool")
+    tentative: Bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -614,17 +580,10 @@ class Handover(Frame):
     """A leaving leader hands its group (id, weight, beacon seq) to a member."""
 
     TYPE: ClassVar[int] = 7
-    group_type: int = 0
-    group_id: int = 1
-    weight: int = 0
-    seq: int = 0
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u8("group_type", self.group_type)
-        _int("group_id", self.group_id, 1, 0xFFFE)
-        _u32("weight", self.weight)
-        _u16("seq", self.seq)
+    group_type: U8 = 0
+    group_id: GroupId = 1
+    weight: U32 = 0
+    seq: U16 = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -632,12 +591,12 @@ class Partial(Frame):
     """A partial aggregate of one channel epoch, sent up the group tree."""
 
     TYPE: ClassVar[int] = 8
-    channel: int = 0
-    group_type: int = 0
-    group_id: int = 1
-    epoch: int = 0
-    agg: int = 0
-    count: int = 0
+    channel: U8 = 0
+    group_type: U8 = 0
+    group_id: GroupId = 1
+    epoch: U32 = 0
+    agg: U8 = 0
+    count: U32 = 0
     state: tuple[float, ...] = field(default=())
 
     WIRE: ClassVar[dict[str, _Codec]] = {
@@ -646,12 +605,6 @@ class Partial(Frame):
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
-        _u8("channel", self.channel)
-        _u8("group_type", self.group_type)
-        _int("group_id", self.group_id, 1, 0xFFFE)
-        _u32("epoch", self.epoch)
-        _u8("agg", self.agg)
-        _u32("count", self.count)
         if len(self.state) > 4:
             raise ValueError("an aggregate state has at most 4 numbers")
         for i, v in enumerate(self.state):
