@@ -280,11 +280,6 @@ def _settings(args: argparse.Namespace) -> MqttSettings:
 
 
 def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
-    ctx = None
-    if s.tls:
-        import ssl
-
-        ctx = ssl.create_default_context(cafile=s.ca_file)
     # A random id, never the empty one: amqtt gives every client that sends an
     # empty id the same session, subscriptions included.
     client_id = client_id or f"awaremw-cli-{secrets.token_hex(4)}"
@@ -296,7 +291,7 @@ def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
         password=s.password,
         identifier=client_id,
         protocol=aiomqtt.ProtocolVersion.V311,
-        tls_context=ctx,
+        tls_context=s.ssl_context(),
         timeout=10,
     )
 

@@ -14,7 +14,6 @@ import argparse
 import asyncio
 import re
 import secrets
-import ssl
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -51,7 +50,6 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     from awaremw.gateway.mqtt import MqttSettings
 
     s = MqttSettings.from_url(url)
-    ctx = ssl.create_default_context(cafile=s.ca_file) if s.tls else None
     client = aiomqtt.Client(
         s.host,
         s.port,
@@ -59,7 +57,7 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
         password=s.password,
         identifier=f"awaremw-probe-{secrets.token_hex(4)}",
         protocol=aiomqtt.ProtocolVersion.V311,
-        tls_context=ctx,
+        tls_context=s.ssl_context(),
         timeout=timeout,
     )
     try:
