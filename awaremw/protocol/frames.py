@@ -79,16 +79,8 @@ def _int(name: str, v: object, lo: int, hi: int) -> None:
         raise ValueError(f"{name}={v!r} is not an integer in [{lo}, {hi}]")
 
 
-def _u8(name: str, v: object) -> None:
-    _int(name, v, 0, 0xFF)
-
-
-def _u16(name: str, v: object) -> None:
-    _int(name, v, 0, 0xFFFF)
-
-
-def _u32(name: str, v: object) -> None:
-    _int(name, v, 0, 0xFFFFFFFF)
+def _range(lo: int, hi: int) -> Callable[[str, object], None]:
+    return lambda name, v: _int(name, v, lo, hi)
 
 
 def _real(name: str, v: object) -> None:
@@ -112,13 +104,9 @@ def _wire_real(name: str, v: Any) -> Any:
     return v
 
 
-def _node(name: str, v: object) -> None:
-    _int(name, v, 0, MAX_NODE_ID)
-
-
 def _addr(name: str, v: object) -> None:
     if v != BROADCAST:
-        _node(name, v)
+        _int(name, v, 0, MAX_NODE_ID)
 
 
 def _bool(name: str, v: object) -> None:
@@ -127,13 +115,13 @@ def _bool(name: str, v: object) -> None:
 
 
 # Field types that carry their check: every value's construction runs it.
-U8: TypeAlias = Annotated[int, _u8]
-U16: TypeAlias = Annotated[int, _u16]
-U32: TypeAlias = Annotated[int, _u32]
-NodeId: TypeAlias = Annotated[int, _node]
+U8: TypeAlias = Annotated[int, _range(0, 0xFF)]
+U16: TypeAlias = Annotated[int, _range(0, 0xFFFF)]
+U32: TypeAlias = Annotated[int, _range(0, 0xFFFFFFFF)]
+NodeId: TypeAlias = Annotated[int, _range(0, MAX_NODE_ID)]
 Addr: TypeAlias = Annotated[int, _addr]  # a node id or BROADCAST
-GroupId: TypeAlias = Annotated[int, lambda name, v: _int(name, v, 1, 0xFFFE)]
-AttrId: TypeAlias = Annotated[int, lambda name, v: _int(name, v, 0, MAX_ATTRIBUTE_ID)]
+GroupId: TypeAlias = Annotated[int, _range(1, 0xFFFE)]  # real group ids (no ANY_GROUP_ID)
+AttrId: TypeAlias = Annotated[int, _range(0, MAX_ATTRIBUTE_ID)]
 Real: TypeAlias = Annotated[float, _real]
 Bool: TypeAlias = Annotated[bool, _bool]
 
