@@ -25,6 +25,7 @@ from typing import Any
 
 import aiomqtt
 
+from awaremw.cli.friendly import refuse
 from awaremw.cli.helptext import add_verb, add_wall_timeout
 from awaremw.gateway import schema
 from awaremw.gateway.local_broker import LOOPBACK, find_local_broker, state_base
@@ -383,8 +384,7 @@ def _run(fn: Any, args: argparse.Namespace) -> int:
     try:
         return int(fn(args))
     except (UsageError, schema.SchemaError, BadMqttUrl) as e:
-        print(f"awaremw: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw", e)
     except aiomqtt.MqttError as e:
         url = args.mqtt or DEFAULT_URL
         hint = ""
