@@ -13,9 +13,9 @@ from awaremw.experiments import metrics as M
 from awaremw.experiments import write_metrics
 from awaremw.experiments.metrics import RunResult
 from awaremw.experiments.scenario import load_scenario, scenario_of
-from awaremw.experiments.truth import components, truth_from
+from awaremw.experiments.truth import GroundTruth, TruthNode, components
 from awaremw.experiments.virtual import VirtualRun
-from awaremw.protocol.attributes import attribute_id
+from awaremw.protocol.attributes import Application, attribute_id
 from awaremw.protocol.events import (
     Delivered,
     ElectionCause,
@@ -29,14 +29,21 @@ from awaremw.protocol.frames import Condition, DataRecord, GroupTypeDef, Op
 from awaremw.radio.model import CC2420, RadioModel
 from awaremw.runtime.deployment import DeploymentError, parse_deployment
 from awaremw.world.fields import Keyframe, Source, World
+from awaremw.world.mobility import Mobility, Static
 from awaremw.world.mobility import Path as MPath
-from awaremw.world.mobility import Static
 
 # ---------------------------------------------------------------- ground truth
 
 
 def hot(value: float) -> GroupTypeDef:
     return GroupTypeDef((Condition(attribute_id("temperature"), Op.GT, value),))
+
+
+def truth_from(
+    nodes: dict[int, tuple[Mobility, Application | None, float]], world: World, radio: RadioModel
+) -> GroundTruth:
+    """One radio model for every mote; ``nodes`` maps id -> (mobility, app, tx power)."""
+    return GroundTruth((TruthNode(i, m, a, txp, radio) for i, (m, a, txp) in nodes.items()), world)
 
 
 def test_truth_rssi_is_the_mean_of_the_radio_model_and_none_when_unheard() -> None:

@@ -11,9 +11,9 @@ import argparse
 import importlib
 import json
 import math
-import sys
 from typing import Any
 
+from awaremw.cli.friendly import refuse
 from awaremw.cli.helptext import add_verb, plain_summary
 
 
@@ -49,27 +49,22 @@ def run(args: argparse.Namespace) -> int:
         outer.print_help()
         return 0 if args.help else 2
     if args.name not in BENCHMARKS:
-        print(
-            f"awaremw bench: unknown benchmark {args.name!r}; known: {', '.join(BENCHMARKS)}",
-            file=sys.stderr,
+        return refuse(
+            "awaremw bench", f"unknown benchmark {args.name!r}; known: {', '.join(BENCHMARKS)}"
         )
-        return 2
     modname = BENCHMARKS[args.name]
     try:
         mod = importlib.import_module(modname)
     except ModuleNotFoundError as e:
         if e.name is not None and modname.startswith(e.name):
-            print(
-                f"awaremw bench: benchmark {args.name!r} is registered but its module "
-                f"{modname} is not available",
-                file=sys.stderr,
+            return refuse(
+                "awaremw bench",
+                f"benchmark {args.name!r} is registered but its module {modname} is not available",
             )
-            return 2
         raise
     for attr in ("add_arguments", "run"):
         if not callable(getattr(mod, attr, None)):
-            print(f"awaremw bench: {modname} has no {attr}()", file=sys.stderr)
-            return 2
+            return refuse("awaremw bench", f"{modname} has no {attr}()")
     inner = argparse.ArgumentParser(
         prog=f"awaremw bench {args.name}",
         description=plain_summary(mod.__doc__ or "") or None,
@@ -90,8 +85,7 @@ def run(args: argparse.Namespace) -> int:
         # space, a duration too short for its workload) with a ValueError: one line.
         if getattr(args, "verbose", False):
             raise
-        print(f"awaremw bench {args.name}: {e}", file=sys.stderr)
-        return 2
+        return refuse(f"awaremw bench {args.name}", e)
     if as_json:
         print(json.dumps(result, default=_jsonable))
     else:

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from types import FrameType
 
+from awaremw.cli.friendly import refuse
 from awaremw.cli.helptext import add_verb
 
 READY_TIMEOUT_S = 10.0
@@ -165,19 +166,13 @@ def wait_listening(proc: subprocess.Popen[bytes], host: str, port: int, timeout:
 def run(args: argparse.Namespace) -> int:
     binary = find_mosquitto()
     if binary is None:
-        print(
-            "awaremw broker: mosquitto not found (Debian: apt-get install mosquitto)",
-            file=sys.stderr,
-        )
-        return 2
+        return refuse("awaremw broker", "mosquitto not found (Debian: apt-get install mosquitto)")
     if not 0 < args.port < 65536:
-        print("awaremw broker: --port must be in 1..65535", file=sys.stderr)
-        return 2
+        return refuse("awaremw broker", "--port must be in 1..65535")
     try:
         cfg = find_config(args.config)
     except FileNotFoundError as e:
-        print(f"awaremw broker: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw broker", e)
     with contextlib.ExitStack() as stack:
         if args.workdir is None:
             workdir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="awaremw-mq-")))

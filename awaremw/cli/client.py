@@ -25,6 +25,7 @@ from typing import Any
 
 import aiomqtt
 
+from awaremw.cli.friendly import refuse
 from awaremw.cli.helptext import add_verb, add_wall_timeout
 from awaremw.gateway import schema
 from awaremw.gateway.local_broker import LOOPBACK, find_local_broker, state_base
@@ -280,11 +281,6 @@ def _settings(args: argparse.Namespace) -> MqttSettings:
 
 
 def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
-    ctx = None
-    if s.tls:
-        import ssl
-
-        ctx = ssl.create_default_context(cafile=s.ca_file)
     # A random id, never the empty one: amqtt gives every client that sends an
     # empty id the same session, subscriptions included.
     client_id = client_id or f"awaremw-cli-{secrets.token_hex(4)}"
@@ -296,7 +292,7 @@ def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
         password=s.password,
         identifier=client_id,
         protocol=aiomqtt.ProtocolVersion.V311,
-        tls_context=ctx,
+        tls_context=s.ssl_context(),
         timeout=10,
     )
 
@@ -388,8 +384,7 @@ def _run(fn: Any, args: argparse.Namespace) -> int:
     try:
         return int(fn(args))
     except (UsageError, schema.SchemaError, BadMqttUrl) as e:
-        print(f"awaremw: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw", e)
     except aiomqtt.MqttError as e:
         url = args.mqtt or DEFAULT_URL
         hint = ""

@@ -33,7 +33,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
 from awaremw.cli.helptext import add_verb
 
 
@@ -129,23 +129,17 @@ def main(args: argparse.Namespace) -> int:
     try:
         sc = load_scenario(args.deployment)
     except DeploymentError as e:
-        print(f"awaremw demo: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw demo", e)
     if not args.speed > 0 or (args.duration is not None and not args.duration > 0):
-        print("awaremw demo: --speed and --duration must be > 0", file=sys.stderr)
-        return 2
+        return refuse("awaremw demo", "--speed and --duration must be > 0")
     if args.mqtt is not None and (args.mqtt_port is not None or args.mqtt_anonymous):
-        print(
-            "awaremw demo: --mqtt-port and --mqtt-anonymous cannot go with --mqtt", file=sys.stderr
-        )
-        return 2
+        return refuse("awaremw demo", "--mqtt-port and --mqtt-anonymous cannot go with --mqtt")
     for url in (args.mqtt, args.robot_mqtt):
         if url is not None:
             try:
                 MqttSettings.from_url(url)
             except BadMqttUrl as e:
-                print(f"awaremw demo: {e}", file=sys.stderr)
-                return 2
+                return refuse("awaremw demo", e)
     if args.web is not None:
         from awaremw.view.guard import check_bind
         from awaremw.view.web import PASSWORD_ENV, parse_host_port
@@ -153,14 +147,11 @@ def main(args: argparse.Namespace) -> int:
         try:
             check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))
         except ValueError as e:
-            print(f"awaremw demo: {e}", file=sys.stderr)
-            return 2
+            return refuse("awaremw demo", e)
     if not sc.deployment.of_kind("gateway"):
-        print(f"awaremw demo: {sc.name} has no gateway mote", file=sys.stderr)
-        return 2
+        return refuse("awaremw demo", f"{sc.name} has no gateway mote")
     if args.insecure and args.secrets is not None:
-        print("awaremw demo: --insecure and --secrets do not combine", file=sys.stderr)
-        return 2
+        return refuse("awaremw demo", "--insecure and --secrets do not combine")
     if args.secrets is not None:
         from awaremw.security.material import check_secrets
 
@@ -194,8 +185,7 @@ def main(args: argparse.Namespace) -> int:
                 )
             )
         except (BrokerError, DashboardError) as e:
-            print(f"awaremw demo: {e}", file=sys.stderr)
-            return 2
+            return refuse("awaremw demo", e)
     print_summary(summary, plain=plain)
     path = summary_path(args.summary)
     try:

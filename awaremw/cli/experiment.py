@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
 from awaremw.cli.helptext import add_verb
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
 from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
@@ -110,21 +110,18 @@ def main(args: argparse.Namespace) -> int:
     try:
         sc = load_scenario(args.deployment or EXPERIMENTS[name][0])
     except DeploymentError as e:
-        print(f"awaremw experiment: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw experiment", e)
     medium = _medium(args)
     if medium:
         from awaremw.experiments.seeds import with_medium
 
         sc = scenario_of(with_medium(sc.deployment, medium))
     if args.speed <= 0:
-        print("awaremw experiment: --speed must be > 0", file=sys.stderr)
-        return 2
+        return refuse("awaremw experiment", "--speed must be > 0")
     if args.seeds is not None:
         if args.pcap is not None or args.secrets is not None:
             flag = "--pcap" if args.pcap is not None else "--secrets"
-            print(f"awaremw experiment: {flag} applies to one run, not --seeds", file=sys.stderr)
-            return 2
+            return refuse("awaremw experiment", f"{flag} applies to one run, not --seeds")
         return _main_seeds(args, name, out)
     keys = None
     if args.secrets is not None:
@@ -158,8 +155,7 @@ def main(args: argparse.Namespace) -> int:
                 print(f"wrote {capture.packets} packets to {args.pcap}", file=sys.stderr)
     else:
         if name not in REALTIME:
-            print(f"awaremw experiment: {name} runs only with --virtual", file=sys.stderr)
-            return 2
+            return refuse("awaremw experiment", f"{name} runs only with --virtual")
         from awaremw.experiments.realtime import run_realtime
 
         result = run_realtime(
@@ -194,16 +190,13 @@ def _main_seeds(args: argparse.Namespace, name: str, out: Path) -> int:
     from awaremw.experiments.seeds import SeedSpecError, parse_seeds, run_seeds
 
     if not args.virtual:
-        print("awaremw experiment: --seeds needs --virtual", file=sys.stderr)
-        return 2
+        return refuse("awaremw experiment", "--seeds needs --virtual")
     if args.jobs < 1:
-        print("awaremw experiment: --jobs must be >= 1", file=sys.stderr)
-        return 2
+        return refuse("awaremw experiment", "--jobs must be >= 1")
     try:
         seeds = parse_seeds(args.seeds)
     except SeedSpecError as e:
-        print(f"awaremw experiment: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw experiment", e)
 
     def progress(m: dict[str, Any]) -> None:
         print(

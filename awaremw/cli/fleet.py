@@ -25,7 +25,7 @@ import signal
 import sys
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets, zenoh_message
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, zenoh_message
 from awaremw.cli.helptext import add_verb
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
@@ -174,24 +174,19 @@ def run_fleet(args: argparse.Namespace) -> int:
     from awaremw.runtime.deployment import DeploymentError
 
     if args.processes < 1:
-        print("awaremw fleet: --processes must be >= 1", file=sys.stderr)
-        return 2
+        return refuse("awaremw fleet", "--processes must be >= 1")
     if not args.speed > 0:
-        print("awaremw fleet: --speed must be > 0", file=sys.stderr)
-        return 2
+        return refuse("awaremw fleet", "--speed must be > 0")
     try:
         dep = _load(args.deployment, args.hello)
     except DeploymentError as e:
-        print(f"awaremw fleet: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw fleet", e)
     try:
         args.part_filter = _part_filter(args.part, dep)
     except ValueError as e:
-        print(f"awaremw fleet: --part {args.part}: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw fleet", f"--part {args.part}: {e}")
     if args.zenoh_mode == "client" and (not args.connect or args.listen):
-        print("awaremw fleet: --zenoh-mode client needs --connect and no --listen", file=sys.stderr)
-        return 2
+        return refuse("awaremw fleet", "--zenoh-mode client needs --connect and no --listen")
     args.role_config = args.router_config = args.security = None
     if args.secrets is not None:
         from awaremw.security.material import load_radio_security
@@ -217,8 +212,7 @@ def run_fleet(args: argparse.Namespace) -> int:
     try:
         return asyncio.run(_run_fleet(args, dep))
     except _StartError as e:
-        print(f"awaremw fleet: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw fleet", e)
 
 
 class _StartError(Exception):
@@ -421,8 +415,7 @@ def run_ctl(args: argparse.Namespace) -> int:
         try:
             req: dict[str, Any] = {"op": "add", "node": _node_entry(args)}
         except ValueError as e:
-            print(f"awaremw fleet-ctl: {e}", file=sys.stderr)
-            return 2
+            return refuse("awaremw fleet-ctl", e)
     elif args.op == "kill":
         req = {"op": "kill", "id": args.id}
     else:

@@ -5,7 +5,8 @@ raised at (``... at /root/.cargo/git/checkouts/.../orchestrator.rs:388.``);
 :func:`zenoh_message` keeps the sentence and drops the location.
 :func:`mqtt_problem` tries a broker URL once before a long run relies on it.
 :func:`add_secrets_option` and :func:`load_secrets` are the one ``--secrets DIR``
-option of every verb: its help, its check and its error line.
+option of every verb: its help, its check and its error line. :func:`refuse` is
+how a verb turns down its command line: ``prog: why`` on stderr, exit status 2.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import argparse
 import asyncio
 import re
 import secrets
-import ssl
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -51,7 +51,6 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     from awaremw.gateway.mqtt import MqttSettings
 
     s = MqttSettings.from_url(url)
-    ctx = ssl.create_default_context(cafile=s.ca_file) if s.tls else None
     client = aiomqtt.Client(
         s.host,
         s.port,
@@ -59,7 +58,7 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
         password=s.password,
         identifier=f"awaremw-probe-{secrets.token_hex(4)}",
         protocol=aiomqtt.ProtocolVersion.V311,
-        tls_context=ctx,
+        tls_context=s.ssl_context(),
         timeout=timeout,
     )
     try:
@@ -70,6 +69,12 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     except aiomqtt.MqttError as e:
         reason = " ".join(str(e).split()) or type(e).__name__
         return f"cannot connect to the MQTT broker {mask_url(url)}: {reason}"
+
+
+def refuse(prog: str, why: object) -> int:
+    """Print ``prog: why`` on stderr; return 2, the exit status of a refused command line."""
+    print(f"{prog}: {why}", file=sys.stderr)
+    return 2
 
 
 def add_secrets_option(p: argparse.ArgumentParser, help: str) -> None:
@@ -93,5 +98,5 @@ def load_secrets(prog: str, secrets: str | Path, load: Callable[[Path], T]) -> T
             )
         return load(root)
     except SecretsError as e:
-        print(f"{prog}: {e}", file=sys.stderr)
+        refuse(prog, e)
         return None

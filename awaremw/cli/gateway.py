@@ -38,7 +38,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
 from awaremw.cli.helptext import add_verb
 from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
@@ -193,16 +193,14 @@ def run(args: argparse.Namespace) -> int:
                 )
             mqtt = mqtt.with_password_file(args.mqtt_password_file)
     except (BadMqttUrl, BadPasswordFile) as e:
-        print(f"awaremw gateway: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw gateway", e)
     args.session_settings = args.security = args.signing_key = None
     if args.secrets is not None:
         from awaremw.security.material import load_gateway_keys
         from awaremw.security.zenoh_acl import role_settings
 
         if args.listen:
-            print("awaremw gateway: --listen and --secrets do not combine", file=sys.stderr)
-            return 2
+            return refuse("awaremw gateway", "--listen and --secrets do not combine")
         # Only the gateway holds the signing key: its motes sign what they inject.
         loaded = load_secrets(
             "awaremw gateway",
@@ -214,27 +212,20 @@ def run(args: argparse.Namespace) -> int:
         args.session_settings, (args.security, args.signing_key) = loaded
     elif args.zenoh_mode == "client":  # everything through the router (e.g. across networks)
         if not args.connect or args.listen:
-            print(
-                "awaremw gateway: --zenoh-mode client needs --connect and no --listen",
-                file=sys.stderr,
-            )
-            return 2
+            return refuse("awaremw gateway", "--zenoh-mode client needs --connect and no --listen")
         from awaremw.runtime.zenoh_session import SessionSettings
 
         args.session_settings = SessionSettings("client", tuple(args.connect))
     if args.speed <= 0 or args.buffer < 1:
-        print("awaremw gateway: --speed must be > 0 and --buffer >= 1", file=sys.stderr)
-        return 2
+        return refuse("awaremw gateway", "--speed must be > 0 and --buffer >= 1")
     if args.mqtt is not None and (args.mqtt_port is not None or args.mqtt_anonymous):
-        print(
-            "awaremw gateway: --mqtt-port and --mqtt-anonymous are for the embedded broker; "
+        return refuse(
+            "awaremw gateway",
+            "--mqtt-port and --mqtt-anonymous are for the embedded broker; "
             "they cannot go with --mqtt",
-            file=sys.stderr,
         )
-        return 2
     if args.mqtt_port is not None and not 0 <= args.mqtt_port <= 65535:
-        print("awaremw gateway: --mqtt-port must be in 0..65535", file=sys.stderr)
-        return 2
+        return refuse("awaremw gateway", "--mqtt-port must be in 0..65535")
     try:
         return asyncio.run(_main(args, mqtt))
     except KeyboardInterrupt:
@@ -256,11 +247,9 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         dep = load(args.deployment, kind_names())
         validate(dep)  # node entries and the world: a clear error now, not a traceback later
     except (DeploymentError, OSError) as e:
-        print(f"awaremw gateway: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw gateway", e)
     if not any(s.kind == "gateway" for s in dep.nodes):
-        print(f"awaremw gateway: {dep.name} has no mote of kind 'gateway'", file=sys.stderr)
-        return 2
+        return refuse("awaremw gateway", f"{dep.name} has no mote of kind 'gateway'")
     if args.secrets is None:  # after the input checks: a refused run says one thing
         from awaremw.security.material import warn_open
 
@@ -276,8 +265,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         try:
             state = stack.enter_context(_open_state(dep, args.state_dir, args.fresh))
         except StateError as e:
-            print(f"awaremw gateway: {e}", file=sys.stderr)
-            return 2
+            return refuse("awaremw gateway", e)
         print(
             f"awaremw gateway: state of {dep.name} in {state.dir}"
             + (f" (--fresh: forgot {', '.join(state.forgotten)})" if state.forgotten else ""),
@@ -294,8 +282,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
                     )
                 )
             except (BrokerError, OSError) as e:
-                print(f"awaremw gateway: {e}", file=sys.stderr)
-                return 2
+                return refuse("awaremw gateway", e)
             print_broker(broker)
             mqtt = MqttSettings.from_url(
                 broker.url, client_id=args.client_id, buffer_size=args.buffer
@@ -330,8 +317,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         try:
             svc = attach_to_fleet(fleet, settings=settings, mqtt=mqtt, hbn=not args.no_hbn)
         except StoreError as e:
-            print(f"awaremw gateway: {e}", file=sys.stderr)
-            return 2
+            return refuse("awaremw gateway", e)
         leftovers = await _leftovers(replace(mqtt, prefix=args.prefix), set(dep.ids))
         await stack.enter_async_context(svc)
         _report_write_errors(svc, broker)

@@ -15,6 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from awaremw.cli.friendly import refuse
 from awaremw.cli.helptext import add_verb
 from awaremw.security.zenoh_acl import DEFAULT_PREFIX
 
@@ -91,8 +92,7 @@ def run_init(args: argparse.Namespace) -> int:
         print(f"awaremw keys init: {e}", file=sys.stderr)
         return 1
     except (OSError, ValueError) as e:
-        print(f"awaremw keys init: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw keys init", e)
     root = args.dir.resolve()
     if not written:
         print(f"awaremw keys init: {root} holds a complete set of secrets already; kept")

@@ -10,7 +10,7 @@ import threading
 from pathlib import Path
 from types import FrameType
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
 from awaremw.cli.helptext import add_verb
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
 
@@ -79,8 +79,7 @@ def run(args: argparse.Namespace) -> int:
     except Exception as e:  # bad endpoint, port in use: the user's input, not our bug
         from awaremw.cli.friendly import zenoh_message
 
-        print(f"awaremw router: cannot start: {zenoh_message(e)}", file=sys.stderr)
-        return 2
+        return refuse("awaremw router", f"cannot start: {zenoh_message(e)}")
     mode = "authenticated, access control by role" if config_file else "open to every client"
     print(f"awaremw router listening on {', '.join(listen)} ({mode})", flush=True)
     if config_file is None:

@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
 from awaremw.cli.helptext import add_verb, add_wall_timeout
 
 DISSECTOR = Path(__file__).resolve().parent.parent / "wireshark" / "awaremw.lua"
@@ -69,11 +69,9 @@ def main(args: argparse.Namespace) -> int:
         print(dissector_path())
         return 0
     if args.pcap is None or not args.connect:
-        print("awaremw sniff: --connect ENDPOINT and --pcap FILE are needed", file=sys.stderr)
-        return 2
+        return refuse("awaremw sniff", "--connect ENDPOINT and --pcap FILE are needed")
     if args.timeout is not None and args.timeout <= 0:
-        print("awaremw sniff: --timeout must be > 0", file=sys.stderr)
-        return 2
+        return refuse("awaremw sniff", "--timeout must be > 0")
     from awaremw.runtime.zenoh_session import SessionSettings
 
     security = None
@@ -109,8 +107,7 @@ async def _sniff(args: argparse.Namespace, settings: Any, security: Any) -> int:
     try:
         capture = Capture.to_file(args.pcap, receptions=False)
     except OSError as e:
-        print(f"awaremw sniff: cannot write {args.pcap}: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw sniff", f"cannot write {args.pcap}: {e}")
     session = await asyncio.to_thread(open_session, settings)
     sniffer = Sniffer(session, capture, prefix=args.prefix, security=security)
     try:

@@ -18,10 +18,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import sys
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
 from awaremw.cli.helptext import add_verb, add_wall_timeout
 
 
@@ -78,11 +77,9 @@ def main(args: argparse.Namespace) -> int:
         check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))
         MqttSettings.from_url(args.mqtt)
     except (DeploymentError, BadMqttUrl, ValueError) as e:
-        print(f"awaremw view: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw view", e)
     if not args.speed > 0:
-        print("awaremw view: --speed must be > 0", file=sys.stderr)
-        return 2
+        return refuse("awaremw view", "--speed must be > 0")
     config_file = None
     if args.secrets is not None:
         from awaremw.security.zenoh_acl import role_config_path
@@ -103,8 +100,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         asyncio.run(serve())
     except DashboardError as e:
-        print(f"awaremw view: {e}", file=sys.stderr)
-        return 2
+        return refuse("awaremw view", e)
     except KeyboardInterrupt:
         return 130
     return 0

@@ -13,7 +13,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import ssl
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -67,12 +66,6 @@ def parse_data(topic: str, payload: bytes, prefix: str = "aware") -> Received | 
         return None
 
 
-def _tls(s: MqttSettings) -> ssl.SSLContext | None:
-    if not s.tls:
-        return None
-    return ssl.create_default_context(cafile=s.ca_file)
-
-
 def definition_payloads(
     groups: Mapping[int, Mapping[str, Any]], channels: Mapping[int, Mapping[str, Any]]
 ) -> list[tuple[str, bytes]]:
@@ -123,7 +116,7 @@ class RobotClient:
             password=s.password,
             identifier=f"awaremw-robot-{id(self):x}",
             protocol=aiomqtt.ProtocolVersion.V311,
-            tls_context=_tls(s),
+            tls_context=s.ssl_context(),
             tls_insecure=s.tls_insecure if s.tls else None,
         ) as client:
             p = self.prefix

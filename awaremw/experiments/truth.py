@@ -23,7 +23,7 @@ Choices (docs/experiments.md explains them):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from awaremw.protocol import attributes as A
@@ -195,16 +195,3 @@ def components(nodes: Iterable[int], linked: Callable[[int, int], bool]) -> list
         out.append(frozenset(comp))
     out.sort(key=lambda c: (-len(c), min(c)))
     return out
-
-
-def truth_from(
-    nodes: Mapping[int, tuple[Mobility, Application | None, float]],
-    world: World,
-    radio: RadioModel,
-    link_prr: float = 0.5,
-) -> GroundTruth:
-    """Convenience: one radio model for every mote; ``nodes`` maps id -> (mobility,
-    app, tx power)."""
-    return GroundTruth(
-        (TruthNode(i, m, app, txp, radio) for i, (m, app, txp) in nodes.items()), world, link_prr
-    )

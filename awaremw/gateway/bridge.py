@@ -542,13 +542,6 @@ class GatewayBridge:
                 out.append(Publish(group_topic(*key), b"", retain=True))
         return out
 
-    def next_expiry(self) -> float | None:
-        """Emulated time at which :meth:`expire` may next clear a group."""
-        limit = self.policy.expiry_periods * self.report_period_s
-        times = [g.last_heard + limit for g in self.groups.values()]
-        times += [since + self.report_period_s for since in self.merged.values()]
-        return min(times, default=None)
-
     # ----------------------------------------------------------------- views
 
     def group_states(self) -> dict[str, bytes]:

@@ -21,7 +21,6 @@ import asyncio
 import contextlib
 import json
 import secrets
-import ssl
 from dataclasses import dataclass
 
 import aiomqtt
@@ -54,12 +53,6 @@ async def retained_groups(settings: MqttSettings, timeout_s: float = 5.0) -> dic
     """The retained group states on the broker (relative topic -> payload), at most
     :data:`MAX_LEFTOVERS`. Raises :class:`aiomqtt.MqttError` or TimeoutError."""
     s = settings
-    ctx = None
-    if s.tls:
-        ctx = ssl.create_default_context(cafile=s.ca_file)
-        if s.tls_insecure:
-            ctx.check_hostname = False
-            ctx.verify_mode = ssl.CERT_NONE
     nonce = secrets.token_hex(6)
     plen = len(s.prefix) + 1
     out: dict[str, bytes] = {}
@@ -74,7 +67,7 @@ async def retained_groups(settings: MqttSettings, timeout_s: float = 5.0) -> dic
             protocol=aiomqtt.ProtocolVersion.V311,
             clean_session=True,
             timeout=timeout_s,
-            tls_context=ctx,
+            tls_context=s.ssl_context(),
             tls_insecure=s.tls_insecure if s.tls else None,
             max_queued_incoming_messages=MAX_LEFTOVERS + 16,
         ) as client,

@@ -171,6 +171,16 @@ class MqttSettings:
             raise BadMqttUrl("a password in the MQTT URL and a password file do not combine")
         return replace(self, password=read_password_file(path))
 
+    def ssl_context(self) -> ssl.SSLContext | None:
+        """The TLS context of an ``mqtts://`` connection (None for ``mqtt://``)."""
+        if not self.tls:
+            return None
+        ctx = ssl.create_default_context(cafile=self.ca_file)
+        if self.tls_insecure:
+            ctx.check_hostname = False
+            ctx.verify_mode = ssl.CERT_NONE
+        return ctx
+
     @property
     def url(self) -> str:
         """The URL without the password (for logs)."""
@@ -330,7 +340,7 @@ class MqttBridge:
             will=will,
             keepalive=s.keepalive,
             timeout=s.timeout_s,
-            tls_context=self._tls_context(),
+            tls_context=self.settings.ssl_context(),
             tls_insecure=s.tls_insecure if s.tls else None,
             queue_type=_take_all(self._take),
             **kwargs,  # type: ignore[arg-type]
@@ -359,7 +369,7 @@ class MqttBridge:
                 reader, writer = await asyncio.open_connection(
                     s.host,
                     s.port,
-                    ssl=self._tls_context(),
+                    ssl=self.settings.ssl_context(),
                     server_hostname=s.host if s.tls else None,
                 )
                 try:
@@ -378,16 +388,6 @@ class MqttBridge:
             raise aiomqtt.MqttError(f"cannot reach the broker: {e}") from None
         log.info("broker %s does not speak MQTT 5; using MQTT 3.1.1", s.url)
         return aiomqtt.ProtocolVersion.V311
-
-    def _tls_context(self) -> ssl.SSLContext | None:
-        s = self.settings
-        if not s.tls:
-            return None
-        ctx = ssl.create_default_context(cafile=s.ca_file)
-        if s.tls_insecure:
-            ctx.check_hostname = False
-            ctx.verify_mode = ssl.CERT_NONE
-        return ctx
 
     def _on_connected(self, protocol: aiomqtt.ProtocolVersion) -> None:
         if self._protocol is None:

@@ -213,9 +213,5 @@ def get(agg_id: int) -> Aggregator | None:
     return _BY_ID.get(agg_id)
 
 
-def registered() -> dict[int, Aggregator]:
-    return dict(_BY_ID)
-
-
 for _a in (Avg(), Min(), Max(), Sum(), Count()):
     register(_a)

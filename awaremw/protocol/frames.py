@@ -17,9 +17,10 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
-from typing import Any, ClassVar, TypeAlias
+from operator import attrgetter
+from typing import Annotated, Any, ClassVar, NamedTuple, Self, TypeAlias, get_type_hints
 
 import msgpack
 
@@ -78,16 +79,8 @@ def _int(name: str, v: object, lo: int, hi: int) -> None:
         raise ValueError(f"{name}={v!r} is not an integer in [{lo}, {hi}]")
 
 
-def _u8(name: str, v: object) -> None:
-    _int(name, v, 0, 0xFF)
-
-
-def _u16(name: str, v: object) -> None:
-    _int(name, v, 0, 0xFFFF)
-
-
-def _u32(name: str, v: object) -> None:
-    _int(name, v, 0, 0xFFFFFFFF)
+def _range(lo: int, hi: int) -> Callable[[str, object], None]:
+    return lambda name, v: _int(name, v, lo, hi)
 
 
 def _real(name: str, v: object) -> None:
@@ -111,13 +104,111 @@ def _wire_real(name: str, v: Any) -> Any:
     return v
 
 
-def _node(name: str, v: object) -> None:
-    _int(name, v, 0, MAX_NODE_ID)
-
-
 def _addr(name: str, v: object) -> None:
     if v != BROADCAST:
-        _node(name, v)
+        _int(name, v, 0, MAX_NODE_ID)
+
+
+def _bool(name: str, v: object) -> None:
+    if not isinstance(v, bool):
+        raise ValueError(f"{name} must be a bool")
+
+
+# Field types that carry their check: every value's construction runs it.
+U8: TypeAlias = Annotated[int, _range(0, 0xFF)]
+U16: TypeAlias = Annotated[int, _range(0, 0xFFFF)]
+U32: TypeAlias = Annotated[int, _range(0, 0xFFFFFFFF)]
+NodeId: TypeAlias = Annotated[int, _range(0, MAX_NODE_ID)]
+Addr: TypeAlias = Annotated[int, _addr]  # a node id or BROADCAST
+GroupId: TypeAlias = Annotated[int, _range(1, 0xFFFE)]  # real group ids (no ANY_GROUP_ID)
+AttrId: TypeAlias = Annotated[int, _range(0, MAX_ATTRIBUTE_ID)]
+Real: TypeAlias = Annotated[float, _real]
+Bool: TypeAlias = Annotated[bool, _bool]
+
+
+# --------------------------------------------------------------------------- wire codec
+
+
+def _arity(w: Any, n: int, what: str) -> list[Any]:
+    if not isinstance(w, list) or len(w) != n:
+        raise BadField(f"{what}: expected an array of {n} fields, got {w!r:.60}")
+    return w
+
+
+class _Codec(NamedTuple):
+    """How a field that is not a plain int, bool, str or bytes goes on the wire."""
+
+    put: Callable[[Any], Any]  # field value -> wire value
+    take: Callable[[Any], Any]  # wire value -> field value; a malformed one raises BadField
+
+
+def _real_codec(name: str) -> _Codec:
+    # float(): an int in a float field still goes on the air as a float32
+    return _Codec(float, lambda v: _wire_real(name, v))
+
+
+def _enum_codec(enum: type[IntEnum], what: str) -> _Codec:
+    def take(v: Any) -> IntEnum:
+        # isinstance first: 1.0 would find Op.LE in the value map
+        if not isinstance(v, int) or v not in enum._value2member_map_:
+            raise BadField(f"{what} {v!r}")
+        return enum(v)
+
+    return _Codec(int, take)
+
+
+def _array_codec(item: _Codec, what: str) -> _Codec:
+    def take(w: Any) -> tuple[Any, ...]:
+        if not isinstance(w, list):
+            raise BadField(f"{what} is not an array")
+        return tuple(item.take(v) for v in w)
+
+    return _Codec(lambda vs: [item.put(v) for v in vs], take)
+
+
+class _Fields:
+    """A value whose fields are checked by their types (:data:`U8` ...) and whose
+    wire form is the array of its dataclass fields in declaration order, each as
+    is or through its class's ``WIRE`` codec. :func:`_bind` fills the per-class
+    tables once the dataclass exists."""
+
+    __slots__ = ()
+    WIRE: ClassVar[dict[str, _Codec]] = {}
+    _checks: ClassVar[tuple[tuple[str, Callable[[str, Any], None]], ...]]
+    _get: ClassVar[Callable[[Any], tuple[Any, ...]]]
+    _puts: ClassVar[tuple[tuple[int, Callable[[Any], Any]], ...]]
+    _takes: ClassVar[tuple[tuple[int, Callable[[Any], Any]], ...]]
+    _arity: ClassVar[int]
+
+    def __post_init__(self) -> None:
+        for name, check in self._checks:
+            check(name, getattr(self, name))
+
+    def to_wire(self) -> list[Any]:
+        vals = list(type(self)._get(self))
+        for i, put in self._puts:
+            vals[i] = put(vals[i])
+        return vals
+
+    @classmethod
+    def from_wire(cls, w: Any) -> Self:
+        _arity(w, cls._arity, cls.__name__)
+        if cls._takes:
+            w = list(w)  # the caller's array stays as it was
+            for i, take in cls._takes:
+                w[i] = take(w[i])
+        return cls(*w)
+
+
+def _bind(cls: type[_Fields]) -> None:
+    names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
+    assert len(names) >= 2 and set(cls.WIRE) <= set(names), cls  # attrgetter gives a tuple
+    cls._get = attrgetter(*names)
+    cls._puts = tuple((i, cls.WIRE[n].put) for i, n in enumerate(names) if n in cls.WIRE)
+    cls._takes = tuple((i, cls.WIRE[n].take) for i, n in enumerate(names) if n in cls.WIRE)
+    cls._arity = len(names)
+    hints = get_type_hints(cls, include_extras=True)
+    cls._checks = tuple((n, c) for n in names for c in getattr(hints[n], "__metadata__", ()))
 
 
 # --------------------------------------------------------------------------- enums
@@ -178,127 +269,93 @@ class GroupStatus(IntEnum):
 
 
 @dataclass(frozen=True, slots=True)
-class Condition:
+class Condition(_Fields):
     """``attribute op value``; attribute ids per ``attributes.py``."""
 
-    attr: int
+    attr: AttrId
     op: Op
-    value: float
+    value: Real
+
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "op": _enum_codec(Op, "condition operator"),
+        "value": _real_codec("value"),
+    }
 
     def __post_init__(self) -> None:
-        _int("attr", self.attr, 0, MAX_ATTRIBUTE_ID)
+        _Fields.__post_init__(self)
         if not isinstance(self.op, Op):
             object.__setattr__(self, "op", Op(self.op))
-        _real("value", self.value)
-
-    def to_wire(self) -> list[Any]:
-        return [self.attr, int(self.op), float(self.value)]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> Condition:
-        a, o, v = _arity(w, 3, "condition")
-        if not isinstance(o, int) or o not in Op._value2member_map_:
-            raise BadField(f"condition operator {o!r}")
-        return cls(a, Op(o), _wire_real("value", v))
 
 
 @dataclass(frozen=True, slots=True)
-class GroupTypeDef:
+class GroupTypeDef(_Fields):
     """Conjunction of conditions; ``hysteresis`` relaxes thresholds for members."""
 
     conditions: tuple[Condition, ...]
-    hysteresis: float = 0.0
+    hysteresis: Real = 0.0
+
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "conditions": _array_codec(_Codec(Condition.to_wire, Condition.from_wire), "conditions"),
+        "hysteresis": _real_codec("hysteresis"),
+    }
 
     def __post_init__(self) -> None:
+        _Fields.__post_init__(self)
         if not 1 <= len(self.conditions) <= MAX_CONDITIONS:
             raise ValueError(f"a group type needs 1..{MAX_CONDITIONS} conditions")
-        _real("hysteresis", self.hysteresis)
         if self.hysteresis < 0:
             raise ValueError("hysteresis must be >= 0")
 
-    def to_wire(self) -> list[Any]:
-        return [[c.to_wire() for c in self.conditions], float(self.hysteresis)]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> GroupTypeDef:
-        conds, hyst = _arity(w, 2, "group type")
-        if not isinstance(conds, list):
-            raise BadField("conditions is not an array")
-        return cls(tuple(Condition.from_wire(c) for c in conds), _wire_real("hysteresis", hyst))
-
 
 @dataclass(frozen=True, slots=True)
-class ChannelDef:
+class ChannelDef(_Fields):
     """Which attribute, from which groups, how often, aggregated how."""
 
-    attr: int
-    group_type: int  # ANY_GROUP_TYPE for any
-    group_id: int  # ANY_GROUP_ID for any
+    attr: AttrId
+    group_type: U8  # ANY_GROUP_TYPE for any
+    group_id: U16  # ANY_GROUP_ID for any
     period_ms: int
-    agg: int  # AggId or an extension id registered in aggregation.py
+    agg: U8  # AggId or an extension id registered in aggregation.py
 
     def __post_init__(self) -> None:
-        _int("attr", self.attr, 0, MAX_ATTRIBUTE_ID)
-        _u8("group_type", self.group_type)
-        _u16("group_id", self.group_id)
+        _Fields.__post_init__(self)
         _int("period_ms", self.period_ms, 1, 0xFFFFFFFF)
-        _u8("agg", self.agg)
-
-    def to_wire(self) -> list[Any]:
-        return [self.attr, self.group_type, self.group_id, self.period_ms, self.agg]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> ChannelDef:
-        return cls(*_arity(w, 5, "channel"))
 
 
 ArgValue: TypeAlias = int | float | str | bool
 
 
+def _take_arg(w: Any) -> tuple[Any, Any]:
+    k, v = _arity(w, 2, "command arg")
+    return k, _wire_real("command arg", v)
+
+
 @dataclass(frozen=True, slots=True)
-class CommandDef:
+class CommandDef(_Fields):
     """A command for the node kind's handler on each targeted mote."""
 
     name: str
     target_kind: TargetKind = TargetKind.ALL
-    target_a: int = 0  # node id, or group type
-    target_b: int = 0  # group id (TargetKind.GROUP)
+    target_a: U16 = 0  # node id, or group type
+    target_b: U16 = 0  # group id (TargetKind.GROUP)
     args: tuple[tuple[str, ArgValue], ...] = ()
 
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "target_kind": _enum_codec(TargetKind, "command target kind"),
+        "args": _array_codec(_Codec(list, _take_arg), "command args"),
+    }
+
     def __post_init__(self) -> None:
+        _Fields.__post_init__(self)
         if not isinstance(self.name, str) or not 1 <= len(self.name) <= MAX_COMMAND_NAME:
             raise ValueError(f"command name must be 1..{MAX_COMMAND_NAME} characters")
         if not isinstance(self.target_kind, TargetKind):
             object.__setattr__(self, "target_kind", TargetKind(self.target_kind))
-        _u16("target_a", self.target_a)
-        _u16("target_b", self.target_b)
         if len(self.args) > MAX_COMMAND_ARGS:
             raise ValueError(f"at most {MAX_COMMAND_ARGS} command arguments")
         for k, v in self.args:
             if not isinstance(k, str) or not isinstance(v, int | float | str | bool):
                 raise ValueError(f"command argument {k!r}={v!r} is not a scalar")
-
-    def to_wire(self) -> list[Any]:
-        return [
-            self.name,
-            int(self.target_kind),
-            self.target_a,
-            self.target_b,
-            [[k, v] for k, v in self.args],
-        ]
-
-    @classmethod
-    def from_wire(cls, w: Any) -> CommandDef:
-        name, tk, a, b, args = _arity(w, 5, "command")
-        if not isinstance(tk, int) or tk not in TargetKind._value2member_map_:
-            raise BadField(f"command target kind {tk!r}")
-        if not isinstance(args, list):
-            raise BadField("command args is not an array")
-        pairs = tuple(
-            (p[0], _wire_real("command arg", p[1]))
-            for p in (_arity(x, 2, "command arg") for x in args)
-        )
-        return cls(name, TargetKind(tk), a, b, pairs)
 
 
 ItemBody: TypeAlias = GroupTypeDef | ChannelDef | CommandDef
@@ -315,81 +372,43 @@ _BODY_TYPE: dict[ItemKind, type] = {
 
 
 @dataclass(frozen=True, slots=True)
-class DataRecord:
+class DataRecord(_Fields):
     """One aggregated result of one channel, group and epoch, for the gateway."""
 
-    channel: int
-    group_type: int
-    group_id: int
-    epoch: int
-    agg: int
-    value: float
-    count: int
-    leader: int
+    channel: U8
+    group_type: U8
+    group_id: U16
+    epoch: U32
+    agg: U8
+    value: Real
+    count: U32
+    leader: NodeId
 
-    TAG: ClassVar[int] = 0
-
-    def __post_init__(self) -> None:
-        _u8("channel", self.channel)
-        _u8("group_type", self.group_type)
-        _u16("group_id", self.group_id)
-        _u32("epoch", self.epoch)
-        _u8("agg", self.agg)
-        _real("value", self.value)
-        _u32("count", self.count)
-        _node("leader", self.leader)
-
-    def to_wire(self) -> list[Any]:
-        return [
-            self.TAG,
-            self.channel,
-            self.group_type,
-            self.group_id,
-            self.epoch,
-            self.agg,
-            float(self.value),
-            self.count,
-            self.leader,
-        ]
+    TAG: ClassVar[int] = 0  # its payload tag in a CtpData frame
+    WIRE: ClassVar[dict[str, _Codec]] = {"value": _real_codec("value")}
 
 
 @dataclass(frozen=True, slots=True)
-class GroupReport:
+class GroupReport(_Fields):
     """A leader's report of its group's state (heartbeat, or gone / merged)."""
 
-    group_type: int
-    group_id: int
-    leader: int
-    weight: int
-    readings: int  # readings aggregated in the leader's last epoch, 0 when unknown
+    group_type: U8
+    group_id: U16
+    leader: NodeId
+    weight: U32
+    readings: U16  # readings aggregated in the leader's last epoch, 0 when unknown
     status: GroupStatus = GroupStatus.ALIVE
     # GONE: the group id it merged into (0: dissolved); ALIVE: the id of the group
     # it split from (a group created when its members lost that group's leader), or 0
-    successor: int = 0
+    successor: U16 = 0
 
     TAG: ClassVar[int] = 1
+    WIRE: ClassVar[dict[str, _Codec]] = {"status": _enum_codec(GroupStatus, "group status")}
 
     def __post_init__(self) -> None:
-        _u8("group_type", self.group_type)
-        _u16("group_id", self.group_id)
-        _node("leader", self.leader)
-        _u32("weight", self.weight)
-        _u16("readings", self.readings)
+        _Fields.__post_init__(self)
         if not isinstance(self.status, GroupStatus):
             object.__setattr__(self, "status", GroupStatus(self.status))
-        _u16("successor", self.successor)
-
-    def to_wire(self) -> list[Any]:
-        return [
-            self.TAG,
-            self.group_type,
-            self.group_id,
-            self.leader,
-            self.weight,
-            self.readings,
-            int(self.status),
-            self.successor,
-        ]
 
 
 Payload: TypeAlias = DataRecord | GroupReport
@@ -400,37 +419,26 @@ def _payload_from_wire(w: Any) -> Payload:
         raise BadField("collection payload is not a tagged array")
     tag, *rest = w
     if tag == DataRecord.TAG:
-        ch, gt, gid, epoch, agg, value, count, leader = _arity(rest, 8, "data record")
-        return DataRecord(ch, gt, gid, epoch, agg, _wire_real("value", value), count, leader)
+        return DataRecord.from_wire(rest)
     if tag == GroupReport.TAG:
-        g = _arity(rest, 7, "group report")
-        if not isinstance(g[5], int) or g[5] not in GroupStatus._value2member_map_:
-            raise BadField(f"group status {g[5]!r}")
-        return GroupReport(g[0], g[1], g[2], g[3], g[4], GroupStatus(g[5]), g[6])
+        return GroupReport.from_wire(rest)
     raise BadField(f"unknown collection payload tag {tag!r}")
+
+
+_PAYLOAD = _Codec(lambda p: [p.TAG, *p.to_wire()], _payload_from_wire)
+_ITEM_KIND = _enum_codec(ItemKind, "item kind")
 
 
 # --------------------------------------------------------------------------- frames
 
 
 @dataclass(frozen=True, slots=True)
-class Frame:
+class Frame(_Fields):
     """Link header shared by every frame. Subclasses add body fields."""
 
     TYPE: ClassVar[int] = -1
-    src: int
-    dst: int
-
-    def __post_init__(self) -> None:
-        _node("src", self.src)
-        _addr("dst", self.dst)
-
-    def body(self) -> list[Any]:
-        raise NotImplementedError
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Frame:
-        raise NotImplementedError
+    src: NodeId
+    dst: Addr
 
 
 @dataclass(frozen=True, slots=True)
@@ -438,18 +446,7 @@ class Hello(Frame):
     """Neighbour-discovery beacon; also the beacon a robot's mote emits."""
 
     TYPE: ClassVar[int] = 1
-    seq: int = 0
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u16("seq", self.seq)
-
-    def body(self) -> list[Any]:
-        return [self.seq]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Hello:
-        return cls(src, dst, *_arity(body, 1, "hello"))
+    seq: U16 = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -458,33 +455,27 @@ class DripItem(Frame):
 
     TYPE: ClassVar[int] = 2
     kind: ItemKind = ItemKind.GROUP_TYPE
-    item_id: int = 0
-    version: int = 0
+    item_id: U16 = 0
+    version: U32 = 0
     item: ItemBody | None = None
+
+    # the item's decoding depends on the kind: from_wire below
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "kind": _ITEM_KIND,
+        "item": _Codec(lambda b: None if b is None else b.to_wire(), lambda w: w),
+    }
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
         if not isinstance(self.kind, ItemKind):
             object.__setattr__(self, "kind", ItemKind(self.kind))
-        _u16("item_id", self.item_id)
-        _u32("version", self.version)
         if self.item is not None and not isinstance(self.item, _BODY_TYPE[self.kind]):
             raise ValueError(f"{self.kind.name} item carries a {type(self.item).__name__}")
 
-    def body(self) -> list[Any]:
-        return [
-            int(self.kind),
-            self.item_id,
-            self.version,
-            None if self.item is None else self.item.to_wire(),
-        ]
-
     @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripItem:
-        kind, item_id, version, item = _arity(body, 4, "drip item")
-        if not isinstance(kind, int) or kind not in ItemKind._value2member_map_:
-            raise BadField(f"item kind {kind!r}")
-        k = ItemKind(kind)
+    def from_wire(cls, w: Any) -> Self:
+        src, dst, kind, item_id, version, item = _arity(w, 6, "DripItem")
+        k = _ITEM_KIND.take(kind)
         return cls(src, dst, k, item_id, version, None if item is None else _BODY_OF[k](item))
 
 
@@ -502,30 +493,20 @@ class DripSig(Frame):
 
     TYPE: ClassVar[int] = 16
     kind: ItemKind = ItemKind.GROUP_TYPE
-    item_id: int = 0
-    version: int = 0
+    item_id: U16 = 0
+    version: U32 = 0
     part: int = 0
     chunk: bytes = b""
+
+    WIRE: ClassVar[dict[str, _Codec]] = {"kind": _ITEM_KIND}
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
         if not isinstance(self.kind, ItemKind):
             object.__setattr__(self, "kind", ItemKind(self.kind))
-        _u16("item_id", self.item_id)
-        _u32("version", self.version)
         _int("part", self.part, 0, SIG_PARTS - 1)
         if not isinstance(self.chunk, bytes) or len(self.chunk) != SIG_PART_BYTES:
             raise ValueError(f"a signature part is {SIG_PART_BYTES} bytes")
-
-    def body(self) -> list[Any]:
-        return [int(self.kind), self.item_id, self.version, self.part, self.chunk]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripSig:
-        kind, item_id, version, part, chunk = _arity(body, 5, "drip signature")
-        if not isinstance(kind, int) or kind not in ItemKind._value2member_map_:
-            raise BadField(f"item kind {kind!r}")
-        return cls(src, dst, ItemKind(kind), item_id, version, part, chunk)
 
 
 @dataclass(frozen=True, slots=True)
@@ -533,20 +514,8 @@ class DripSummary(Frame):
     """Digest of everything a mote holds; a mismatch makes neighbours speak up."""
 
     TYPE: ClassVar[int] = 3
-    digest: int = 0
-    n_items: int = 0
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u32("digest", self.digest)
-        _u16("n_items", self.n_items)
-
-    def body(self) -> list[Any]:
-        return [self.digest, self.n_items]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> DripSummary:
-        return cls(src, dst, *_arity(body, 2, "drip summary"))
+    digest: U32 = 0
+    n_items: U16 = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -554,23 +523,9 @@ class CtpBeacon(Frame):
     """Collection-tree routing beacon: the sender's path cost to a root."""
 
     TYPE: ClassVar[int] = 4
-    cost: int = NO_ROUTE  # path ETX x 10; 0 at a root
-    parent: int = BROADCAST
-    pull: bool = False  # "I have no route": neighbours answer soon
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u16("cost", self.cost)
-        _addr("parent", self.parent)
-        if not isinstance(self.pull, bool):
-            raise ValueError("pull must be a bool")
-
-    def body(self) -> list[Any]:
-        return [self.cost, self.parent, self.pull]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> CtpBeacon:
-        return cls(src, dst, *_arity(body, 3, "ctp beacon"))
+    cost: U16 = NO_ROUTE  # path ETX x 10; 0 at a root
+    parent: Addr = BROADCAST
+    pull: Bool = False  # "I have no route": neighbours answer soon
 
 
 @dataclass(frozen=True, slots=True)
@@ -578,29 +533,18 @@ class CtpData(Frame):
     """A payload travelling up the collection tree, hop by hop (unicast)."""
 
     TYPE: ClassVar[int] = 5
-    origin: int = 0
-    seqno: int = 0
-    thl: int = 0  # time has lived: hops so far
-    cost: int = NO_ROUTE  # the forwarder's cost, for loop detection
+    origin: NodeId = 0
+    seqno: U16 = 0
+    thl: U8 = 0  # time has lived: hops so far
+    cost: U16 = NO_ROUTE  # the forwarder's cost, for loop detection
     payload: Payload | None = None
+
+    WIRE: ClassVar[dict[str, _Codec]] = {"payload": _PAYLOAD}
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
-        _node("origin", self.origin)
-        _u16("seqno", self.seqno)
-        _u8("thl", self.thl)
-        _u16("cost", self.cost)
         if not isinstance(self.payload, DataRecord | GroupReport):
             raise ValueError("CtpData needs a DataRecord or GroupReport payload")
-
-    def body(self) -> list[Any]:
-        assert self.payload is not None
-        return [self.origin, self.seqno, self.thl, self.cost, self.payload.to_wire()]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> CtpData:
-        origin, seqno, thl, cost, payload = _arity(body, 5, "ctp data")
-        return cls(src, dst, origin, seqno, thl, cost, _payload_from_wire(payload))
 
 
 @dataclass(frozen=True, slots=True)
@@ -608,38 +552,18 @@ class LeaderBeacon(Frame):
     """A group leader's beacon, flooded by members (hops counts the flood)."""
 
     TYPE: ClassVar[int] = 6
-    group_type: int = 0
-    group_id: int = 1
-    leader: int = 0
-    weight: int = 0
-    seq: int = 0
-    hops: int = 0
+    group_type: U8 = 0
+    group_id: GroupId = 1
+    leader: NodeId = 0
+    weight: U32 = 0
+    seq: U16 = 0
+    hops: U8 = 0
     # A would-be group's announcement (docs/protocol-groups.md, "Tentative ids"):
     # nobody joins it or forwards it; an established group answers it.
-    tentative: bool = False
+    tentative: Bool = False
     # A member's forward names the member it took the beacon from (its parent in
     # the group tree), which then keeps forwarding; BROADCAST: none (the leader).
-    parent: int = BROADCAST
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u8("group_type", self.group_type)
-        _int("group_id", self.group_id, 1, 0xFFFE)
-        _node("leader", self.leader)
-        _u32("weight", self.weight)
-        _u16("seq", self.seq)
-        _u8("hops", self.hops)
-        if not isinstance(self.tentative, bool):
-            raise ValueError("tentative must be a bool")
-        _addr("parent", self.parent)
-
-    def body(self) -> list[Any]:
-        return [self.group_type, self.group_id, self.leader, self.weight, self.seq, self.hops,
-                self.tentative, self.parent]  # fmt: skip
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> LeaderBeacon:
-        return cls(src, dst, *_arity(body, 8, "leader beacon"))
+    parent: Addr = BROADCAST
 
 
 @dataclass(frozen=True, slots=True)
@@ -647,24 +571,10 @@ class Handover(Frame):
     """A leaving leader hands its group (id, weight, beacon seq) to a member."""
 
     TYPE: ClassVar[int] = 7
-    group_type: int = 0
-    group_id: int = 1
-    weight: int = 0
-    seq: int = 0
-
-    def __post_init__(self) -> None:
-        Frame.__post_init__(self)
-        _u8("group_type", self.group_type)
-        _int("group_id", self.group_id, 1, 0xFFFE)
-        _u32("weight", self.weight)
-        _u16("seq", self.seq)
-
-    def body(self) -> list[Any]:
-        return [self.group_type, self.group_id, self.weight, self.seq]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Handover:
-        return cls(src, dst, *_arity(body, 4, "handover"))
+    group_type: U8 = 0
+    group_id: GroupId = 1
+    weight: U32 = 0
+    seq: U16 = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -672,61 +582,25 @@ class Partial(Frame):
     """A partial aggregate of one channel epoch, sent up the group tree."""
 
     TYPE: ClassVar[int] = 8
-    channel: int = 0
-    group_type: int = 0
-    group_id: int = 1
-    epoch: int = 0
-    agg: int = 0
-    count: int = 0
+    channel: U8 = 0
+    group_type: U8 = 0
+    group_id: GroupId = 1
+    epoch: U32 = 0
+    agg: U8 = 0
+    count: U32 = 0
     state: tuple[float, ...] = field(default=())
+
+    WIRE: ClassVar[dict[str, _Codec]] = {
+        "state": _array_codec(_real_codec("state"), "partial state")
+    }
 
     def __post_init__(self) -> None:
         Frame.__post_init__(self)
-        _u8("channel", self.channel)
-        _u8("group_type", self.group_type)
-        _int("group_id", self.group_id, 1, 0xFFFE)
-        _u32("epoch", self.epoch)
-        _u8("agg", self.agg)
-        _u32("count", self.count)
         if len(self.state) > 4:
             raise ValueError("an aggregate state has at most 4 numbers")
         for i, v in enumerate(self.state):
             _real(f"state[{i}]", v)
 
-    def body(self) -> list[Any]:
-        return [
-            self.channel,
-            self.group_type,
-            self.group_id,
-            self.epoch,
-            self.agg,
-            self.count,
-            [float(v) for v in self.state],
-        ]
-
-    @classmethod
-    def from_body(cls, src: int, dst: int, body: list[Any]) -> Partial:
-        ch, gt, gid, epoch, agg, count, state = _arity(body, 7, "partial")
-        if not isinstance(state, list):
-            raise BadField("partial state is not an array")
-        return cls(
-            src,
-            dst,
-            ch,
-            gt,
-            gid,
-            epoch,
-            agg,
-            count,
-            tuple(_wire_real("state", v) for v in state),
-        )
-
-
-# The frame types whose fields are all ints and bools: msgpack gives them back
-# equal (a float field would come back rounded to float32).
-_LOSSLESS: frozenset[type[Frame]] = frozenset(
-    (Hello, DripSummary, CtpBeacon, LeaderBeacon, Handover)
-)
 
 FRAME_TYPES: dict[int, type[Frame]] = {
     t.TYPE: t
@@ -744,20 +618,21 @@ FRAME_TYPES: dict[int, type[Frame]] = {
 }
 
 
+# The frame types whose fields are all ints and bools (no codec): msgpack gives
+# them back equal (a float field would come back rounded to float32).
+_LOSSLESS: frozenset[type[Frame]] = frozenset(t for t in FRAME_TYPES.values() if not t.WIRE)
+
+for _cls in (Condition, GroupTypeDef, ChannelDef, CommandDef, DataRecord, GroupReport,
+             *FRAME_TYPES.values()):  # fmt: skip
+    _bind(_cls)
+
+
 # --------------------------------------------------------------------------- codec
-
-
-def _arity(w: Any, n: int, what: str) -> list[Any]:
-    if not isinstance(w, list) or len(w) != n:
-        raise BadField(f"{what}: expected an array of {n} fields, got {w!r:.60}")
-    return w
 
 
 def encode(frame: Frame, mtu: int | None = None) -> bytes:
     """Encode ``frame``; raise :class:`FrameTooLarge` if it exceeds ``mtu`` bytes."""
-    data: bytes = msgpack.packb(
-        [frame.TYPE, frame.src, frame.dst, *frame.body()], use_single_float=True
-    )
+    data: bytes = msgpack.packb([frame.TYPE, *frame.to_wire()], use_single_float=True)
     if mtu is not None and len(data) > mtu:
         raise FrameTooLarge(frame, len(data), mtu)
     return data
@@ -787,12 +662,12 @@ def _unpack(data: bytes) -> list[Any]:
 
 def decode(data: bytes) -> Frame:
     """Decode one frame. Any malformed input raises a :class:`FrameError`."""
-    t, src, dst, *body = _unpack(data)
-    cls = FRAME_TYPES.get(t)
+    obj = _unpack(data)
+    cls = FRAME_TYPES.get(obj[0])
     if cls is None:
-        raise UnknownFrameType(f"frame type {t}")
+        raise UnknownFrameType(f"frame type {obj[0]}")
     try:
-        return cls.from_body(src, dst, body)
+        return cls.from_wire(obj[1:])
     except FrameError:
         raise
     except (ValueError, TypeError, KeyError, IndexError, OverflowError) as e:
@@ -819,7 +694,7 @@ def note_sent(data: bytes, frame: Frame) -> None:
     """``data`` is ``encode(frame)``, about to go on the air (see :data:`_sent`)."""
     if type(frame) not in _LOSSLESS or type(frame.src) is not int or type(frame.dst) is not int:
         return
-    for v in frame.body():
+    for v in frame.to_wire():
         if type(v) is not int and type(v) is not bool:
             return  # e.g. an IntEnum: the decoded frame would hold a plain int
     if len(_sent) >= _SENT_MAX:

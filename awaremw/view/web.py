@@ -520,7 +520,7 @@ class MqttFeed:
                 async with aiomqtt.Client(
                     hostname=s.host, port=s.port, username=s.username, password=s.password,
                     identifier=s.client_id, protocol=aiomqtt.ProtocolVersion.V311,
-                    tls_context=_tls(s), tls_insecure=s.tls_insecure if s.tls else None,
+                    tls_context=s.ssl_context(), tls_insecure=s.tls_insecure if s.tls else None,
                     max_queued_incoming_messages=1000,
                 ) as client:  # fmt: skip
                     self._client = client
@@ -548,14 +548,6 @@ class MqttFeed:
         if self._client is None:
             raise ConnectionError(f"not connected to the MQTT broker {self.settings.url}")
         await self._client.publish(f"{self.settings.prefix}/{rel}", payload, qos=1, retain=retain)
-
-
-def _tls(s: MqttSettings) -> Any:
-    if not s.tls:
-        return None
-    import ssl
-
-    return ssl.create_default_context(cafile=s.ca_file)
 
 
 class Dashboard:

@@ -59,9 +59,6 @@ class EmulatedClock:
         """The ``monotonic``/``loop.time()`` instant at which ``now()`` reaches ``emulated``."""
         return self._offset + emulated / self.speed
 
-    def from_monotonic(self, mono: float) -> float:
-        return (mono - self._offset) * self.speed
-
     def wall_seconds(self, emulated_span: float) -> float:
         """Real seconds an emulated span lasts."""
         return emulated_span / self.speed

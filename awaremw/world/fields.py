@@ -44,14 +44,6 @@ class WorldError(ValueError):
 _M64 = 0xFFFFFFFFFFFFFFFF
 
 
-def _mix(x: int) -> int:
-    """splitmix64 finaliser: a well-mixed 64-bit bijection."""
-    x = (x + 0x9E3779B97F4A7C15) & _M64
-    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _M64
-    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _M64
-    return x ^ (x >> 31)
-
-
 @functools.lru_cache(maxsize=4096)
 def _str_u64(s: str) -> int:
     return int.from_bytes(hashlib.blake2b(s.encode(), digest_size=8).digest(), "little")
@@ -73,7 +65,7 @@ def hash_u64(*parts: int | float | str) -> int:
             v = struct.unpack("<Q", struct.pack("<d", p))[0] ^ 0x5851F42D4C957F2D
         else:
             v = p & _M64
-        # _mix(h ^ v), inlined (hot: every sensor read hashes its noise)
+        # the splitmix64 finaliser of h ^ v, inlined (hot: every sensor read hashes its noise)
         x = ((h ^ v) + 0x9E3779B97F4A7C15) & _M64
         x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _M64
         x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _M64
