@@ -21,11 +21,10 @@ import argparse
 import asyncio
 import contextlib
 import json
-import signal
 import sys
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, zenoh_message
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event, zenoh_message
 from awaremw.cli.helptext import add_verb
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
@@ -243,10 +242,7 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     from awaremw.runtime.fleet.pool import LaunchError
     from awaremw.runtime.fleet.stats import merged_links
 
-    loop = asyncio.get_running_loop()
-    stop = asyncio.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+    stop = stop_event()
     listen = args.listen or ([] if args.connect else [DEFAULT_ROUTER_ENDPOINT])
     factory: CoreFactory = hello_core if args.hello else KindsFactory(security=args.security)
     where = ", ".join(args.connect) if args.connect else ", ".join(listen)

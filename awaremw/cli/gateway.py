@@ -30,7 +30,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import signal
 import sys
 import time
 from collections.abc import Callable
@@ -38,7 +37,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event
 from awaremw.cli.helptext import add_verb
 from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
@@ -255,11 +254,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
 
         warn_open("awaremw gateway")
     radio_prefix = args.radio_prefix or DEFAULT_PREFIX
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError):
-            loop.add_signal_handler(sig, stop.set)
+    stop = stop_event()
 
     async with contextlib.AsyncExitStack() as stack:
         try:
