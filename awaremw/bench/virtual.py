@@ -274,13 +274,11 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
 
 def plot_sizes(runs: list[dict[str, Any]], path: str) -> None:
     """CPU per mote-second and memory per mote against the number of motes."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no global state, no display
 
     motes = [r["motes"] for r in runs]
-    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=120)
+    fig = Figure(figsize=(6.4, 3.8), dpi=120)
+    ax = fig.subplots()
     ax.plot(motes, [r["cpu_per_mote_s_us"] for r in runs], "o-", color="tab:red")
     ax.set_xscale("log")
     ax.set_xlabel("motes")
@@ -294,7 +292,6 @@ def plot_sizes(runs: list[dict[str, Any]], path: str) -> None:
     ax.set_title(f"bench virtual --workload {w}: cost per mote as the network grows")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
