@@ -25,7 +25,7 @@ import sys
 from typing import Any
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event, zenoh_message
-from awaremw.cli.helptext import add_verb
+from awaremw.cli.helptext import add_verb, add_zenoh_mode
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 
@@ -89,13 +89,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="UNIX_TIME",
         help="shared wall-clock start of emulated time (fleets on several hosts)",
     )
-    p.add_argument(
-        "--zenoh-mode",
-        choices=("peer", "client"),
-        default="peer",
-        help="Zenoh mode: peer (default; links directly to the peers the router names) "
-        "or client (everything through the --connect router, e.g. across networks)",
-    )
+    add_zenoh_mode(p)
     p.add_argument(
         "--pcap",
         default=None,

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event
-from awaremw.cli.helptext import add_verb
+from awaremw.cli.helptext import add_verb, add_zenoh_mode
 from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
 if TYPE_CHECKING:
@@ -103,13 +103,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="ENDPOINT",
         help="Zenoh endpoint to listen on (repeatable)",
     )
-    p.add_argument(
-        "--zenoh-mode",
-        choices=("peer", "client"),
-        default="peer",
-        help="Zenoh mode: peer (default; links directly to the peers the router names) "
-        "or client (everything through the --connect router, e.g. across networks)",
-    )
+    add_zenoh_mode(p)
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     add_secrets_option(
         p,
