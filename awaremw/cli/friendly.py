@@ -54,16 +54,7 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     from awaremw.gateway.mqtt import MqttSettings
 
     s = MqttSettings.from_url(url)
-    client = aiomqtt.Client(
-        s.host,
-        s.port,
-        username=s.username,
-        password=s.password,
-        identifier=f"awaremw-probe-{secrets.token_hex(4)}",
-        protocol=aiomqtt.ProtocolVersion.V311,
-        tls_context=s.ssl_context(),
-        timeout=timeout,
-    )
+    client = s.client(f"awaremw-probe-{secrets.token_hex(4)}", timeout=timeout)
     try:
         async with asyncio.timeout(timeout + 1.0), client:
             return None

@@ -34,7 +34,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 from urllib.parse import unquote, urlsplit
 
 import aiomqtt
@@ -166,6 +166,21 @@ class MqttSettings:
             ctx.check_hostname = False
             ctx.verify_mode = ssl.CERT_NONE
         return ctx
+
+    def client(self, identifier: str, **options: Any) -> aiomqtt.Client:
+        """An aiomqtt client of this broker with this account and TLS; MQTT 3.1.1
+        (every broker speaks it) unless ``options`` name another ``protocol``."""
+        options.setdefault("protocol", aiomqtt.ProtocolVersion.V311)
+        return aiomqtt.Client(
+            self.host,
+            self.port,
+            username=self.username,
+            password=self.password,
+            identifier=identifier,
+            tls_context=self.ssl_context(),
+            tls_insecure=self.tls_insecure if self.tls else None,
+            **options,
+        )
 
     @property
     def url(self) -> str:
@@ -316,20 +331,14 @@ class MqttBridge:
             kwargs["clean_start"] = not s.persistent_session
         else:
             kwargs["clean_session"] = not s.persistent_session
-        client = aiomqtt.Client(
-            s.host,
-            s.port,
-            username=s.username,
-            password=s.password,
-            identifier=s.client_id,
+        client = s.client(
+            s.client_id,
             protocol=protocol,
             will=will,
             keepalive=s.keepalive,
             timeout=s.timeout_s,
-            tls_context=self.settings.ssl_context(),
-            tls_insecure=s.tls_insecure if s.tls else None,
             queue_type=_take_all(self._take),
-            **kwargs,  # type: ignore[arg-type]
+            **kwargs,
         )
         # aiomqtt warns above 10 pending calls; our in-flight window is the bound.
         client.pending_calls_threshold = s.max_inflight + 4
