@@ -1,26 +1,13 @@
 """``awaremw gateway DEPLOYMENT``: run the gateway motes and bridge them to MQTT and Zenoh.
 
-::
-
-    awaremw gateway romeo4r --connect tcp/127.0.0.1:7447 --mqtt mqtt://gateway:pw@broker:1883
-    awaremw gateway romeo4r                      # embedded broker (port 1883 if free), printed
-
-What the gateway keeps belongs to the deployment it runs, in its state
-directory (``--state-dir``, by default
-``$XDG_STATE_HOME/awaremw/deployments/<deployment>``; awaremw/gateway/state.py):
-the versions (``gateway.sqlite``) and the embedded broker's account, port and
-retained messages (``broker/``). A restart on the same deployment keeps them,
-another deployment starts clean, ``--fresh`` forgets them. The embedded
-broker's account (user ``awaremw``, a password generated on first start,
-printed once, kept with mode 0600 in ``broker/mqtt-account``) refuses
-anonymous clients unless ``--mqtt-anonymous``. See docs/robustness.md.
-
 The gateway runs the deployment's gateway motes (collection roots) in this
 process, joined to the emulation through ``--connect`` (a router or a fleet
-that listens), and serves the MQTT contract and the Zenoh HBN API (see
-docs/gateway.md). Emulated time is taken from a running fleet when one
-answers on its control key (so record times and epochs agree), else it
-starts at 0 now.
+that listens), and serves the MQTT contract and the Zenoh HBN API
+(docs/gateway.md). What it keeps (versions, the embedded broker's account,
+port and retained messages) lives in the deployment's state directory
+(awaremw/gateway/state.py; docs/gateway.md, *State directories*). Emulated
+time is taken from a running fleet when one answers on its control key (so
+record times and epochs agree), else it starts at 0 now.
 """
 
 from __future__ import annotations
