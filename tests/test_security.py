@@ -20,11 +20,12 @@ from pathlib import Path
 import pytest
 import zenoh
 from cryptography.hazmat.primitives import serialization
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from awaremw.cli import main as cli_main
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
 from awaremw.security.keys import SecretsDir, SecretsExist, init_secrets, mosquitto_hash
+from awaremw.security.material import load_radio_security, load_signing_key
 from awaremw.security.zenoh_acl import ROLES, Role
 
 AWAREMW = [sys.executable, "-m", "awaremw"]
@@ -45,11 +46,12 @@ def test_keys_init_makes_private_files_and_never_overwrites(tmp_path: Path) -> N
         assert stat.S_IMODE(p.stat().st_mode) == 0o600, p
     for p in [root, *(p for p in root.rglob("*") if p.is_dir())]:
         assert stat.S_IMODE(p.stat().st_mode) == 0o700, p
-    assert len(d.read_network_key()) == 16
+    assert len(load_radio_security(root).network_key) == 16
     # the signing pair matches: a signature by the private key verifies with the public one
     pub = serialization.load_pem_public_key(d.signing_pub.read_bytes())
     assert isinstance(pub, Ed25519PublicKey)
-    pub.verify(d.read_signing_key().sign(b"item"), b"item")
+    signing = Ed25519PrivateKey.from_private_bytes(load_signing_key(root))
+    pub.verify(signing.sign(b"item"), b"item")
     users = dict(ln.split(":", 1) for ln in d.zenoh_users.read_text().splitlines())
     # one account per role, and the one routers log in with when they link to each other
     assert sorted(users) == sorted([*ROLES, "router"]) and len(set(users.values())) == 5
@@ -63,7 +65,7 @@ def test_keys_init_makes_private_files_and_never_overwrites(tmp_path: Path) -> N
     assert cli_main(["keys", "init", str(root)]) == 1
     assert {p: p.read_bytes() for p in files} == before  # nothing touched
     assert cli_main(["keys", "init", str(root), "--force", "--network-key-bytes", "32"]) == 0
-    assert len(d.read_network_key()) == 32
+    assert len(load_radio_security(root).network_key) == 32
     assert d.zenoh_users.read_bytes() != before[d.zenoh_users]
     assert stat.S_IMODE(d.network_key.stat().st_mode) == 0o600
 

@@ -45,20 +45,10 @@ most spending mote, traffic only / with a 1 % low-power-listening floor);
 ``window_s``; with ``--per-mote``, ``energy_per_mote``: node id ->
 ``[role, mJ per hour, frames per hour]``.
 
-How beacons are paced to meet the targets: a leader beacon costs the leader's
-frame and one re-broadcast per member that is a parent in the group tree or
-hears no member as far out re-broadcast it (leaves skip theirs), so beacons
-add a fraction of ``members * channel_period / beacon_period`` frames per
-epoch. The default ``--beacon-factor 4`` makes the beacon period 4 channel
-periods (8 s), and ``--settled-factor 4`` lets a settled leader (its records
-flow, no new member) double its interval up to 4 beacon periods (32 s; the
-middleware's default is 2). The collection tree's and Drip's Trickle timers
-are at one to two minutes by the end of the warm-up. The price is a slower
-reaction when the group changes without a sign on the data path: members
-wait ``leader_timeout_periods`` of the intervals they see (3.5 x 32 s here,
-instead of 3.5 x 2 s with the deployments' defaults) before they take a
-leader lost by a split; a dead leader is still found by its children's
-unacknowledged partials within two epochs (docs/protocol-groups.md).
+Beacons are paced to meet the targets: ``--beacon-factor 4`` makes the beacon
+period 4 channel periods (8 s) and ``--settled-factor 4`` lets a settled
+leader stretch its interval up to 4 beacon periods; the price is a slower
+reaction to a split (docs/protocol-groups.md, "Benchmark").
 ``beacon_period_s`` and ``beacon_settled_factor`` say which pacing ran.
 """
 

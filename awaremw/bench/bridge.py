@@ -105,14 +105,7 @@ class _Arrivals:
 
 async def _subscriber(url: str, topic: str, ready: asyncio.Event, out: _Arrivals) -> None:
     s = MqttSettings.from_url(url)
-    async with aiomqtt.Client(
-        s.host,
-        s.port,
-        username=s.username,
-        password=s.password,
-        protocol=aiomqtt.ProtocolVersion.V311,
-        identifier=f"awaremw-bench-sub-{id(out):x}",
-    ) as c:
+    async with s.client(f"awaremw-bench-sub-{id(out):x}") as c:
         await c.subscribe(topic, qos=1)
         ready.set()
         async for m in c.messages:

@@ -184,12 +184,10 @@ def run(
 
 def figure(result: dict[str, Any], path: str) -> str:
     """Both measured curves and ``G e^(-2G)`` to ``path`` (PNG)."""
-    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: no global state, no display
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig = Figure(figsize=(6.4, 4.0))
+    ax = fig.subplots()
     gs = [i / 100 for i in range(1, 201)]
     ax.plot(gs, [aloha_theory(g) for g in gs], "k--", lw=1, label="pure ALOHA theory $Ge^{-2G}$")
     for kind, style, label in (("aloha", "o-", "ALOHA (measured)"), ("csma", "s-", "CSMA/CA")):
@@ -206,7 +204,6 @@ def figure(result: dict[str, Any], path: str) -> str:
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 

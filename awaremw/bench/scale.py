@@ -78,9 +78,9 @@ import time
 from typing import Any
 
 from awaremw.bench import aware_load
-from awaremw.bench.medium import add_medium_arguments, medium_of
+from awaremw.bench.medium import medium_of
 from awaremw.bench.profiling import build_facts, profiled
-from awaremw.bench.virtual import check_motes
+from awaremw.bench.virtual import WORKLOADS, add_workload_arguments, check_motes
 from awaremw.nodes import KindsFactory
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.model import CC2420, RadioModel, cell_of, packet_key, preset
@@ -91,7 +91,6 @@ from awaremw.runtime.fleet.motes import hello_core
 from awaremw.runtime.fleet.stats import plugin_results
 
 SPACING_M = 12.0  # CC2420 at 0 dBm: about ten neighbours hear each beacon
-WORKLOADS = ("hello", "aware")
 
 
 def grid_deployment(
@@ -425,21 +424,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-delivery", type=float, default=0.99)
     parser.add_argument("--search", action="store_true", help="find the largest N on target")
     parser.add_argument("--max-motes", type=int, default=16000, help="upper bound for --search")
-    parser.add_argument(
-        "--workload",
-        choices=WORKLOADS,
-        default="hello",
-        help="hello: beacons only (the radio); aware: the whole middleware tracking fires",
-    )
-    parser.add_argument(
-        "--sinks",
-        type=int,
-        default=None,
-        metavar="N",
-        help="aware: collection roots on a lattice (default: one per ~1,000 motes)",
-    )
-    parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
-    add_medium_arguments(parser)
+    add_workload_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

@@ -56,6 +56,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from awaremw.bench import aware_load
+from awaremw.bench.medium import add_medium_arguments
 from awaremw.bench.profiling import build_facts, profiled
 from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.hello import HelloMote
@@ -274,13 +275,11 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
 
 def plot_sizes(runs: list[dict[str, Any]], path: str) -> None:
     """CPU per mote-second and memory per mote against the number of motes."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no global state, no display
 
     motes = [r["motes"] for r in runs]
-    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=120)
+    fig = Figure(figsize=(6.4, 3.8), dpi=120)
+    ax = fig.subplots()
     ax.plot(motes, [r["cpu_per_mote_s_us"] for r in runs], "o-", color="tab:red")
     ax.set_xscale("log")
     ax.set_xlabel("motes")
@@ -294,13 +293,10 @@ def plot_sizes(runs: list[dict[str, Any]], path: str) -> None:
     ax.set_title(f"bench virtual --workload {w}: cost per mote as the network grows")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--motes", type=int, default=1000, help="number of motes (grid)")
-    parser.add_argument("--duration", type=float, default=100.0, help="simulated seconds")
-    parser.add_argument("--seed", type=int, default=1)
+def add_workload_arguments(parser: argparse.ArgumentParser) -> None:
+    """The workload options bench virtual and bench scale share (and --mac, --collisions)."""
     parser.add_argument(
         "--workload",
         choices=WORKLOADS,
@@ -308,10 +304,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="hello: beacons only (the radio); aware: the whole middleware tracking fires",
     )
     parser.add_argument("--profile", metavar="FILE", help="write a cProfile of the run to FILE")
-    parser.add_argument("--mac", choices=("csma", "aloha"), default="csma", help="medium access")
-    parser.add_argument(
-        "--collisions", choices=("sinr", "none"), default="sinr", help="collision model"
-    )
+    add_medium_arguments(parser)
     parser.add_argument(
         "--sinks",
         type=int,
@@ -319,6 +312,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="aware: collection roots on a lattice (default: one per ~1,000 motes)",
     )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--motes", type=int, default=1000, help="number of motes (grid)")
+    parser.add_argument("--duration", type=float, default=100.0, help="simulated seconds")
+    parser.add_argument("--seed", type=int, default=1)
+    add_workload_arguments(parser)
     parser.add_argument(
         "--sizes",
         metavar="N,N,...",

@@ -284,17 +284,7 @@ def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
     # A random id, never the empty one: amqtt gives every client that sends an
     # empty id the same session, subscriptions included.
     client_id = client_id or f"awaremw-cli-{secrets.token_hex(4)}"
-    # 3.1.1: every broker speaks it, and the client needs nothing from MQTT 5.
-    return aiomqtt.Client(
-        s.host,
-        s.port,
-        username=s.username,
-        password=s.password,
-        identifier=client_id,
-        protocol=aiomqtt.ProtocolVersion.V311,
-        tls_context=s.ssl_context(),
-        timeout=10,
-    )
+    return s.client(client_id, timeout=10)  # 3.1.1: the client needs nothing from MQTT 5
 
 
 async def publish(

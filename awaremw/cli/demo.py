@@ -1,21 +1,11 @@
 """``awaremw demo [--deployment PATH] [--duration S] [--speed X] [--mqtt URL] [--plain]``
 
-Everything on one machine with nothing else installed: embedded Zenoh peers on
-loopback (multicast scouting off), an embedded MQTT broker (unless --mqtt),
-the fleet of motes, the gateway, and the robot's client, which defines the
-tracking group and the channels over MQTT and prints the data it receives.
-A live map shows the motes coloured by group, the leaders, the robot and the
-records arriving; --plain prints log lines instead (scripts, CI). The run
-ends after the scenario's duration (or --duration emulated seconds) with a
-summary of its figures, also written to --summary FILE (default
-$XDG_STATE_HOME/awaremw/demo-summary.txt). The exit status is 1 when the
-broker cannot be reached or the robot received no record at all.
-
-Secure by default: without --secrets the demo makes throw-away secrets in a
-temporary directory (as `awaremw keys init`), removed at the end, and runs with
-everything on: Zenoh authentication and access control by role, authenticated
-radio frames, signed definitions and commands, an embedded broker with an
-account. --insecure (or --no-secrets) runs it all open, for quick experiments.
+Everything on one machine with nothing else installed: the fleet, the gateway
+with an embedded MQTT broker (unless --mqtt) and the robot's client, with a
+live map (--plain: log lines), then a summary. Secure by default: without
+--secrets the demo makes throw-away secrets (as ``awaremw keys init``) in a
+temporary directory removed at the end; --insecure runs it all open. The
+verb's --help (:func:`register`) says the rest.
 """
 
 from __future__ import annotations

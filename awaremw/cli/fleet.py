@@ -21,12 +21,11 @@ import argparse
 import asyncio
 import contextlib
 import json
-import signal
 import sys
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, zenoh_message
-from awaremw.cli.helptext import add_verb
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event, zenoh_message
+from awaremw.cli.helptext import add_verb, add_zenoh_mode
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 
@@ -90,13 +89,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="UNIX_TIME",
         help="shared wall-clock start of emulated time (fleets on several hosts)",
     )
-    p.add_argument(
-        "--zenoh-mode",
-        choices=("peer", "client"),
-        default="peer",
-        help="Zenoh mode: peer (default; links directly to the peers the router names) "
-        "or client (everything through the --connect router, e.g. across networks)",
-    )
+    add_zenoh_mode(p)
     p.add_argument(
         "--pcap",
         default=None,
@@ -243,10 +236,7 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
     from awaremw.runtime.fleet.pool import LaunchError
     from awaremw.runtime.fleet.stats import merged_links
 
-    loop = asyncio.get_running_loop()
-    stop = asyncio.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+    stop = stop_event()
     listen = args.listen or ([] if args.connect else [DEFAULT_ROUTER_ENDPOINT])
     factory: CoreFactory = hello_core if args.hello else KindsFactory(security=args.security)
     where = ", ".join(args.connect) if args.connect else ", ".join(listen)

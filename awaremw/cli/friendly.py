@@ -7,14 +7,17 @@ raised at (``... at /root/.cargo/git/checkouts/.../orchestrator.rs:388.``);
 :func:`add_secrets_option` and :func:`load_secrets` are the one ``--secrets DIR``
 option of every verb: its help, its check and its error line. :func:`refuse` is
 how a verb turns down its command line: ``prog: why`` on stderr, exit status 2.
+:func:`stop_event` is how a long-running verb hears Ctrl-C and SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import re
 import secrets
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -51,16 +54,7 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     from awaremw.gateway.mqtt import MqttSettings
 
     s = MqttSettings.from_url(url)
-    client = aiomqtt.Client(
-        s.host,
-        s.port,
-        username=s.username,
-        password=s.password,
-        identifier=f"awaremw-probe-{secrets.token_hex(4)}",
-        protocol=aiomqtt.ProtocolVersion.V311,
-        tls_context=s.ssl_context(),
-        timeout=timeout,
-    )
+    client = s.client(f"awaremw-probe-{secrets.token_hex(4)}", timeout=timeout)
     try:
         async with asyncio.timeout(timeout + 1.0), client:
             return None
@@ -75,6 +69,16 @@ def refuse(prog: str, why: object) -> int:
     """Print ``prog: why`` on stderr; return 2, the exit status of a refused command line."""
     print(f"{prog}: {why}", file=sys.stderr)
     return 2
+
+
+def stop_event() -> asyncio.Event:
+    """An event that SIGINT or SIGTERM sets (where the loop takes signal handlers)."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError):
+            loop.add_signal_handler(sig, stop.set)
+    return stop
 
 
 def add_secrets_option(p: argparse.ArgumentParser, help: str) -> None:

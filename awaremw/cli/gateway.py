@@ -1,26 +1,13 @@
 """``awaremw gateway DEPLOYMENT``: run the gateway motes and bridge them to MQTT and Zenoh.
 
-::
-
-    awaremw gateway romeo4r --connect tcp/127.0.0.1:7447 --mqtt mqtt://gateway:pw@broker:1883
-    awaremw gateway romeo4r                      # embedded broker (port 1883 if free), printed
-
-What the gateway keeps belongs to the deployment it runs, in its state
-directory (``--state-dir``, by default
-``$XDG_STATE_HOME/awaremw/deployments/<deployment>``; awaremw/gateway/state.py):
-the versions (``gateway.sqlite``) and the embedded broker's account, port and
-retained messages (``broker/``). A restart on the same deployment keeps them,
-another deployment starts clean, ``--fresh`` forgets them. The embedded
-broker's account (user ``awaremw``, a password generated on first start,
-printed once, kept with mode 0600 in ``broker/mqtt-account``) refuses
-anonymous clients unless ``--mqtt-anonymous``. See docs/robustness.md.
-
 The gateway runs the deployment's gateway motes (collection roots) in this
 process, joined to the emulation through ``--connect`` (a router or a fleet
-that listens), and serves the MQTT contract and the Zenoh HBN API (see
-docs/gateway.md). Emulated time is taken from a running fleet when one
-answers on its control key (so record times and epochs agree), else it
-starts at 0 now.
+that listens), and serves the MQTT contract and the Zenoh HBN API
+(docs/gateway.md). What it keeps (versions, the embedded broker's account,
+port and retained messages) lives in the deployment's state directory
+(awaremw/gateway/state.py; docs/gateway.md, *State directories*). Emulated
+time is taken from a running fleet when one answers on its control key (so
+record times and epochs agree), else it starts at 0 now.
 """
 
 from __future__ import annotations
@@ -30,7 +17,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import signal
 import sys
 import time
 from collections.abc import Callable
@@ -38,8 +24,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
-from awaremw.cli.helptext import add_verb
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event
+from awaremw.cli.helptext import add_verb, add_zenoh_mode
 from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
 if TYPE_CHECKING:
@@ -104,13 +90,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="ENDPOINT",
         help="Zenoh endpoint to listen on (repeatable)",
     )
-    p.add_argument(
-        "--zenoh-mode",
-        choices=("peer", "client"),
-        default="peer",
-        help="Zenoh mode: peer (default; links directly to the peers the router names) "
-        "or client (everything through the --connect router, e.g. across networks)",
-    )
+    add_zenoh_mode(p)
     p.add_argument("--prefix", default="aware", help="topic prefix (default aware)")
     add_secrets_option(
         p,
@@ -255,11 +235,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
 
         warn_open("awaremw gateway")
     radio_prefix = args.radio_prefix or DEFAULT_PREFIX
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError):
-            loop.add_signal_handler(sig, stop.set)
+    stop = stop_event()
 
     async with contextlib.AsyncExitStack() as stack:
         try:

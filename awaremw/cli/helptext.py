@@ -6,7 +6,8 @@ examples; plain text (no markup from docstrings).
 examples a user can copy. ``add_wall_timeout`` is the one wall-clock limit of
 the verbs that have no emulated clock (``watch``, ``view``, ``sniff``):
 ``--timeout S``; ``--duration`` always means emulated seconds, and the old
-spelling on those verbs still works with a note on stderr.
+spelling on those verbs still works with a note on stderr. ``add_zenoh_mode``
+is the ``--zenoh-mode`` of the verbs that run motes (``fleet``, ``gateway``).
 """
 
 from __future__ import annotations
@@ -78,6 +79,17 @@ def add_wall_timeout(p: argparse.ArgumentParser, what: str) -> None:
         type=float,
         action=_DeprecatedDuration,
         help=argparse.SUPPRESS,
+    )
+
+
+def add_zenoh_mode(p: argparse.ArgumentParser) -> None:
+    """``--zenoh-mode peer|client``: how the process's Zenoh session joins the router."""
+    p.add_argument(
+        "--zenoh-mode",
+        choices=("peer", "client"),
+        default="peer",
+        help="Zenoh mode: peer (default; links directly to the peers the router names) "
+        "or client (everything through the --connect router, e.g. across networks)",
     )
 
 

@@ -19,12 +19,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import signal
 import sys
 from pathlib import Path
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
+from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event
 from awaremw.cli.helptext import add_verb, add_wall_timeout
 
 DISSECTOR = Path(__file__).resolve().parent.parent / "wireshark" / "awaremw.lua"
@@ -99,11 +98,7 @@ async def _sniff(args: argparse.Namespace, settings: Any, security: Any) -> int:
     from awaremw.radio.sniffer import Sniffer
     from awaremw.runtime.zenoh_session import close_quietly, open_session
 
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError):
-            loop.add_signal_handler(sig, stop.set)
+    stop = stop_event()
     try:
         capture = Capture.to_file(args.pcap, receptions=False)
     except OSError as e:

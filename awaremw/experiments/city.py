@@ -93,27 +93,27 @@ def _figure(
 ) -> None:
     """The whole field at the end: every mote in a group coloured by group id,
     leaders as stars, each object's position as a cross."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure  # no pyplot: no global state, no display
 
     rec, sc = a.rec, a.sc
     t = max(0.0, duration - a.settle)
     pos = {s.id: s.position for s in sc.deployment.nodes}
-    fig, ax = plt.subplots(figsize=(7.5, 7.5), dpi=110)
+    tab20 = colormaps["tab20"]
+    fig = Figure(figsize=(7.5, 7.5), dpi=110)
+    ax = fig.subplots()
     xs = [pos[n][0] for n in sc.sensors]
     ys = [pos[n][1] for n in sc.sensors]
     ax.scatter(xs, ys, s=0.3, color="0.8", linewidths=0)
     for gtype in per_type:
         for gid, members in rec.groups_at(gtype, t).items():
-            colour = plt.cm.tab20(gid % 20)
+            colour = tab20(gid % 20)
             mx = [pos[n][0] for n in members if n in pos]
             my = [pos[n][1] for n in members if n in pos]
             ax.scatter(mx, my, s=6, color=colour, linewidths=0)
         for gid, leader in rec.leaders_at(gtype, t).items():
             if leader in pos:
-                ax.scatter(*pos[leader], marker="*", s=60, color=plt.cm.tab20(gid % 20),
+                ax.scatter(*pos[leader], marker="*", s=60, color=tab20(gid % 20),
                            edgecolors="black", linewidths=0.4)  # fmt: skip
     for objs in per_type.values():
         for o in objs:
@@ -126,7 +126,6 @@ def _figure(
     ax.set_title(f"city at t = {t:.0f} s: groups (colour), leaders (*), objects (x), sinks (■)")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 # --------------------------------------------------------------------------- the deployment

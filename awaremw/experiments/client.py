@@ -109,16 +109,7 @@ class RobotClient:
 
     async def run(self, define: bool = True) -> None:
         s = self.settings
-        async with aiomqtt.Client(
-            hostname=s.host,
-            port=s.port,
-            username=s.username,
-            password=s.password,
-            identifier=f"awaremw-robot-{id(self):x}",
-            protocol=aiomqtt.ProtocolVersion.V311,
-            tls_context=s.ssl_context(),
-            tls_insecure=s.tls_insecure if s.tls else None,
-        ) as client:
+        async with s.client(f"awaremw-robot-{id(self):x}") as client:
             p = self.prefix
             await client.subscribe(f"{p}/data/#", qos=1)
             await client.subscribe(f"{p}/groups/#", qos=1)

@@ -233,14 +233,12 @@ def summarise(name: str, per_seed: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 def figure(path: Path, name: str, per_seed: Sequence[dict[str, Any]], s: dict[str, Any]) -> None:
     """F1 per seed, the histogram of distinct ids and (failover) the time to a new leader."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no global state, no display
 
     fo = [m["failover_epochs"] for m in per_seed if m.get("failover_epochs") is not None]
     cols = 3 if fo else 2
-    fig, axes = plt.subplots(1, cols, figsize=(4.2 * cols, 3.6))
+    fig = Figure(figsize=(4.2 * cols, 3.6))
+    axes = fig.subplots(1, cols)
     ax = axes[0]
     f1 = [m["membership_f1"] for m in per_seed]
     ax.plot([m["seed"] for m in per_seed], f1, "o", ms=4)
@@ -272,4 +270,3 @@ def figure(path: Path, name: str, per_seed: Sequence[dict[str, Any]], s: dict[st
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -1,42 +1,23 @@
 """Embedded MQTT broker (amqtt 0.12): nothing to install or run, and safe by default.
 
 When the gateway gets no ``--mqtt`` URL it starts this in-process broker. What
-it does beyond plain amqtt (see docs/robustness.md):
+it does beyond plain amqtt, each point described in docs/robustness.md,
+"Embedded MQTT broker":
 
-* **an account by default**: user ``awaremw`` with a generated password. With a
-  state directory the password is written once to ``mqtt-account``
-  (``user:password``, mode 0600) and reused on every restart; the broker checks
-  it with amqtt's ``FileAuthPlugin`` against an Argon2 hash in ``mqtt.passwd``
-  (0600). Without one (tests, the demo) the account lives as long as the
-  process. Anonymous clients are refused unless ``anonymous=True``
-  (``--mqtt-anonymous``).
-* **a fixed port**: ``port=None`` takes the port saved in the state directory,
-  else 1883 when free, else a free one (:attr:`EmbeddedBroker.moved_from` says
-  which port was busy); the port used is saved, so a restart keeps it. An
-  explicit port that is busy is an error (:class:`BrokerPortInUse`).
-* **limits**: a packet larger than ``max_message_bytes`` is refused before it
-  is read (the client is disconnected, as Mosquitto does for 3.1.1 clients);
-  at most ``max_retained`` retained topics and ``max_retained_bytes`` of their
-  payloads are kept (a retained message beyond either is delivered but not
-  retained). All refusals are counted in :attr:`EmbeddedBroker.stats`.
-* **offline sessions expire**: amqtt queues the messages of a persistent
-  client that is away without a bound on their number, and has no setting for
-  one; its ``session_expiry_interval`` is set (``BrokerLimits.session_expiry_s``,
-  default one hour), so a client away longer loses its session and that queue with it
-  (:meth:`EmbeddedBroker.queued_for` tells what is queued).
-* **MQTT's retained-message rules, as Mosquitto keeps them**: amqtt 0.12.1
-  sends every connecting client the retained messages matching *every*
-  subscription any session holds (a subscriber of ``nothing/at/all`` got the
-  ``aware/def/*`` definitions; one of ``aware/def/#`` got each twice), and
-  delivers the messages queued for an away persistent session with the retain
-  flag set. Here retained messages go only to a new subscription, for the
-  topics its filter matches, once each, and queued messages keep retain 0
-  (MQTT 3.1.1 3.3.1-6 and 3.3.1-9; docs/gateway.md "The embedded broker's
-  amqtt patch").
-* **retained messages survive a restart**: with a state directory they are kept
-  in ``retained.sqlite`` and put back before the listener opens. (amqtt's own
-  ``SessionDBPlugin`` would need SQLAlchemy; the standard library's sqlite3
-  does this job.)
+* **an account by default** (user ``awaremw``, a generated password kept in
+  the state directory; anonymous clients refused unless ``anonymous=True``);
+* **a fixed port** (the one used last time, else 1883 when free, else a free
+  one: :attr:`EmbeddedBroker.moved_from`; an explicit busy port is
+  :class:`BrokerPortInUse`);
+* **limits** on packet size and on the retained store, every refusal counted
+  in :attr:`EmbeddedBroker.stats`;
+* **offline sessions expire** (``BrokerLimits.session_expiry_s``): amqtt has
+  no bound on the queue of a persistent client that is away;
+* **MQTT's retained-message rules, as Mosquitto keeps them**, where amqtt
+  0.12.1 breaks them (MQTT 3.1.1 3.3.1-6 and 3.3.1-9; docs/gateway.md "The
+  embedded broker's amqtt patch");
+* **retained messages survive a restart** (``retained.sqlite``, restored
+  before the listener opens).
 
 amqtt speaks MQTT 3.1.1 only (the gateway falls back to it).
 """

@@ -1,24 +1,14 @@
 """The Zenoh side of the gateway: the HBN API under ``<prefix>/hbn/**``.
 
-Same contract as MQTT, on key expressions instead of topics:
-
-* ``put`` JSON on ``aware/hbn/def/group/<type>``, ``aware/hbn/def/channel/<id>``
-  (an empty payload or a Zenoh ``delete`` deletes) and ``aware/hbn/cmd/<name>``;
-* subscribe to ``aware/hbn/data/<channel>/<type>/<group_id>`` (records) and
-  ``aware/hbn/groups/<type>/<group_id>`` (group state; a ``delete`` when the
-  group is gone), ``aware/hbn/gateway/status``;
-* refusals are put on ``aware/hbn/errors`` (same JSON as MQTT); a payload
-  larger than ``max_payload_bytes`` is not copied out of Zenoh at all (only its
-  size goes to the loop, to be refused as ``payload_too_large``);
-* what arrives waits for the loop in an :class:`~awaremw.gateway.inbox.Inbox`:
-  the newest value per definition key (a burst of puts on one key costs one
-  entry, and the last put always wins), commands in order; at most
-  ``max_definitions`` keys and ``max_commands`` commands wait, and what does
-  not fit is counted in ``dropped`` and reported on ``aware/hbn/errors`` with
-  code ``input_overflow`` (never dropped silently);
-* ``get aware/hbn/**`` (or any narrower selector such as ``aware/hbn/def/**``
-  or ``aware/hbn/groups/**``) answers with the current definitions, group
-  states and gateway status/stats -- Zenoh's stand-in for retained messages.
+Same contract as MQTT, on key expressions instead of topics (the table of
+keys: docs/gateway.md, "Zenoh HBN API"): definitions and commands are put
+under ``aware/hbn/def/`` and ``aware/hbn/cmd/``, records and group states are
+put under ``aware/hbn/data/`` and ``aware/hbn/groups/``, refusals on
+``aware/hbn/errors``, and a ``get`` on ``aware/hbn/**`` answers with the
+current state (Zenoh's stand-in for retained messages). A payload larger than
+``max_payload_bytes`` is not copied out of Zenoh at all; what arrives waits
+for the loop in a bounded :class:`~awaremw.gateway.inbox.Inbox`, and what
+does not fit is reported with code ``input_overflow``, never dropped silently.
 
 zenoh-python calls back on its own threads: the subscriber copies key, kind
 and payload out of the sample and hands them to the event loop with

@@ -23,8 +23,6 @@ import json
 import secrets
 from dataclasses import dataclass
 
-import aiomqtt
-
 from awaremw.gateway.mqtt import MqttSettings
 
 MAX_LEFTOVERS = 4096  # retained group states read at start (the bridge's MAX_GROUPS)
@@ -58,17 +56,10 @@ async def retained_groups(settings: MqttSettings, timeout_s: float = 5.0) -> dic
     out: dict[str, bytes] = {}
     async with (
         asyncio.timeout(timeout_s),
-        aiomqtt.Client(
-            s.host,
-            s.port,
-            username=s.username,
-            password=s.password,
-            identifier=f"{s.client_id}-leftovers-{nonce}",
-            protocol=aiomqtt.ProtocolVersion.V311,
+        s.client(
+            f"{s.client_id}-leftovers-{nonce}",
             clean_session=True,
             timeout=timeout_s,
-            tls_context=s.ssl_context(),
-            tls_insecure=s.tls_insecure if s.tls else None,
             max_queued_incoming_messages=MAX_LEFTOVERS + 16,
         ) as client,
     ):

@@ -3,36 +3,22 @@
 :class:`MqttBridge` keeps one connection to the broker alive with aiomqtt's
 documented pattern (``async with client`` inside ``while True``, sleeping with
 exponential backoff after an ``MqttError``). Outgoing messages never wait for
-the broker:
+the broker: stream messages (data records, errors) go through a bounded FIFO
+that keeps the newest while the broker is away and lets a message go only once
+the broker acknowledged it; retained state (group states, gateway status and
+stats) is kept as the latest value per topic and re-published on every
+connect. docs/gateway.md, "Broker outages", says what is kept, dropped and
+resent.
 
-* stream messages (data records, errors) go into a bounded FIFO; while the
-  broker is away it fills up to ``buffer_size`` messages, then the oldest are
-  dropped and counted. After a reconnect the backlog is delivered in order. A
-  message leaves the FIFO only once the broker acknowledged it (QoS 1), and
-  each connection uses a fresh client, so nothing is sent twice -- except the
-  one message whose acknowledgement the crash itself swallowed, which is sent
-  again (counted in ``resent``).
-* retained state (group states, gateway status and stats) is kept as latest
-  value per topic and re-published on every connect, because a broker that
-  restarted without persistence has lost its retained messages.
-
-Incoming messages on ``<prefix>/def/#`` and ``<prefix>/cmd/#`` are handed to a
-callback with their topic relative to the prefix and their retain flag. They
-are taken off the connection as fast as they come, into an
-:class:`~awaremw.gateway.inbox.Inbox` (the newest value per definition topic,
-commands in order, both bounded; what does not fit is reported on
-``<prefix>/errors`` with code ``input_overflow``), and handed to the callback
-from there, a slice at a time, so that reading never waits for handling and
-aiomqtt's queue never discards. After a burst of definitions (``reconcile_burst``
-live ones, or any refused), once ``reconcile_quiet_s`` passed without one, the
-bridge subscribes to ``<prefix>/def/#`` again: the broker sends its retained
-definitions once more, so that whatever it dropped on the way (a broker bounds
-what it queues for a client) is applied too. The gateway's definitions then
-equal the broker's retained ones.
-
-The gateway uses a persistent session (MQTT 5 clean start off with a session
-expiry, or 3.1.1 clean session off) so that definitions and deletions sent
-while it was disconnected are queued by the broker for it.
+Incoming messages on ``<prefix>/def/#`` and ``<prefix>/cmd/#`` are taken off
+the connection as fast as they come into an
+:class:`~awaremw.gateway.inbox.Inbox` and handed to a callback from there, a
+slice at a time, so that reading never waits for handling; after a burst of
+definitions the bridge subscribes again, so that the broker's retained
+definitions are applied even where it dropped some on the way
+(docs/robustness.md, "Reconcile"). The gateway uses a persistent session so
+that definitions and deletions sent while it was disconnected are queued by
+the broker for it.
 """
 
 from __future__ import annotations
@@ -48,7 +34,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 from urllib.parse import unquote, urlsplit
 
 import aiomqtt
@@ -180,6 +166,21 @@ class MqttSettings:
             ctx.check_hostname = False
             ctx.verify_mode = ssl.CERT_NONE
         return ctx
+
+    def client(self, identifier: str, **options: Any) -> aiomqtt.Client:
+        """An aiomqtt client of this broker with this account and TLS; MQTT 3.1.1
+        (every broker speaks it) unless ``options`` name another ``protocol``."""
+        options.setdefault("protocol", aiomqtt.ProtocolVersion.V311)
+        return aiomqtt.Client(
+            self.host,
+            self.port,
+            username=self.username,
+            password=self.password,
+            identifier=identifier,
+            tls_context=self.ssl_context(),
+            tls_insecure=self.tls_insecure if self.tls else None,
+            **options,
+        )
 
     @property
     def url(self) -> str:
@@ -330,20 +331,14 @@ class MqttBridge:
             kwargs["clean_start"] = not s.persistent_session
         else:
             kwargs["clean_session"] = not s.persistent_session
-        client = aiomqtt.Client(
-            s.host,
-            s.port,
-            username=s.username,
-            password=s.password,
-            identifier=s.client_id,
+        client = s.client(
+            s.client_id,
             protocol=protocol,
             will=will,
             keepalive=s.keepalive,
             timeout=s.timeout_s,
-            tls_context=self.settings.ssl_context(),
-            tls_insecure=s.tls_insecure if s.tls else None,
             queue_type=_take_all(self._take),
-            **kwargs,  # type: ignore[arg-type]
+            **kwargs,
         )
         # aiomqtt warns above 10 pending calls; our in-flight window is the bound.
         client.pending_calls_threshold = s.max_inflight + 4

@@ -65,62 +65,58 @@ class Aggregator:
         return f"<{type(self).__name__} {self.name}:{self.id}>"
 
 
-class Avg(Aggregator):
+class _OneNumber(Aggregator):
+    """A state of one number: two partials' numbers combine with :meth:`fold`,
+    and the result is that number."""
+
+    def fold(self, x: float, y: float) -> float:
+        raise NotImplementedError
+
+    def init(self, value: float) -> PartialAgg:
+        return 1, (float(value),)
+
+    def merge(self, a: PartialAgg, b: PartialAgg) -> PartialAgg:
+        return a[0] + b[0], (self.fold(a[1][0], b[1][0]),)
+
+    def result(self, count: int, state: State) -> float:
+        return state[0]
+
+
+class Avg(_OneNumber):
     """The paper's AVG: members add their readings and count them; the leader divides."""
 
     id = AggId.AVG
     name = "avg"
 
-    def init(self, value: float) -> PartialAgg:
-        return 1, (float(value),)
-
-    def merge(self, a: PartialAgg, b: PartialAgg) -> PartialAgg:
-        return a[0] + b[0], (a[1][0] + b[1][0],)
+    def fold(self, x: float, y: float) -> float:
+        return x + y
 
     def result(self, count: int, state: State) -> float:
         return state[0] / count
 
 
-class Sum(Aggregator):
+class Sum(_OneNumber):
     id = AggId.SUM
     name = "sum"
 
-    def init(self, value: float) -> PartialAgg:
-        return 1, (float(value),)
-
-    def merge(self, a: PartialAgg, b: PartialAgg) -> PartialAgg:
-        return a[0] + b[0], (a[1][0] + b[1][0],)
-
-    def result(self, count: int, state: State) -> float:
-        return state[0]
+    def fold(self, x: float, y: float) -> float:
+        return x + y
 
 
-class Min(Aggregator):
+class Min(_OneNumber):
     id = AggId.MIN
     name = "min"
 
-    def init(self, value: float) -> PartialAgg:
-        return 1, (float(value),)
-
-    def merge(self, a: PartialAgg, b: PartialAgg) -> PartialAgg:
-        return a[0] + b[0], (min(a[1][0], b[1][0]),)
-
-    def result(self, count: int, state: State) -> float:
-        return state[0]
+    def fold(self, x: float, y: float) -> float:
+        return min(x, y)
 
 
-class Max(Aggregator):
+class Max(_OneNumber):
     id = AggId.MAX
     name = "max"
 
-    def init(self, value: float) -> PartialAgg:
-        return 1, (float(value),)
-
-    def merge(self, a: PartialAgg, b: PartialAgg) -> PartialAgg:
-        return a[0] + b[0], (max(a[1][0], b[1][0]),)
-
-    def result(self, count: int, state: State) -> float:
-        return state[0]
+    def fold(self, x: float, y: float) -> float:
+        return max(x, y)
 
 
 class Count(Aggregator):

@@ -1,55 +1,19 @@
 """A CTP-like collection tree to the gateway roots (Gnawali et al., SenSys 2009).
 
-Routing. Roots (``config.is_root``, any gateway mote; several are allowed)
-advertise cost 0. Every other mote keeps a bounded table of neighbours heard in
-:class:`CtpBeacon` frames (their advertised path cost and parent) and picks as
-parent the one minimising ``advertised cost + link cost``; its own cost is that
-sum. Costs are ETX x 10 integers. Beacons are paced by a Trickle timer
-(``ctp_tau_l`` .. ``ctp_tau_h``, one hour: an idle network whispers) that is
-reset only on what CTP resets on: a route found after none or lost (poison), a
-neighbour that asks (``pull``: it has no route, e.g. a new mote), and the data
-path detecting a loop or an inconsistency. A parent switch or a cost that
-moved is not announced: a mote's children learn it from its next beacon, or at
-once when their data shows that their picture is stale (datapath validation).
-
-Link cost. As MultiHopLQI maps CC2420 LQI to a cost with a cubic, we map the
-EWMA RSSI of the neighbour's frames: ETX 1 at or above ``ctp_rssi_good``,
-``ctp_rssi_max_etx`` at or below ``ctp_rssi_floor``, cubic in between. Unicast
-outcomes correct it: an EWMA (``ctp_etx_alpha``) of samples, ETX 1 for an
-acknowledged frame and ``ctp_fail_etx`` for one that failed every link-layer
-retry; the link cost is the larger of the two estimates.
-
-Parent choice. A better parent must win by ``ctp_parent_switch_threshold``
-(hysteresis). Neighbours whose advertised parent is this mote are never
-candidates. A parent whose unicasts fail ``ctp_evict_after_failures`` times in
-a row is evicted (its entry deleted: it comes back if it beacons again). A
-mote that loses its parent (eviction, the parent advertising no route or
-routing through us) poisons: it advertises ``NO_ROUTE`` with ``pull`` at once
-and, for ``ctp_holddown`` seconds, accepts only a neighbour whose advertised
-cost is below the cost it had (so it cannot be one of its own descendants,
-whose information is stale) other than the parent it lost; after the
-hold-down, any neighbour. From a route loss on, only neighbours heard since
-that loss are candidates (for switching too): entries of motes that died with
-the parent would otherwise be tried one by one, and the pull makes the
-neighbours that have a route beacon at once. That keeps the repair after a
-parent's death from building loops through a subtree whose information is
-stale; the data path breaks the loops that still form.
-
-Data. ``submit`` queues a payload (bounded queue; refused when full; with no
-route it waits). The head of the queue is unicast to the parent; the link layer
-acknowledges and retries, and after a failure the packet is retried at the
-routing level after a short random delay, possibly to another parent, up to
-``ctp_max_retries`` attempts. Forwarders keep a cache of ``(origin, seqno)``
-with the THL each packet arrived with: the same THL again is a duplicate (a
-retransmission whose ACK was lost) and is dropped; a different THL is forwarded
-(as in CTP, a packet that went round a transient loop is not a duplicate). Our
-own packet coming back, or data from our own parent, proves a loop: the mote
-poisons its route as above and keeps the packet. Data
-from a neighbour whose cost is not above ours is an inconsistency (CTP's
-datapath validation): reset the beacon Trickle, still forward the packet.
-Packets whose THL exceeds ``ctp_max_thl`` are dropped. Roots deduplicate per
-origin on ``seqno`` and emit :class:`Delivered` with ``thl`` = radio hops
-travelled (0 when the payload was submitted at the root itself).
+Roots (``config.is_root``, any gateway mote; several are allowed) advertise
+cost 0; every other mote picks as parent the neighbour minimising
+``advertised cost + link cost`` (ETX x 10 integers), with hysteresis. Beacons
+are paced by a Trickle reset only on what CTP resets on (a route found or lost,
+a neighbour's ``pull``, the data path detecting a loop or an inconsistency), so
+an idle network whispers. Link cost maps the EWMA RSSI through a cubic (as
+MultiHopLQI maps LQI), corrected by unicast outcomes. A mote that loses its
+parent poisons its route and, for ``ctp_holddown`` seconds, accepts only
+neighbours heard since the loss with a lower cost, so the repair does not build
+loops through a subtree whose information is stale. Data is unicast hop by
+hop with link- and routing-level retries; forwarders drop duplicates by
+``(origin, seqno, THL)`` and roots emit :class:`Delivered`. The rules, their
+parameters and why each is as it is: docs/protocol-dissemination.md,
+"Collection tree".
 """
 
 from __future__ import annotations

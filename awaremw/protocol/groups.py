@@ -11,36 +11,14 @@ Per defined group type a mote is in one of five roles:
 ``LEADER``        beacons every ``beacon_period`` and reports to the gateway;
 ``HANDING_OVER``  a leader that stopped qualifying and is handing its group over.
 
-The rules (ties and choices the paper leaves open are in docs/protocol-groups.md):
-
-* membership is checked every ``check_period``, and at once when a definition
-  arrives or changes; a member/leader stays while the conditions hold with
-  thresholds relaxed by the definition's hysteresis, a non-member needs the
-  strict conditions;
-* a qualifying mote joins the heaviest group of its type heard within the
-  leader timeout, else waits ``U(0, create_backoff / 2)`` and creates one (leader,
-  weight 0, random 16-bit id avoiding ids heard nearby) -- after announcing the
-  id for ``tentative_periods`` beacon periods (tentative beacons, never joined
-  nor forwarded): an established group in range answers and is joined, the
-  higher of two would-be ids goes on, so contention at a group's birth ends
-  before any mote holds the losing id; answers to an announcement go out after
-  a jitter (with collisions, motes answering the same frame at once collide),
-  and a mote that joins a group after hearing an announcement answers it;
-* members forward only the heaviest group they know: a member hearing a heavier
-  group of its type (``(weight, group id)`` compared) switches to it, a leader
-  hearing one yields (reports GONE with the survivor's id) and joins it;
-* a leader that stops qualifying unicasts a Handover (id, weight, seq) to a
-  member it knows; the new leader continues the id; a candidate that cannot
-  take the group sends the Handover back (a refusal) and the next is tried;
-* members that heard the leader directly and lose it claim the group with its
-  id (failover); the others, after ``leader_timeout_periods`` beacon periods
-  and one more period of patience, drop the group and, still qualifying, run a
-  wider creation backoff: the first to fire creates a group with a NEW id (the
-  paper's split rule), or takes back the id of the group it left by a merge
-  less than ``unmerge_window_periods`` ago (the merge did not hold), or of the
-  split-off group it left when the old group's beacon came back (nor did the split);
-* a mote joining a group from its table of nearby groups announces it (one
-  re-broadcast of the remembered beacon).
+In short: membership is checked every ``check_period`` with hysteresis; a
+qualifying mote joins the heaviest group of its type heard, else creates one
+after a random backoff and a tentative id announcement (so contention ends
+before any mote holds the losing id); members forward only the heaviest group
+they know; a leader that stops qualifying hands its group over; members that
+lose the leader claim the group with its id (failover) or, later, create one
+with a new id (the paper's split rule). Every rule, with the ties and choices
+the paper leaves open: docs/protocol-groups.md, "Groups".
 """
 
 from __future__ import annotations

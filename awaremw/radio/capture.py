@@ -16,17 +16,11 @@ Two parts (``docs/capture.md``):
   the DSN, ACK request on unicasts.
 
 Metadata (RSSI, loss cause, attempt, full 16-bit sequence number) goes in each
-packet's pcapng comment (``opt_comment``): Wireshark shows it under "Packet
-comments" and tshark as the field ``frame.comment`` (``-Y 'frame.comment
-contains "lost"'``) with no plugin at all, and the link type stays the plain
-LINKTYPE_IEEE802_15_4_NOFCS (230) that every 802.15.4 tool knows. A per-packet
-header would need LINKTYPE_IEEE802_15_4_TAP or a private one, which older
-tools and our own dissector would have to unwrap.
-
-Interfaces: ``air`` (id 0) holds one packet per frame put on the air (every
-attempt); ``mote N`` (added at N's first reception) holds what mote N's radio
-made of each frame it considered: ``rx rssi=-71.9`` or ``lost cause=path_loss``.
-Filter one mote's view with ``frame.interface_name == "mote 7"``.
+packet's pcapng comment, so the link type stays the plain
+LINKTYPE_IEEE802_15_4_NOFCS (230) every 802.15.4 tool knows. Interfaces:
+``air`` (id 0) holds one packet per frame put on the air (every attempt);
+``mote N`` what mote N's radio made of each frame it considered. How to read
+and filter them in Wireshark and tshark: docs/capture.md.
 """
 
 from __future__ import annotations

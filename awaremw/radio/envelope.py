@@ -18,13 +18,9 @@ emulated time the transmission started.
 :func:`decode_envelope` raises only :class:`MalformedEnvelope` (a remote
 fault: garbage on a radio key), never anything else. Every field is
 range-checked against :class:`EnvelopeLimits` (built from the radio preset by
-:meth:`EnvelopeLimits.of`): the whole envelope's size is checked before it is
-unpacked, positions must be finite and within ``max_coord_m`` of the origin,
-``tx_power`` within the preset's programmable range, ``seq`` 16 bits,
-``attempt`` within the preset's retries, ``t`` finite and within
-``max_time_s``, the frame at most the MTU. Each refusal names a short
-``reason`` tag (``MalformedEnvelope.reason``, one of :data:`REASONS`) under
-which the medium counts it.
+:meth:`EnvelopeLimits.of`), the envelope's size before it is unpacked; each
+refusal names a ``reason`` tag (one of :data:`REASONS`) under which the medium
+counts it. The table of tags and bounds: docs/runtime.md, "The envelope".
 """
 
 from __future__ import annotations

@@ -4,34 +4,17 @@ One place for both media (the Zenoh medium and the virtual-clock driver):
 a frame goes on the air *sealed* and comes off the air *opened* here.
 
 On the air a secured frame is ``payload || counter (4 B, big-endian) || MIC``:
-
-* the **frame counter** is the sender's, one per frame it puts on the air
-  (a link-layer retry is the same frame, so the same counter);
-* the **MIC** (8 bytes by default, 802.15.4's MIC-64; 4 bytes = MIC-32 as
-  TinySec-Auth) is AES-CCM* in authentication-only mode with the 128-bit
-  network key: CCM with an empty plaintext and, as associated data, the MAC
-  header fields the emulator carries in its envelope (source, destination,
-  16-bit link sequence number) followed by the payload and the counter. The
-  13-byte nonce is 802.15.4's: the source address as an 8-byte extended
-  address, the frame counter, the security level (2 = MIC-64, 1 = MIC-32).
-
-Receivers verify the MIC (once per transmission: the key is the network's,
-so the answer is the same for every receiver) and then each keeps the
-highest counter it accepted per sender and drops a frame whose counter is
-not above it (a replay). The table is bounded (:data:`MAX_SENDERS` per
-receiver); when it is full a frame from a new sender is refused, as an
-802.15.4 device descriptor table would (entries are only made by frames whose
-MIC verified, so an outsider cannot fill it). Counters and tables are kept by
-node id for the life of the medium, as a mote keeps them in flash: a mote
-switched off and on again in the same process goes on counting.
-
-Hardware ACKs are not secured (802.15.4 ACK frames carry no security), so an
-outsider can forge an ACK; the receiver ACKs a frame before it checks the MIC,
-as CC2420 hardware does.
-
-Payload MTU: the sealed frame must fit the preset's MTU, so the middleware's
-frames get ``mtu - overhead`` bytes (:meth:`RadioSecurity.payload_mtu`):
-100 -> 88 B on the CC2420 preset, 64 -> 52 B on CC1000 (docs/security.md).
+the sender's frame counter (a link-layer retry is the same frame, so the same
+counter) and an AES-CCM* authentication-only MIC over the MAC header fields
+the envelope carries, the payload and the counter (8 bytes, 802.15.4's
+MIC-64; 4 bytes = MIC-32 as TinySec-Auth). Receivers verify the MIC once per
+transmission, then each drops a frame whose counter is not above the highest
+it accepted from that sender (a replay), in a table bounded at
+:data:`MAX_SENDERS` senders. Hardware ACKs are not secured, as in 802.15.4.
+The sealed frame must fit the preset's MTU, so the middleware's frames get
+``mtu - overhead`` bytes (:meth:`RadioSecurity.payload_mtu`). The nonce, the
+order of the checks and the known limitations: docs/security.md,
+"Authenticated frames".
 """
 
 from __future__ import annotations

@@ -10,56 +10,17 @@ lists and bulk-counted drops in :mod:`awaremw.radio.neighbourhood`, every
 reception decision and its accounting in :mod:`awaremw.radio.reception`, the
 link layer's state and rules in :mod:`awaremw.radio.linklayer`. So a run over
 Zenoh and a virtual run of the same deployment count the same things the same
-way. ``docs/runtime.md`` describes the Zenoh side.
+way.
 
-Key expressions: a frame from ``src`` standing in cell ``(cx, cy)`` (cells of
-side ``model.cell_size_m`` >= the radio's maximum range) is published on
-``<prefix>/radio/<cx>/<cy>/<src>``. A mote can only hear senders in its own
-cell and the 8 around it. The process subscribes once per grid *column* its
-motes need (``<prefix>/radio/<cx>/*/*``), never per mote: with spatial stripes
-along x a process needs a handful of columns, hence a handful of
-subscriptions. Samples reach the event loop in one of two ways (``handler``):
-
-* ``"channel"`` (default): each subscription has a Zenoh FIFO channel that the
-  loop drains with ``try_recv`` every 1 ms after traffic, backing off to 4 ms
-  when idle, at every speed (:func:`poll_bounds`) -- no Python
-  runs on Zenoh's threads at all;
-* ``"callback"``: a callback on Zenoh's thread copies the bytes into a deque
-  and wakes the loop with one ``call_soon_threadsafe`` per batch, not per
-  sample.
-
-``awaremw bench scale --layout interleaved --handler ...`` measures both; the
-channel needs about 20 % less CPU (every callback takes the GIL from the loop's
-thread), so it is the default. Either way the loop fans each envelope out to
-the local motes in range; nothing touches asyncio from a Zenoh thread except
+What is left here is the Zenoh side, described in ``docs/runtime.md``, "The
+medium": key expressions per grid cell and subscriptions per grid column,
+local frames served without Zenoh, the two sample handlers (``"channel"``,
+the default, and ``"callback"``), the ACK envelopes between processes and
+their wall-time floor; and ``docs/radio.md``, "Across processes and hosts":
+envelopes published at a frame's start, receptions decided ``guard_s`` of
+wall time after its end, late envelopes decided at once
+(``MediumStats.late``). Nothing touches asyncio from a Zenoh thread except
 ``call_soon_threadsafe``.
-
-Frames between motes of the same process never go through Zenoh: publishers
-use ``allowed_destination=REMOTE`` and subscribers ``allowed_origin=REMOTE``,
-and local receivers are served directly (the same code path decides).
-
-Receiver side: distance, RSSI and loss come from
-:class:`~awaremw.radio.model.RadioModel` keyed by ``(seed, src, dst,
-packet_key(seq, attempt))`` -- identical in every process. A unicast is
-considered only by its destination; the destination's medium sends the
-emulated auto-ACK back (an ACK envelope) and the sender's medium decides its
-reception on the reverse link. The sender waits ``preset.ack_timeout_s``
-(emulated) but never less than ``ack_wait_floor_s`` of wall time for remote
-destinations (Zenoh and the loops need that long to answer), then retries up
-to ``preset.max_retries`` times and reports the outcome to the core.
-
-Channel access and collisions (``mac``, ``collisions``; ``docs/radio.md``,
-"Across processes and hosts") are :mod:`awaremw.radio.mac`'s, driven through
-:mod:`awaremw.radio.linklayer` as the virtual medium drives them; this module
-only turns their answers into timers and envelopes. An attempt's envelope is
-published as soon as its start is decided, carrying that start time; every
-process puts the frame on its :class:`~awaremw.radio.mac.Air` (carrier sense
-and interference) and decides its own motes' receptions ``guard_s`` of wall
-time after the frame's end, when every overlapping frame's envelope has
-arrived -- so every process decides from the same frames. Timers carry the
-emulated time they stand for and the MAC runs on it, so loop lag does not
-move backoffs or starts. An envelope that comes after its end + guard is
-decided at once and counted (``MediumStats.late``).
 """
 
 from __future__ import annotations

@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Sequence
-from types import TracebackType
 
 import zenoh
 
@@ -80,12 +79,7 @@ class EmbeddedRouter:
     def __enter__(self) -> EmbeddedRouter:
         return self.start()
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def serve_forever(self, stop: threading.Event | None = None) -> None:

@@ -170,18 +170,6 @@ class SecretsDir:
     def mqtt(self) -> MqttFiles:
         return MqttFiles(self.root / "mqtt")
 
-    def read_network_key(self) -> bytes:
-        key = self.network_key.read_bytes()
-        if len(key) not in NETWORK_KEY_SIZES:
-            raise ValueError(f"{self.network_key}: {len(key)} bytes, expected 16 or 32")
-        return key
-
-    def read_signing_key(self) -> Ed25519PrivateKey:
-        key = serialization.load_pem_private_key(self.signing_key.read_bytes(), password=None)
-        if not isinstance(key, Ed25519PrivateKey):
-            raise ValueError(f"{self.signing_key}: not an Ed25519 private key")
-        return key
-
 
 def mosquitto_hash(
     password: str, *, salt: bytes | None = None, iterations: int = MQTT_PBKDF2_ITERATIONS

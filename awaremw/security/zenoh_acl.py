@@ -30,14 +30,11 @@ bypass the router) with its role's credentials.
 
 Routers linked to each other (one per host, ``awaremw router --connect``) carry
 every role's traffic between their clients, so their links get a subject of
-their own, ``router``: a link authenticated on *both* ends by mutual TLS with
-the routers' certificate (common name :data:`ROUTER_CN`), allowed every message
-kind on the radio, fleet-control and HBN key spaces. A role's rules are applied
-once, where its session enters its own router. Zenoh's ``usrpwd`` check alone
-cannot name such a link: only the accepting router learns the user name, and
-the router that opened the link would see an anonymous peer (default deny).
-The opening router still logs in with the ``router`` account, because the
-accepting router demands an account from every session.
+their own, ``router``: mutual TLS with the routers' certificate (common name
+:data:`ROUTER_CN`), allowed every message kind on the radio, fleet-control and
+HBN key spaces; a role's rules are applied once, where its session enters its
+own router. Why a certificate and not an account: docs/security.md, "Links
+between routers".
 """
 
 from __future__ import annotations

@@ -517,12 +517,7 @@ class MqttFeed:
         delay = 0.2
         while not self._stop.is_set():
             try:
-                async with aiomqtt.Client(
-                    hostname=s.host, port=s.port, username=s.username, password=s.password,
-                    identifier=s.client_id, protocol=aiomqtt.ProtocolVersion.V311,
-                    tls_context=s.ssl_context(), tls_insecure=s.tls_insecure if s.tls else None,
-                    max_queued_incoming_messages=1000,
-                ) as client:  # fmt: skip
+                async with s.client(s.client_id, max_queued_incoming_messages=1000) as client:
                     self._client = client
                     await client.subscribe(f"{s.prefix}/#", qos=1)
                     self.on_connected(True)

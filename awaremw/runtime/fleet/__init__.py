@@ -12,7 +12,6 @@ otherwise, used the same way (docs/runtime.md, "One interface"). The modules:
 from __future__ import annotations
 
 import math
-from types import TracebackType
 from typing import Protocol, Self
 
 from awaremw.radio.capture import Capture
@@ -43,9 +42,7 @@ class AnyFleet(Protocol):
     def stats(self) -> Snapshots: ...  # progress: counter totals, recent timer lag
 
     async def __aenter__(self) -> Self: ...
-    async def __aexit__(
-        self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
-    ) -> None: ...
+    async def __aexit__(self, *exc: object) -> None: ...
     async def run(self, duration: float | None = None) -> None: ...
     def now(self) -> float: ...
     def counters(self) -> dict[int, MoteCounters]: ...  # a launcher's: after it closed

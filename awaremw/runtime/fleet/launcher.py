@@ -18,7 +18,6 @@ import logging
 import math
 import subprocess
 import time
-from types import TracebackType
 from typing import Any
 
 from awaremw.radio.capture import Capture
@@ -109,12 +108,7 @@ class FleetLauncher:
             raise
         return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         await self._shutdown()
 
     async def _launch(self) -> None:

@@ -25,7 +25,6 @@ import gc
 import logging
 import time
 from collections.abc import Callable
-from types import TracebackType
 
 import zenoh
 
@@ -156,12 +155,7 @@ class Fleet:
             raise
         return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         await self.aclose()
 
     async def _setup(self) -> None:
