@@ -219,7 +219,6 @@ class OnAir:
         src: int,
         x: float,
         y: float,
-        cell: tuple[int, int],
         tx_power: float,
         start: float,
         end: float,
@@ -229,7 +228,7 @@ class OnAir:
         self.src = src
         self.x = x
         self.y = y
-        self.cell = cell
+        self.cell: tuple[int, int] = (0, 0)  # the Air's cell for it (Air.add sets it)
         self.tx_power = tx_power
         self.start = start
         self.end = end
@@ -310,7 +309,8 @@ class Air:
             raise ValueError(f"frame of {src} ends ({end}) before it starts ({start})")
         if self._count >= MAX_ON_AIR:
             raise RuntimeError(f"more than {MAX_ON_AIR} frames on the air: frames never pruned")
-        f = OnAir(src, x, y, cell_of(x, y, self.cell_size), tx_power, start, end, key, mw)
+        f = OnAir(src, x, y, tx_power, start, end, key, mw)
+        f.cell = cell_of(x, y, self.cell_size)
         self._n += 1
         f.n = self._n
         lst = self._by_cell.get(f.cell)
