@@ -100,7 +100,10 @@ class AwareMote:
         self._timed = tuple((c, c.timers) for c in self._components)  # set once per component
         # The components whose timer set was ever armed, in the same order (the
         # others have no timer: the timer loops skip them); rebuilt on TimerWatch.grew.
-        self._live: tuple[tuple[Component, TimerSet], ...] = ()
+        # Two flat tuples, not one of (component, set) pairs: a timer event reads
+        # every live set's soonest, and a pair tuple each was one more object (a
+        # cache line, scattered: built while running) per set per event.
+        self._live_comps: tuple[Component, ...] = ()
         self._live_sets: tuple[TimerSet, ...] = ()
         self._timer_watch = self.ctx.watch
         for c in self._components:
@@ -152,8 +155,10 @@ class AwareMote:
         w = self._timer_watch
         if w.grew:
             self._relive()
-        for c, t in self._live:
+        comps = self._live_comps
+        for i, t in enumerate(self._live_sets):
             if t.soonest <= now:  # else (a lower bound of its earliest deadline) none due
+                c = comps[i]
                 for name in t.due(now):
                     c.on_timer(name, now)
                 if w.grew:
@@ -168,8 +173,9 @@ class AwareMote:
 
     def _relive(self) -> None:
         self._timer_watch.grew = False
-        self._live = tuple((c, t) for c, t in self._timed if t.armed)
-        self._live_sets = tuple(t for _c, t in self._live)
+        live = [(c, t) for c, t in self._timed if t.armed]
+        self._live_comps = tuple(c for c, _t in live)
+        self._live_sets = tuple(t for _c, t in live)
 
     def next_deadline(self) -> float | None:
         w = self._timer_watch
