@@ -36,9 +36,14 @@ class FakeGroups:
     def __init__(self, member_of: dict[int, int]) -> None:
         self.member_of = member_of
 
+        self.app_changes: list[float] = []
+
     def membership(self, group_type: int) -> FakeMembership | None:
         gid = self.member_of.get(group_type)
         return None if gid is None else FakeMembership(gid)
+
+    def app_changed(self, now: float) -> None:
+        self.app_changes.append(now)
 
 
 def make(
@@ -178,3 +183,12 @@ def test_group_commands_run_on_the_members_of_real_groups() -> None:
     assert ran["sample"] == by_gid[left]
     assert ran["blink"] == set(members)
     assert len(sc.motes) - len(members) >= 30  # most motes are outside both groups
+
+
+def test_a_command_run_tells_the_groups_that_readings_may_change() -> None:
+    groups = FakeGroups({})
+    c, _ctx, app = make(node=4, groups=groups, versions={0: 1, 1: 1})
+    c.define(0, CommandDef("led", TargetKind.NODE, 5), 1.0)  # for mote 5: not run here
+    assert groups.app_changes == []
+    c.define(1, CommandDef("led", TargetKind.NODE, 4), 2.0)
+    assert len(app.commands) == 1 and groups.app_changes == [2.0]

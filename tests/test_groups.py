@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import random
 from typing import Any
 
@@ -9,7 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE
+from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE, Bounds
+from awaremw.protocol.commands import Commands
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.events import (
     ElectionCause,
@@ -1103,22 +1105,101 @@ def test_a_condition_that_may_not_hold_on_an_interval_fails_everywhere_in_it(
         assert condition_may_hold(c, lo, hi, relax)
 
 
+class Bounded(App):
+    """Says its readings stay within a degree of their value until ``until``
+    (the default, -inf: at the time asked only); counts the reads."""
+
+    def __init__(self, until: float = -math.inf, **values: float | None) -> None:
+        super().__init__(**values)
+        self.until = until
+        self.reads = 0
+
+    def read(self, attr: int, now: float) -> float | None:
+        self.reads += 1
+        return super().read(attr, now)
+
+    def read_bounds(self, attr: int, now: float) -> Bounds | None:
+        v = self.values.get(attr)
+        return None if v is None else Bounds(v - 1.0, v + 1.0, self.until)
+
+
+def bounded(temp: float, until: float = -math.inf) -> tuple[H, Bounded]:
+    h = H()
+    app = Bounded(until, t=temp)
+    h.ctx.app = app
+    return h, app
+
+
 def test_a_group_check_takes_no_reading_outside_what_can_qualify() -> None:
-    class Bounded(App):
-        reads = 0
-
-        def read(self, attr: int, now: float) -> float | None:
-            self.reads += 1
-            return super().read(attr, now)
-
-        def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
-            v = self.values.get(attr)
-            return None if v is None else (v - 1.0, v + 1.0)
-
     for temp, reads in ((20.0, 0), (80.0, 1)):
-        h = H()
-        app = Bounded(t=temp)
-        h.ctx.app = app
+        h, app = bounded(temp)
         h.g.define(1, HOT, 0.0)
         assert app.reads == reads  # the hot mote read (and qualifies); the cold one did not
         assert h.g.role(1) is (Role.IDLE if temp == 20.0 else Role.WAITING)
+
+
+def test_a_mote_whose_conditions_are_ruled_out_for_good_parks_its_checks() -> None:
+    parked, _ = bounded(20.0, until=math.inf)
+    ticking, _ = bounded(20.0)  # bounds for the moment only
+    for h in (parked, ticking):
+        h.g.define(1, HOT, 0.0)
+        h.advance(500.0)
+        assert h.g.role(1) is Role.IDLE
+    assert parked.g.timers.next_deadline() is None and parked.g.stats.checks_parked == 1
+    assert ticking.g.timers.next_deadline() is not None and ticking.g.stats.checks_parked == 0
+
+
+def test_a_parked_mote_checks_until_a_finite_horizon_then_on_its_old_schedule() -> None:
+    parked, app = bounded(20.0, until=50.25)
+    ticking, _ = bounded(20.0)
+    for h in (parked, ticking):
+        h.g.define(1, HOT, 0.0)
+        h.advance(10.0)
+    wake = parked.g.timers.get("check")
+    assert wake is not None and 50.25 <= wake < 51.25
+    ticking.advance(wake - 0.01)
+    assert ticking.g.timers.get("check") == wake  # the instant it would have checked anyway
+    app.until = -math.inf  # from then on, bounds for the moment only: no more parking
+    parked.advance(wake)
+    assert parked.g.timers.get("check") == wake + parked.cfg.check_period
+
+
+def test_a_group_frame_wakes_a_parked_mote_on_the_schedule_it_left() -> None:
+    parked, papp = bounded(20.0, until=math.inf)
+    ticking, tapp = bounded(20.0)
+    for h in (parked, ticking):
+        h.g.define(1, HOT, 0.0)
+        h.advance(37.3)
+        h.hear(beacon(4, gid=500, leader=4))
+    assert parked.g.timers.get("check") == ticking.g.timers.get("check")
+    for h, app in ((parked, papp), (ticking, tapp)):
+        app.values[T] = 80.0  # the fire comes
+        h.advance(38.5)
+        h.hear(beacon(4, gid=500, leader=4, seq=2))
+        assert h.g.role(1) is Role.MEMBER
+    assert parked.events(GroupJoined) == ticking.events(GroupJoined)
+
+
+def test_a_command_wakes_a_parked_mote() -> None:
+    h, app = bounded(20.0, until=math.inf)
+    h.g.define(1, HOT, 0.0)
+    h.advance(20.0)
+    assert "check" not in h.g.timers
+    Commands(h.ctx, h.g).define(0, CommandDef("set_rate", args=(("period_s", 2.0),)), h.now)
+    due = h.g.timers.get("check")
+    assert due is not None and h.now <= due < h.now + h.cfg.check_period
+    app.until = -math.inf
+    app.values[T] = 80.0  # what the command changed: readings now qualify
+    h.advance(due)
+    assert h.g.role(1) is Role.WAITING
+
+
+def test_a_definition_wakes_a_parked_mote_without_a_new_phase() -> None:
+    parked, _ = bounded(20.0, until=math.inf)
+    ticking, _ = bounded(20.0)
+    other = GroupTypeDef((Condition(HUMIDITY, Op.GT, 50.0),))
+    for h in (parked, ticking):
+        h.g.define(1, HOT, 0.0)
+        h.advance(12.6)
+        h.g.define(2, other, h.now)
+    assert parked.g.timers.get("check") == ticking.g.timers.get("check")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -24,6 +26,7 @@ from awaremw.protocol import attributes as A
 from awaremw.protocol.attributes import Application, ReadBounds
 from awaremw.protocol.frames import CommandDef
 from awaremw.world.fields import Keyframe, Source, World
+from awaremw.world.mobility import Path, Static
 
 
 def at(x: float, y: float):  # type: ignore[no-untyped-def]
@@ -218,6 +221,17 @@ def test_temperature_read_bounds_hold_every_read(
         v = app.read(A.TEMPERATURE, t + dt)
         assert v is not None and b[0] <= v <= b[1]
         assert app.read_bounds(A.TEMPERATURE, t + dt) == b  # static: the same interval
+
+
+def test_read_bounds_of_a_static_mote_hold_for_ever_and_of_a_moving_one_for_now() -> None:
+    still = TmoteSky(3, Static(5.0, 5.0).position, World())
+    b = still.read_bounds(A.TEMPERATURE, 2.0)
+    assert b is not None and b.until == math.inf
+    path = Path(((5.0, 5.0), (50.0, 5.0)), speed_mps=1.0)
+    moving = TmoteSky(4, path.position, World())
+    for t in (2.0, 3.5):
+        b = moving.read_bounds(A.TEMPERATURE, t)
+        assert b is not None and b.until <= t  # where it is now, not where it goes
 
 
 def test_no_read_bounds_with_a_held_sample_or_another_attribute() -> None:

@@ -13,6 +13,8 @@ import random
 import pytest
 from traces import aware_trace
 
+from awaremw.bench import aware_load
+from awaremw.nodes import kinds
 from awaremw.protocol.core import IdleCheck
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.protocol.mote import AwareMote
@@ -49,6 +51,25 @@ def test_the_fast_paths_change_no_event_and_no_counter(monkeypatch: pytest.Monke
     assert slow == fast
     collisions = [line for line in fast if "collisions=" in line and "collisions=0," not in line]
     assert collisions  # the run exercised the survival checks
+
+
+@pytest.mark.pure_python
+def test_parked_membership_checks_change_no_event_and_no_counter(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    parked = aware_trace(400, 3, 40.0, deadlines=False)
+    assert any("RecordProduced" in line for line in parked)
+    # Off: no mote is static as far as its sensors know, so none parks.
+    monkeypatch.setattr(kinds, "stays_put", lambda position: False)
+    assert aware_trace(400, 3, 40.0, deadlines=False) == parked
+
+
+def test_most_motes_of_the_aware_field_park_their_checks() -> None:
+    load = aware_load.build(400, 3, 40.0)
+    load.run_until(40.0)
+    cores = [c for c in load.net.cores.values() if isinstance(c, AwareMote)]
+    parked = sum(1 for c in cores if c.groups.stats.checks_parked)
+    assert parked > len(cores) // 2  # the fire's reach is a band: most of the field is out
 
 
 def _frames(rng: random.Random, air: Air, n: int, size: float) -> None:

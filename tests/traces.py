@@ -6,9 +6,9 @@ from awaremw.bench import aware_load
 from awaremw.protocol.mote import AwareMote
 
 
-def aware_trace(motes: int, seed: int, duration: float) -> list[str]:
+def aware_trace(motes: int, seed: int, duration: float, deadlines: bool = True) -> list[str]:
     """Every core event of a seeded aware run (mote, time, event), then every
-    mote's radio counters and next deadline."""
+    mote's radio counters and (``deadlines``) next deadline."""
     load = aware_load.build(motes, seed, duration)
     out: list[str] = []
     tally = load.net.on_event
@@ -22,5 +22,6 @@ def aware_trace(motes: int, seed: int, duration: float) -> list[str]:
     load.run_until(duration)
     for nid, core in sorted(load.net.cores.items()):
         assert isinstance(core, AwareMote)
-        out.append(f"{nid}|{load.net.counters[nid]!r}|{core.next_deadline()!r}")
+        deadline = core.next_deadline() if deadlines else None
+        out.append(f"{nid}|{load.net.counters[nid]!r}|{deadline!r}")
     return out

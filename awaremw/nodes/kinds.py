@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 from awaremw.protocol import attributes as A
 from awaremw.protocol.frames import CommandDef
 from awaremw.world.fields import GAUSS_BOUND, Source, World
+from awaremw.world.mobility import stays_put
 
 Position = Callable[[float], tuple[float, float]]
 EnergyProbe = Callable[[], float]  # joules spent so far by this mote
@@ -381,16 +382,15 @@ class TmoteSky(NodeApp):
         self._readers[A.LIGHT] = self._light
         # read_bounds of the temperature at (x, y) with these noise settings (None:
         # a fire may reach it): (x, y, noise, bounds).
-        self._cold: tuple[float, float, SensorNoise | None, tuple[float, float] | None] | None = (
-            None
-        )
+        self._cold: tuple[float, float, SensorNoise | None, A.Bounds | None] | None = None
 
-    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
+    def read_bounds(self, attr: int, now: float) -> A.Bounds | None:
         """:class:`~awaremw.protocol.attributes.ReadBounds`: the temperature of a
         mote no fire can reach (ambient, plus noise of at most ``GAUSS_BOUND``
-        sigmas), through the SHT11 conversion, which is monotonic; None for a
-        mote a fire may reach, for other attributes, and with a sample-and-hold
-        period (a read then updates the held sample)."""
+        sigmas), through the SHT11 conversion, which is monotonic; for ever if
+        the mote is static (a fire's reach is fixed for the world's life), else
+        at ``now`` only. None for a mote a fire may reach, for other attributes,
+        and with a sample-and-hold period (a read then updates the held sample)."""
         if attr != A.TEMPERATURE or self.sample_period > 0:
             return None
         x, y = self.position(now)
@@ -398,11 +398,11 @@ class TmoteSky(NodeApp):
         c = self._cold
         if c is None or c[0] != x or c[1] != y or c[2] is not n:
             c = self._cold = (x, y, n, self._cold_bounds(x, y, now, n))
-        return c[3]
+        return c[3]  # a moving mote's ``until`` is when it was at (x, y): <= now
 
     def _cold_bounds(
         self, x: float, y: float, now: float, n: SensorNoise | None
-    ) -> tuple[float, float] | None:
+    ) -> A.Bounds | None:
         """The bounds at (x, y) when no fire reaches it (else None)."""
         fires = self._fires_at(x, y)
         if fires:
@@ -413,7 +413,7 @@ class TmoteSky(NodeApp):
         spread = 0.0 if n is None else (n.sigma + n.relative * abs(true)) * GAUSS_BOUND
         lo = Sht11.temperature_si(Sht11.temperature_raw(true - spread))
         hi = Sht11.temperature_si(Sht11.temperature_raw(true + spread))
-        return lo, hi
+        return A.Bounds(lo, hi, math.inf if stays_put(self.position) else now)
 
     def raw_temperature(self, now: float) -> int:
         return Sht11.temperature_raw(self._sensed("temperature", now)[1])

@@ -10,7 +10,7 @@ more attributes with ids from ``CUSTOM_BASE`` on, registered by name.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 from awaremw.protocol.frames import MAX_NODE_ID, NODE_MASK, CommandDef
 from awaremw.protocol.frames import RSSI_BASE as RSSI_BASE  # rssi:<node> = RSSI_BASE | node
@@ -116,12 +116,24 @@ class Application(Protocol):
     def on_command(self, command: CommandDef, now: float) -> None: ...
 
 
+class Bounds(NamedTuple):
+    """What :class:`ReadBounds` promises: ``read(attr, t)`` returns a number in
+    ``[lo, hi]`` and changes nothing by being read, at ``t = now`` and at every
+    ``t`` before ``until`` (``until <= now``: at ``now`` only), as long as the
+    application is sent no command meanwhile."""
+
+    lo: float
+    hi: float
+    until: float
+
+
 @runtime_checkable
 class ReadBounds(Protocol):
-    """Optional for an :class:`Application`: ``read_bounds(attr, now)`` is
-    ``(lo, hi)`` when ``read(attr, now)`` is certain to return a number in that
-    interval and to change nothing by being read (else None: unknown). A group
-    check skips a read whose interval cannot meet its condition: the same
-    decision, without the sensor model's work."""
+    """Optional for an :class:`Application`: ``read_bounds(attr, now)`` gives the
+    :class:`Bounds` of an attribute's readings (None: unknown). A group check
+    skips a read whose interval cannot meet its condition (the same decision,
+    without the sensor model's work), and a mote whose every group condition is
+    ruled out until ``until`` checks again only then (docs/protocol-groups.md,
+    "Membership checks")."""
 
-    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None: ...
+    def read_bounds(self, attr: int, now: float) -> Bounds | None: ...

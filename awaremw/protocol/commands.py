@@ -57,6 +57,7 @@ class Commands(Component):
         if not self.targets_me(item) or self.ctx.app is None:
             return
         self.ctx.app.on_command(item, now)
+        self.groups.app_changed(now)
         self.executed += 1
         self.ctx.emit(CommandExecuted(item.name, slot, version))
 

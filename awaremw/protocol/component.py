@@ -11,7 +11,7 @@ from __future__ import annotations
 import random
 from collections.abc import Callable
 
-from awaremw.protocol.attributes import Application, ReadBounds
+from awaremw.protocol.attributes import Application, Bounds, ReadBounds
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.events import CoreEvent
@@ -65,7 +65,7 @@ class MoteContext:
         self.watch = TimerWatch()
         # The application's read_bounds (ReadBounds), looked up again if app changes.
         self._bounds_app: Application | None = None
-        self._bounds: Callable[[int, float], tuple[float, float] | None] | None = None
+        self._bounds: Callable[[int, float], Bounds | None] | None = None
 
     def send(self, owner: Component, frame: Frame) -> Transmission:
         """Encode ``frame`` (MTU enforced: an oversize frame is our bug) and queue it."""
@@ -84,9 +84,10 @@ class MoteContext:
         self.event_list.append(event)
         self.watch.queued = True
 
-    def read_bounds(self, attr: int, now: float) -> tuple[float, float] | None:
-        """An interval :meth:`read` is certain to fall in now, with no side effect
-        (:class:`~awaremw.protocol.attributes.ReadBounds`), or None: unknown."""
+    def read_bounds(self, attr: int, now: float) -> Bounds | None:
+        """An interval :meth:`read` is certain to fall in, now and until a time,
+        with no side effect (:class:`~awaremw.protocol.attributes.ReadBounds`),
+        or None: unknown."""
         app = self.app
         if app is None or attr & RSSI_BASE:
             return None

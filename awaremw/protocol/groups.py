@@ -112,6 +112,7 @@ class GroupStats:
     handovers_refused: int = 0
     reports_refused: int = 0  # collection.submit said no
     types_refused: int = 0
+    checks_parked: int = 0  # membership checks parked: nothing can change (_quiet_until)
 
 
 # --------------------------------------------------------------------------- internals
@@ -265,6 +266,9 @@ class Groups(Component):
         self.stats = GroupStats()
         self._types: dict[int, _TypeState] = {}
         self._echoed: tuple[int, int, int, int] | None = None  # last refusal sent back
+        # Parked (see _quiet_until): the time of the last membership check run;
+        # the skipped checks were due at it + k * check_period. None: not parked.
+        self._parked_at: float | None = None
         # Called with ``now`` when this mote enters a group (as member or leader):
         # the channels start their epochs then (a mote in no group keeps no epoch timer).
         self.on_enter: Callable[[float], None] | None = None
@@ -292,6 +296,7 @@ class Groups(Component):
             st = self._types[group_type] = _TypeState(group_type, item)
         else:
             st.defn = item
+        self._wake(now)
         self._check(st, now)  # a changed definition takes effect at once
         if "check" not in self.timers:
             self.timers.set("check", now + self.ctx.rng.uniform(0, self.ctx.config.check_period))
@@ -494,7 +499,14 @@ class Groups(Component):
 
     # ----------------------------------------------------------------- Component hooks
 
+    def app_changed(self, now: float) -> None:
+        """The application was sent a command: its readings may change (a sample
+        period, say), so a parked mote checks again from its next regular check."""
+        self._wake(now)
+
     def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
+        if self._parked_at is not None:
+            self._wake(now)  # the frame may fill tables that the checks purge
         if isinstance(frame, LeaderBeacon):
             self._on_beacon(frame, rssi_dbm, now)
         elif isinstance(frame, Handover):
@@ -502,11 +514,21 @@ class Groups(Component):
 
     def on_timer(self, name: object, now: float) -> None:
         if name == "check":
+            self._parked_at = None  # a parked mote's horizon came
             for st in list(self._types.values()):
                 self._check(st, now)
                 self._purge(st, now)
-            if self._types:
-                self.timers.set("check", now + self.ctx.config.check_period)
+            if not self._types:
+                return
+            nxt = now + self.ctx.config.check_period
+            quiet = self._quiet_until(now)
+            if quiet <= nxt:
+                self.timers.set("check", nxt)
+                return
+            self._parked_at = now
+            self.stats.checks_parked += 1
+            if quiet < math.inf:
+                self.timers.set("check", self._regular_check_after(quiet))
             return
         assert isinstance(name, tuple)
         kind, g = name
@@ -601,6 +623,51 @@ class Groups(Component):
             if not condition_holds(c, ctx.read(c.attr, now), relax):
                 return False
         return True
+
+    def _quiet_until(self, now: float) -> float:
+        """Until when the membership checks can change nothing (``now``: they may).
+
+        A mote out of every group, with no group heard lately (nothing to purge),
+        whose application rules a condition of every type out until a time
+        (:class:`~awaremw.protocol.attributes.Bounds`), makes the same decision,
+        "not in", at every check until then: it parks its checks (most motes of a
+        large field, far from anything a group tracks). What could change that
+        wakes it: a group frame, a definition, a command to the application.
+        """
+        until = math.inf
+        for st in self._types.values():
+            if st.role is not Role.IDLE or st.nearby or st.tent_heard:
+                return now
+            if st.upstream or st.failed or st.children:
+                return now
+            ruled_out = now
+            for c in st.defn.conditions:
+                b = self.ctx.read_bounds(c.attr, now)
+                if (
+                    b is not None
+                    and b.until > ruled_out
+                    and not condition_may_hold(c, b.lo, b.hi, 0.0)
+                ):
+                    ruled_out = b.until
+            until = min(until, ruled_out)
+        return until
+
+    def _regular_check_after(self, t: float) -> float:
+        """The first check, at or after ``t``, of the schedule the parked mote left:
+        the same float sums as running every check, so the same instants."""
+        p = self.ctx.config.check_period
+        assert self._parked_at is not None
+        due = self._parked_at + p
+        while due < t:
+            due += p
+        return due
+
+    def _wake(self, now: float) -> None:
+        """Unpark: back to a check every period, on the schedule it left."""
+        if self._parked_at is None:
+            return
+        self.timers.set("check", self._regular_check_after(now))
+        self._parked_at = None
 
     def _check(self, st: _TypeState, now: float) -> None:
         role = st.role
@@ -895,6 +962,7 @@ class Groups(Component):
             self.timers.cancel((kind, group_type))
         if not self._types:
             self.timers.cancel("check")
+            self._parked_at = None
 
     def _leader_lost(self, st: _TypeState, now: float) -> None:
         if self._leader_was_neighbour(st, now) and self._qualifies(st, True, now):

@@ -44,6 +44,12 @@ class Static:
         return self.x, self.y
 
 
+def stays_put(position: object) -> bool:
+    """Whether ``position`` (a position function, as node kinds hold it) is a
+    :class:`Static` mote's: the same point at every time."""
+    return isinstance(getattr(position, "__self__", None), Static)
+
+
 @dataclass(frozen=True)
 class Path:
     """Move along ``waypoints`` at ``speed_mps``, starting at ``start_s``.
