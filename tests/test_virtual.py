@@ -394,3 +394,19 @@ def test_bench_smoke() -> None:
         "cpu_per_mote_s_us": out["cpu_per_mote_s_us"],
         "rss_per_mote_kb": out["rss_per_mote_kb"],
     }
+
+
+@pytest.mark.parametrize("workload", ["hello", "aware"])
+def test_networks_in_turns_run_as_they_would_alone(workload: str) -> None:
+    """The control of ``--sizes --control``: K networks in turns, each the run it
+    would be alone (the turns and the collections between them change nothing)."""
+    from awaremw.bench.virtual import run, run_networks
+
+    both = run_networks(49, 2, 25.0, 3, workload)
+    alone = [run(49, 25.0, s, workload) for s in (3, 4)]
+    assert both["networks"] == 2 and both["motes"] == 49
+    assert both["frames_tx"] == sum(r["frames_tx"] for r in alone) > 0
+    assert both["deliveries"] == sum(r["deliveries"] for r in alone)
+    if workload == "aware":
+        assert all(r["records_produced"] > 0 for r in alone)
+        assert both["record_delivery_min"] == min(r["record_delivery"] for r in alone)

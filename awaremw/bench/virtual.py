@@ -37,6 +37,15 @@ lattice (default one per region of about 1,000 motes). With
 ``--workload aware`` the JSON also has ``sinks``, ``objects`` (fires, one per
 region), ``objects_tracked``, ``records_per_object``, ``ids_per_object`` and
 ``records_unattributed`` (:func:`awaremw.bench.aware_load.score_objects`).
+
+``--networks K``: K independent networks of ``--motes`` each (seeds ``--seed``
+on) in turns in one process (:func:`run_networks`; keys ``networks``,
+``cpu_per_mote_s_us`` over all of their motes, ``record_delivery_min``).
+``--sizes ... --control`` adds such a run with the largest size's motes in
+networks of the smallest (``control``), ``cpu_per_mote_ratio_vs_control``
+(the largest size's cost over the control's: what the large network's own
+tables and queues add) and ``control_ratio`` (the control's over the
+smallest size's: what the memory the motes span adds, the CPU's caches).
 """
 
 from __future__ import annotations
@@ -70,6 +79,9 @@ WORKLOADS = ("hello", "aware")
 # Emulated seconds between two explicit collections of the young generations
 # during a run (the automatic collector is off meanwhile, see settled_gc).
 GC_EVERY_S = 10.0
+# --networks: emulated seconds each network runs in its turn (short: the networks'
+# memory is touched in turn about as a large network's is, mote after mote).
+INTERLEAVE_S = 0.01
 
 
 @contextmanager
@@ -159,6 +171,10 @@ def run(
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
         workload, profile = str(ns.workload), ns.profile
         mac, collisions, sinks = str(ns.mac), str(ns.collisions), ns.sinks
+        if ns.networks < 1:
+            raise ValueError(f"--networks {ns.networks}: at least 1")
+        if ns.networks > 1:
+            return run_networks(motes, ns.networks, duration, seed, workload, mac, collisions)
     if workload not in WORKLOADS:
         raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
     check_motes(motes)
@@ -215,6 +231,70 @@ def run(
     return out
 
 
+def run_networks(
+    motes: int,
+    networks: int,
+    duration: float,
+    seed: int,
+    workload: str = "aware",
+    mac: str = "csma",
+    collisions: str = "sinr",
+) -> dict[str, Any]:
+    """``--networks K``: K independent networks of ``motes`` each (seeds ``seed``
+    on), run in one process in turns of :data:`INTERLEAVE_S` emulated seconds.
+
+    The control of ``--sizes ... --control``: the same number of motes as one
+    network K times larger, and so as much memory touched in turn, but no table,
+    cell grid or timer queue larger than a small network's. What one large
+    network costs beyond it is the emulator's doing; what the control costs
+    beyond one small network is the memory the motes span (the CPU's caches)."""
+    if workload not in WORKLOADS:
+        raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
+    check_motes(motes)
+    rss0 = resident_kb()
+    loads: list[aware_load.AwareLoad] = []
+    nets: list[VirtualNetwork] = []
+    for k in range(networks):
+        if workload == "aware":
+            loads.append(aware_load.build(motes, seed + k, duration, mac, collisions))
+            nets.append(loads[-1].net)
+        else:
+            nets.append(build(motes, seed + k, mac=mac, collisions=collisions))
+    steps = [load.run_until for load in loads] if loads else [net.run_until for net in nets]
+    with settled_gc() as collect:
+        c0 = time.process_time()
+        t, k, collected = 0.0, 0, 0.0
+        while t < duration:
+            k += 1
+            t = min(duration, k * INTERLEAVE_S)
+            for step in steps:
+                step(t)
+            if t - collected >= GC_EVERY_S:
+                collect()
+                collected = t
+        cpu = time.process_time() - c0
+    rss1 = max(resident_kb(), peak_kb())
+    counters = [c for n in nets for c in n.counters.values()]
+    out: dict[str, Any] = {
+        "motes": motes,
+        "networks": networks,
+        "sim_seconds": duration,
+        "cpu_seconds": round(cpu, 3),
+        "cpu_per_mote_s_us": round(1e6 * cpu / (motes * networks * duration), 3),
+        "rss_per_mote_kb": round((rss1 - rss0) / (motes * networks), 2),
+        "frames_tx": sum(c.frames_tx for c in counters),
+        "deliveries": sum(c.frames_rx for c in counters),
+        "workload": workload,
+        "seed": seed,
+        **build_facts(),
+    }
+    if workload == "aware":
+        ratios = [load.tally.results(duration)["record_delivery"] for load in loads]
+        known = [r for r in ratios if r is not None]
+        out["record_delivery_min"] = min(known) if known else None
+    return out
+
+
 def check_motes(motes: int) -> None:
     """One line for a network the address space cannot hold (IEEE 802.15.4 short
     addresses: 0xFFFF is broadcast, 0xFFFE means "no short address")."""
@@ -261,21 +341,9 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
     sizes = parse_sizes(str(ns.sizes))
     runs: list[dict[str, Any]] = []
     for n in sizes:
-        argv = [
-            sys.executable, "-m", "awaremw", "bench", "virtual", "--json",
-            "--motes", str(n), "--duration", str(ns.duration), "--seed", str(ns.seed),
-            "--workload", str(ns.workload), "--mac", str(ns.mac),
-            "--collisions", str(ns.collisions),
-        ]  # fmt: skip
-        if ns.sinks is not None:
-            argv += ["--sinks", str(ns.sinks)]
         if not ns.json:
             print(f"bench virtual: {n} motes ...", file=sys.stderr, flush=True)
-        done = subprocess.run(argv, capture_output=True, text=True, check=False)
-        if done.returncode != 0:
-            tail = (done.stderr.strip().splitlines() or ["no output"])[-1]
-            raise RuntimeError(f"bench virtual at {n} motes failed: {tail}")
-        runs.append(json.loads(done.stdout))
+        runs.append(_child(ns, n, [] if ns.sinks is None else ["--sinks", str(ns.sinks)]))
     first, last = runs[0], runs[-1]
     out: dict[str, Any] = {
         "sizes": runs,
@@ -285,10 +353,38 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
         else None,
         **build_facts(),
     }
+    if ns.control and len(runs) > 1:
+        k = last["motes"] // first["motes"]
+        if not ns.json:
+            print(f"bench virtual: control, {k} networks of {first['motes']} motes ...",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        control = _child(ns, first["motes"], ["--networks", str(k)])
+        out["control"] = control
+        # Above 1: the large network costs more than as many motes in small ones.
+        out["cpu_per_mote_ratio_vs_control"] = round(
+            last["cpu_per_mote_s_us"] / control["cpu_per_mote_s_us"], 3
+        )
+        out["control_ratio"] = round(control["cpu_per_mote_s_us"] / first["cpu_per_mote_s_us"], 3)
     if ns.plot:
         plot_sizes(runs, ns.plot)
         out["plot"] = str(ns.plot)
     return out
+
+
+def _child(ns: argparse.Namespace, motes: int, extra: list[str]) -> dict[str, Any]:
+    """One run of ``ns`` at ``motes`` in a fresh interpreter (its memory its own)."""
+    argv = [
+        sys.executable, "-m", "awaremw", "bench", "virtual", "--json",
+        "--motes", str(motes), "--duration", str(ns.duration), "--seed", str(ns.seed),
+        "--workload", str(ns.workload), "--mac", str(ns.mac),
+        "--collisions", str(ns.collisions), *extra,
+    ]  # fmt: skip
+    done = subprocess.run(argv, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        tail = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise RuntimeError(f"bench virtual at {motes} motes failed: {tail}")
+    result: dict[str, Any] = json.loads(done.stdout)
+    return result
 
 
 def plot_sizes(runs: list[dict[str, Any]], path: str) -> None:
@@ -343,3 +439,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run at each of these sizes (fresh process each) and compare the cost per mote",
     )
     parser.add_argument("--plot", metavar="FILE", help="with --sizes: draw the cost curve (PNG)")
+    parser.add_argument(
+        "--networks",
+        type=int,
+        default=1,
+        metavar="K",
+        help="K independent networks of --motes each, in turns in one process",
+    )
+    parser.add_argument(
+        "--control",
+        action="store_true",
+        help="with --sizes: also run the largest size as networks of the smallest (--networks)",
+    )
