@@ -211,15 +211,18 @@ def test_temperature_read_bounds_hold_every_read(
 ) -> None:
     fire = Source("f", (Keyframe(0, 100, 100, 25, 80), Keyframe(60, 300, 300, 25, 80)), edge=4.0)
     w = World(seed=seed, ambient_temperature=20.0, variation=1.5, fires=(fire,))
-    app = TmoteSky(3, at(x, y), w, noise={"temperature": SensorNoise(sigma, rel)})
+    app = TmoteSky(3, Static(x, y).position, w, noise={"temperature": SensorNoise(sigma, rel)})
     b = app.read_bounds(A.TEMPERATURE, t)
-    if fire.reaches(x, y):
-        assert b is None  # a fire may heat it: no bounds, read
+    if b is None:  # the fire may heat it now: no bounds, read
+        assert fire.reaches(x, y) and fire.profile(x, y, t + 1e-3) > 0.0
         return
-    assert b is not None
-    for dt in (0.0, 0.25, 0.5, 7.3, 33.0):
+    assert b.until > t and (b.until == math.inf or fire.reaches(x, y))
+    for dt in (0.0, 0.25, 0.5, 7.3, 33.0, 120.0):
+        if t + dt >= b.until:
+            assert fire.profile(x, y, b.until + 1e-3) > 0.0  # a horizon no later than needed
+            break
         v = app.read(A.TEMPERATURE, t + dt)
-        assert v is not None and b[0] <= v <= b[1]
+        assert v is not None and b.lo <= v <= b.hi
         assert app.read_bounds(A.TEMPERATURE, t + dt) == b  # static: the same interval
 
 

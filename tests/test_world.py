@@ -225,6 +225,41 @@ def test_reaches_is_tight_enough_to_skip_far_motes() -> None:
     assert not s.reaches(50.0, 40.0)  # beside the segment, 40 m off it
 
 
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.floats(0, 60), st.floats(0, 200), st.floats(0, 200), st.floats(0, 20)),
+        min_size=1,
+        max_size=5,
+    ),
+    st.floats(0.5, 5),
+    st.booleans(),
+    st.floats(-50, 250),
+    st.floats(-50, 250),
+    st.floats(0, 200),
+)
+def test_a_source_gives_a_point_exactly_zero_until_its_cold_horizon(
+    legs: list[tuple[float, float, float, float]],
+    edge: float,
+    hold: bool,
+    x: float,
+    y: float,
+    t: float,
+) -> None:
+    # Membership checks park until then (docs/protocol-groups.md): no heat before.
+    ts = list(itertools.accumulate(leg[0] for leg in legs))
+    keys = tuple(Keyframe(tk, lx, ly, r, 80.0) for tk, (_, lx, ly, r) in zip(ts, legs, strict=True))
+    s = Source("f", keys, edge=edge, hold=hold)
+    until = s.cold_until(x, y, t)
+    end = min(until, t + 300.0)
+    for k in range(100):
+        tk = t + (end - t) * k / 100
+        if tk < until:
+            assert s.profile(x, y, tk) == 0.0
+    if t < until < math.inf and all(r == legs[0][3] for *_, r in legs):
+        assert s.profile(x, y, until + 1e-4) > 0.0  # not later than the heat comes
+
+
 def test_a_sensor_read_is_the_world_value_plus_the_seeded_noise() -> None:
     from awaremw.nodes.kinds import TmoteSky
 

@@ -363,6 +363,28 @@ class NodeApp:
         return True, f"beeped {ms:g} ms"
 
 
+class _ColdSpot:
+    """A tmote's temperature bounds at one position and noise setting while no
+    fire heats it, and until when they hold (``fresh_until``: recomputed after)."""
+
+    __slots__ = ("bounds", "fires", "fresh_until", "hi", "lo", "noise", "x", "y")
+
+    def __init__(
+        self,
+        x: float,
+        y: float,
+        noise: SensorNoise | None,
+        lo: float,
+        hi: float,
+        fires: tuple[Source, ...],
+    ) -> None:
+        self.x, self.y, self.noise = x, y, noise
+        self.lo, self.hi = lo, hi
+        self.fires = fires  # those that can ever reach (x, y)
+        self.bounds: A.Bounds | None = None
+        self.fresh_until = -math.inf
+
+
 class TmoteSky(NodeApp):
     """tmote sky: SHT11 temperature + humidity, S1087 light (12-bit ADC)."""
 
@@ -380,40 +402,44 @@ class TmoteSky(NodeApp):
         self._readers[A.TEMPERATURE] = self._temperature
         self._readers[A.HUMIDITY] = self._humidity
         self._readers[A.LIGHT] = self._light
-        # read_bounds of the temperature at (x, y) with these noise settings (None:
-        # a fire may reach it): (x, y, noise, bounds).
-        self._cold: tuple[float, float, SensorNoise | None, A.Bounds | None] | None = None
+        self._spot: _ColdSpot | None = None  # read_bounds at the last position
 
     def read_bounds(self, attr: int, now: float) -> A.Bounds | None:
         """:class:`~awaremw.protocol.attributes.ReadBounds`: the temperature of a
-        mote no fire can reach (ambient, plus noise of at most ``GAUSS_BOUND``
-        sigmas), through the SHT11 conversion, which is monotonic; for ever if
-        the mote is static (a fire's reach is fixed for the world's life), else
-        at ``now`` only. None for a mote a fire may reach, for other attributes,
-        and with a sample-and-hold period (a read then updates the held sample)."""
+        mote no fire heats (ambient, plus noise of at most ``GAUSS_BOUND`` sigmas,
+        through the SHT11 conversion, which is monotonic), until a fire may come
+        near (:meth:`~awaremw.world.fields.Source.cold_until`; for ever if none
+        can) if the mote is static, else at ``now`` only. None while a fire may
+        heat it, for other attributes, and with a sample-and-hold period (a read
+        then updates the held sample)."""
         if attr != A.TEMPERATURE or self.sample_period > 0:
             return None
         x, y = self.position(now)
         n = self.noise.get("temperature")
-        c = self._cold
-        if c is None or c[0] != x or c[1] != y or c[2] is not n:
-            c = self._cold = (x, y, n, self._cold_bounds(x, y, now, n))
-        return c[3]  # a moving mote's ``until`` is when it was at (x, y): <= now
+        spot = self._spot
+        if spot is None or spot.x != x or spot.y != y or spot.noise is not n:
+            spot = self._spot = self._cold_spot(x, y, now, n)
+        if now < spot.fresh_until:
+            return spot.bounds
+        # The horizon passed (or held at one instant only): when may a fire come?
+        cold = min((f.cold_until(x, y, now) for f in spot.fires), default=math.inf)
+        if cold <= now:
+            spot.bounds, spot.fresh_until = None, now
+        else:
+            until = cold if stays_put(self.position) else now
+            spot.bounds, spot.fresh_until = A.Bounds(spot.lo, spot.hi, until), until
+        return spot.bounds
 
-    def _cold_bounds(
-        self, x: float, y: float, now: float, n: SensorNoise | None
-    ) -> A.Bounds | None:
-        """The bounds at (x, y) when no fire reaches it (else None)."""
+    def _cold_spot(self, x: float, y: float, now: float, n: SensorNoise | None) -> _ColdSpot:
+        """The bounds at (x, y) while no fire heats it."""
         fires = self._fires_at(x, y)
-        if fires:
-            return None
         # The noise-free value is then the same at every time: ambient (+ texture).
-        true = self.world.temperature_near(fires, x, y, now)
+        true = self.world.temperature_near((), x, y, now)
         # _sensed adds sigma * g with |g| < GAUSS_BOUND (rounding is monotonic).
         spread = 0.0 if n is None else (n.sigma + n.relative * abs(true)) * GAUSS_BOUND
         lo = Sht11.temperature_si(Sht11.temperature_raw(true - spread))
         hi = Sht11.temperature_si(Sht11.temperature_raw(true + spread))
-        return A.Bounds(lo, hi, math.inf if stays_put(self.position) else now)
+        return _ColdSpot(x, y, n, lo, hi, fires)
 
     def raw_temperature(self, now: float) -> int:
         return Sht11.temperature_raw(self._sensed("temperature", now)[1])

@@ -228,8 +228,60 @@ class Source:
         d = min(_to_segment(x, y, a.x, a.y, b.x, b.y) for a, b in pairs)
         return d <= reach * (1.0 + 1e-9) + 1e-6
 
+    def cold_until(self, x: float, y: float, t: float) -> float:
+        """A time before which, from ``t`` on, the profile at (x, y) is exactly 0
+        (``t`` or earlier: it may not be 0 now; ``inf``: never again). Exact up to
+        a margin: the centre moves on straight lines between keyframes, and the
+        reach is the largest radius of each leg plus the falloff's cut."""
+        ks = self.keyframes
+        cut = _CUT_EDGES * self.edge
+        if t >= ks[-1].t:
+            if not self.hold and t > ks[-1].t:
+                return math.inf  # gone
+            k = ks[-1]
+            return t if _within(x, y, k.x, k.y, k.radius + cut) else math.inf
+        for a, b in itertools.pairwise(ks):
+            if b.t <= t:
+                continue
+            t0 = max(t, a.t)
+            f = 0.0 if b.t == a.t else (t0 - a.t) / (b.t - a.t)
+            cx, cy = a.x + f * (b.x - a.x), a.y + f * (b.y - a.y)
+            reach = max(a.radius, b.radius) + cut
+            s = _first_within(x - cx, y - cy, b.x - a.x, b.y - a.y, b.t - a.t, reach)
+            if s is not None and t0 + s <= b.t:
+                return max(t, t0 + s - 1e-6)
+        k = ks[-1]
+        if self.hold and _within(x, y, k.x, k.y, k.radius + cut):
+            return max(t, k.t - 1e-6)
+        return math.inf
+
 
 _CUT_EDGES = 8.0  # a source's falloff is cut (0) this many edges out of its radius
+
+
+def _within(x: float, y: float, cx: float, cy: float, reach: float) -> bool:
+    """(x, y) within ``reach`` of (cx, cy), with :meth:`Source.reaches`'s margin."""
+    return math.hypot(x - cx, y - cy) <= reach * (1.0 + 1e-9) + 1e-6
+
+
+def _first_within(
+    px: float, py: float, dx: float, dy: float, dt: float, reach: float
+) -> float | None:
+    """The first s >= 0 at which a point at (px, py) from a centre moving by
+    (dx, dy) every dt seconds is within ``reach`` of it (None: never)."""
+    r = reach * (1.0 + 1e-9) + 1e-6
+    c = px * px + py * py - r * r
+    if c <= 0:
+        return 0.0
+    if dt <= 0:
+        return None
+    vx, vy = dx / dt, dy / dt
+    a = vx * vx + vy * vy
+    b = px * vx + py * vy  # > 0: the centre moves towards the point
+    disc = b * b - a * c
+    if a == 0 or b <= 0 or disc < 0:
+        return None
+    return (b - math.sqrt(disc)) / a
 
 
 def _to_segment(x: float, y: float, ax: float, ay: float, bx: float, by: float) -> float:
