@@ -25,6 +25,7 @@ from awaremw.protocol.frames import (
     ItemKind,
     Op,
     decode,
+    encode,
 )
 from awaremw.protocol.mote import MoteContext
 from awaremw.world.mobility import Static
@@ -498,6 +499,38 @@ def test_forged_versions_around_the_circle_cannot_hold_off_the_gateway() -> None
     }
     refused = [e for n in forged for e in net.nodes[n][1].event_list if isinstance(e, ItemRefused)]
     assert refused and all(e.reason == "version jump" for e in refused)
+
+
+@pytest.mark.parametrize(("seed", "start"), [(1, 20.0), (1, 22.0), (2, 21.5), (3, 21.0)])
+def test_a_forged_far_ahead_version_does_not_strand_motes_off_the_operators_definition(
+    seed: int, start: float
+) -> None:
+    # The fuzz test's attack on the 5 x 5 grid: a far-ahead version forged from a
+    # corner mote's place while the operator's definition spreads. Motes that had
+    # not yet heard a neighbour echo their version (or held nothing) took it,
+    # and its repeats anchored it there; the gateway mote refused it, so nothing
+    # ever superseded it: those motes stayed on the forged period for good, and
+    # refused the operator's next version too (a jump from theirs).
+    forged, bad = 0x8000_0001, ChannelDef(1, 1, 0xFFFF, 500, 0)
+    net, motes, events = build_grid(5, 12.0, seed=seed)
+    inject_at(net, motes[0], 20.0, CH, 1, 1, CHAN)
+    net.run_until(start)
+    for k in range(4):
+        net.inject(24, encode(DripItem(24, BROADCAST, CH, 1, forged, bad)))
+        net.run_until(start + 0.5 * (k + 1))
+    took = {n for n, e, _ in events if isinstance(e, ItemAdopted) and e.version == forged}
+    assert took  # the attack did reach motes
+    # Once it stops, the network's own version comes back everywhere, in seconds ...
+    net.run_until(start + 2.0 + 10.0)
+    assert {i: m.dissemination.items[(CH, 1)] for i, m in motes.items()} == {
+        i: (1, CHAN) for i in motes
+    }
+    # ... and the operator's next definition reaches every mote.
+    inject_at(net, motes[0], 60.0, CH, 1, 2, CHAN2)
+    net.run_until(75.0)
+    assert {i: m.dissemination.items[(CH, 1)] for i, m in motes.items()} == {
+        i: (2, CHAN2) for i in motes
+    }
 
 
 # --------------------------------------------------------------------------- the wave's cost
