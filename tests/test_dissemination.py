@@ -39,10 +39,12 @@ HOT = GroupTypeDef((Condition(0, Op.GT, 45.0),))
 Calls = list[tuple[ItemKind, int, ItemBody | None, float]]
 
 
-def make(node: int = 1, seed: int = 0, **cfg: object) -> tuple[Dissemination, MoteContext, Calls]:
+def make(
+    node: int = 1, seed: int = 0, parent: int | None = None, **cfg: object
+) -> tuple[Dissemination, MoteContext, Calls]:
     ctx = MoteContext(node, MiddlewareConfig().with_overrides(cfg), random.Random(seed), None)
     calls: Calls = []
-    d = Dissemination(ctx, lambda k, i, b, t: calls.append((k, i, b, t)))
+    d = Dissemination(ctx, lambda k, i, b, t: calls.append((k, i, b, t)), lambda: parent)
     return d, ctx, calls
 
 
@@ -449,6 +451,26 @@ def test_a_version_jump_is_refused_once_neighbours_echoed_ours() -> None:
     # A step within the window is adopted as before.
     d.on_frame(DripItem(9, BROADCAST, CH, 1, 3 + (1 << 16), CHAN2), -70.0, 41.0)
     assert d.items[(CH, 1)] == (3 + (1 << 16), CHAN2)
+
+
+def test_a_jump_from_the_parent_is_taken_and_a_refused_one_is_answered_unsuppressed() -> None:
+    d, ctx, _ = make(parent=5, drip_tau_l=1.0, drip_tau_h=64.0)
+    d.start(0.0)
+    d.on_frame(DripItem(7, BROADCAST, CH, 1, 0x8000_0001, CHAN2), -70.0, 0.0)
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 0x8000_0001, CHAN2), -70.0, 0.5)  # anchored
+    advance(d, 40.0)
+    sent(ctx)
+    # A jump from a neighbour is refused; the refusal is said at the next point
+    # even though a neighbour says the same version first (we may be its parent).
+    d.on_frame(DripItem(9, BROADCAST, CH, 1, 3, CHAN), -70.0, 40.0)
+    assert d.version_of(CH, 1) == 0x8000_0001
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 0x8000_0001, CHAN2), -70.0, 40.0)
+    advance(d, 41.0)
+    assert [f.version for f in sent(ctx) if isinstance(f, DripItem)] == [0x8000_0001]
+    # The same jump from our parent (toward the gateway mote) is taken.
+    d.on_frame(DripItem(5, BROADCAST, CH, 1, 3, CHAN), -70.0, 42.0)
+    assert d.items[(CH, 1)] == (3, CHAN)
+    assert ctx.event_list[-1] == ItemAdopted(CH, 1, 3, False, 5)
 
 
 def test_a_version_adopted_alone_gives_way_to_the_networks() -> None:
