@@ -25,6 +25,7 @@ from awaremw.protocol.frames import (
     ItemKind,
     Op,
     decode,
+    encode,
 )
 from awaremw.protocol.mote import MoteContext
 from awaremw.world.mobility import Static
@@ -38,10 +39,12 @@ HOT = GroupTypeDef((Condition(0, Op.GT, 45.0),))
 Calls = list[tuple[ItemKind, int, ItemBody | None, float]]
 
 
-def make(node: int = 1, seed: int = 0, **cfg: object) -> tuple[Dissemination, MoteContext, Calls]:
+def make(
+    node: int = 1, seed: int = 0, parent: int | None = None, **cfg: object
+) -> tuple[Dissemination, MoteContext, Calls]:
     ctx = MoteContext(node, MiddlewareConfig().with_overrides(cfg), random.Random(seed), None)
     calls: Calls = []
-    d = Dissemination(ctx, lambda k, i, b, t: calls.append((k, i, b, t)))
+    d = Dissemination(ctx, lambda k, i, b, t: calls.append((k, i, b, t)), lambda: parent)
     return d, ctx, calls
 
 
@@ -450,6 +453,26 @@ def test_a_version_jump_is_refused_once_neighbours_echoed_ours() -> None:
     assert d.items[(CH, 1)] == (3 + (1 << 16), CHAN2)
 
 
+def test_a_jump_from_the_parent_is_taken_and_a_refused_one_is_answered_unsuppressed() -> None:
+    d, ctx, _ = make(parent=5, drip_tau_l=1.0, drip_tau_h=64.0)
+    d.start(0.0)
+    d.on_frame(DripItem(7, BROADCAST, CH, 1, 0x8000_0001, CHAN2), -70.0, 0.0)
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 0x8000_0001, CHAN2), -70.0, 0.5)  # anchored
+    advance(d, 40.0)
+    sent(ctx)
+    # A jump from a neighbour is refused; the refusal is said at the next point
+    # even though a neighbour says the same version first (we may be its parent).
+    d.on_frame(DripItem(9, BROADCAST, CH, 1, 3, CHAN), -70.0, 40.0)
+    assert d.version_of(CH, 1) == 0x8000_0001
+    d.on_frame(DripItem(8, BROADCAST, CH, 1, 0x8000_0001, CHAN2), -70.0, 40.0)
+    advance(d, 41.0)
+    assert [f.version for f in sent(ctx) if isinstance(f, DripItem)] == [0x8000_0001]
+    # The same jump from our parent (toward the gateway mote) is taken.
+    d.on_frame(DripItem(5, BROADCAST, CH, 1, 3, CHAN), -70.0, 42.0)
+    assert d.items[(CH, 1)] == (3, CHAN)
+    assert ctx.event_list[-1] == ItemAdopted(CH, 1, 3, False, 5)
+
+
 def test_a_version_adopted_alone_gives_way_to_the_networks() -> None:
     # A mote that booted into a forged item (nothing held, so any version is taken)
     # hears its neighbours' version, "older" in serial order: it takes theirs.
@@ -498,6 +521,38 @@ def test_forged_versions_around_the_circle_cannot_hold_off_the_gateway() -> None
     }
     refused = [e for n in forged for e in net.nodes[n][1].event_list if isinstance(e, ItemRefused)]
     assert refused and all(e.reason == "version jump" for e in refused)
+
+
+@pytest.mark.parametrize(("seed", "start"), [(1, 20.0), (1, 22.0), (2, 21.5), (3, 21.0)])
+def test_a_forged_far_ahead_version_does_not_strand_motes_off_the_operators_definition(
+    seed: int, start: float
+) -> None:
+    # The fuzz test's attack on the 5 x 5 grid: a far-ahead version forged from a
+    # corner mote's place while the operator's definition spreads. Motes that had
+    # not yet heard a neighbour echo their version (or held nothing) took it,
+    # and its repeats anchored it there; the gateway mote refused it, so nothing
+    # ever superseded it: those motes stayed on the forged period for good, and
+    # refused the operator's next version too (a jump from theirs).
+    forged, bad = 0x8000_0001, ChannelDef(1, 1, 0xFFFF, 500, 0)
+    net, motes, events = build_grid(5, 12.0, seed=seed)
+    inject_at(net, motes[0], 20.0, CH, 1, 1, CHAN)
+    net.run_until(start)
+    for k in range(4):
+        net.inject(24, encode(DripItem(24, BROADCAST, CH, 1, forged, bad)))
+        net.run_until(start + 0.5 * (k + 1))
+    took = {n for n, e, _ in events if isinstance(e, ItemAdopted) and e.version == forged}
+    assert took  # the attack did reach motes
+    # Once it stops, the network's own version comes back everywhere, in seconds ...
+    net.run_until(start + 2.0 + 10.0)
+    assert {i: m.dissemination.items[(CH, 1)] for i, m in motes.items()} == {
+        i: (1, CHAN) for i in motes
+    }
+    # ... and the operator's next definition reaches every mote.
+    inject_at(net, motes[0], 60.0, CH, 1, 2, CHAN2)
+    net.run_until(75.0)
+    assert {i: m.dissemination.items[(CH, 1)] for i, m in motes.items()} == {
+        i: (2, CHAN2) for i in motes
+    }
 
 
 # --------------------------------------------------------------------------- the wave's cost

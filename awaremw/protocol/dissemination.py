@@ -148,9 +148,15 @@ def digest_of(entries: Mapping[ItemKey, Item]) -> int:
 class Dissemination(Component):
     """Drip: one Trickle per item, plus boot-time summaries for fast catch-up."""
 
-    def __init__(self, ctx: MoteContext, on_item: OnItem) -> None:
+    def __init__(
+        self, ctx: MoteContext, on_item: OnItem, parent: Callable[[], int | None] | None = None
+    ) -> None:
         super().__init__(ctx)
         self.on_item = on_item
+        # The mote's collection-tree parent (its next hop to a gateway mote; None:
+        # no route, or a root). A version jump heard from it is taken: see
+        # _on_item_frame.
+        self._parent = parent
         self._items: dict[ItemKey, Item] = {}
         self._view: Mapping[ItemKey, Item] = MappingProxyType(self._items)
         self._trickles: dict[ItemKey, Trickle] = {}
@@ -186,6 +192,9 @@ class Dissemination(Component):
         # drip_max_version_step are taken; until then (a mote that booted into a
         # forged version, alone) any version its neighbours send replaces ours.
         self._anchored: set[ItemKey] = set()
+        # Keys whose version we defended against a jump since we last sent it: our
+        # next transmission point is not suppressed (see _on_item_frame).
+        self._contested: set[ItemKey] = set()
 
     # ------------------------------------------------------------------ public API
 
@@ -321,6 +330,7 @@ class Dissemination(Component):
     def _broadcast(self, key: ItemKey) -> None:
         """Put the item we hold for ``key`` on the air (and its signature parts)."""
         it = self._items[key]
+        self._contested.discard(key)
         sig = self._sigs.get(key)
         nid = self.ctx.node_id
         self.send(DripItem(nid, BROADCAST, key[0], key[1], it.version, it.body))
@@ -338,20 +348,28 @@ class Dissemination(Component):
         cur = self._items.get(key)
         if cur is not None and f.version == cur.version:
             self._anchored.add(key)  # another mote holds our version: anchored
-            self._trickles[key].hear_consistent()
+            if key not in self._contested:
+                self._trickles[key].hear_consistent()
             self._answer.discard(key)  # a neighbour answered with it: ours is redundant
             return
         if cur is not None and self.verifier is None and self._is_jump(f.version, cur.version):
-            if key in self._anchored:
+            if key in self._anchored and not self._from_parent(f.src):
                 # A jump no gateway makes (a forged or garbled version): keep ours,
-                # which our neighbours confirmed, and tell the sender soon.
+                # which our neighbours confirmed, and tell the sender soon, even if
+                # neighbours say the same first: we may be the sender's parent, the
+                # one it follows (below).
                 self.refused += 1
                 self.ctx.emit(ItemRefused(f.kind, f.item_id, f.version, f.src, "version jump"))
+                self._contested.add(key)
                 self._trickles[key].reset(now)
                 self._arm(key)
                 return
             # Nobody ever echoed a version of ours (we took it alone, e.g. a forged
-            # one at boot): the network's version replaces it, older or not.
+            # one at boot), or our parent holds the other one: the network's
+            # version replaces ours, older or not. An attacker can anchor a forged
+            # version at a few motes (its repeats echo it), and the gateway mote
+            # never takes it, so nothing supersedes it there; the tree's version
+            # flows down from the gateway mote, parent to child, and dissolves it.
             self._adopt(f, now, source=f.src)
             return
         if cur is None or newer(f.version, cur.version):
@@ -365,6 +383,9 @@ class Dissemination(Component):
         else:  # older (serial arithmetic): the sender is behind
             self._trickles[key].reset(now)
             self._arm(key)
+
+    def _from_parent(self, src: int) -> bool:
+        return self._parent is not None and src == self._parent()
 
     def _is_jump(self, heard: int, held: int) -> bool:
         """Whether ``heard`` lies more than ``drip_max_version_step`` versions away
@@ -532,6 +553,7 @@ class Dissemination(Component):
         del self._trickles[victim], self._changed[victim]
         self._sigs.pop(victim, None)
         self._anchored.discard(victim)
+        self._contested.discard(victim)
         self.timers.cancel(("item", *victim))
 
     def _arm(self, key: ItemKey) -> None:

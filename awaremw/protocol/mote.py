@@ -71,7 +71,10 @@ class AwareMote:
         self.node_id = node_id
         self.config = config or MiddlewareConfig()
         self.ctx = MoteContext(node_id, self.config, rng or random.Random(node_id), app)
-        self.dissemination = Dissemination(self.ctx, on_item=self._on_item)
+        # A version jump from the collection parent is taken (docs/protocol-dissemination.md).
+        self.dissemination = Dissemination(
+            self.ctx, on_item=self._on_item, parent=lambda: self.collection.parent
+        )
         self.collection = Collection(self.ctx)
         self.groups = Groups(self.ctx, self.collection)
         self.channels = Channels(self.ctx, self.groups, self.collection)
