@@ -410,3 +410,23 @@ def test_networks_in_turns_run_as_they_would_alone(workload: str) -> None:
     if workload == "aware":
         assert all(r["records_produced"] > 0 for r in alone)
         assert both["record_delivery_min"] == min(r["record_delivery"] for r in alone)
+
+
+def test_sizes_with_control_compare_one_large_network_with_small_ones_in_turns() -> None:
+    import json
+    import subprocess
+    import sys
+
+    argv = [sys.executable, "-m", "awaremw", "bench", "virtual", "--json", "--sizes", "25,50",
+            "--control", "--duration", "4"]  # fmt: skip
+    out = json.loads(subprocess.run(argv, capture_output=True, text=True, check=True).stdout)
+    small, large = out["sizes"]
+    control = out["control"]
+    assert (small["motes"], large["motes"]) == (25, 50)
+    assert control["motes"] == 25 and control["networks"] == 2
+    assert control["frames_tx"] > small["frames_tx"]  # two networks' frames
+    ratio = large["cpu_per_mote_s_us"] / control["cpu_per_mote_s_us"]
+    assert out["cpu_per_mote_ratio_vs_control"] == round(ratio, 3)
+    assert out["control_ratio"] == round(
+        control["cpu_per_mote_s_us"] / small["cpu_per_mote_s_us"], 3
+    )
