@@ -654,7 +654,8 @@ class Groups(Component):
 
     def _regular_check_after(self, t: float) -> float:
         """The first check, at or after ``t``, of the schedule the parked mote left:
-        the same float sums as running every check, so the same instants."""
+        the same float sums as running every check, so the same instants (a
+        loop over the periods parked, once per wake: cheap beside a check each)."""
         p = self.ctx.config.check_period
         assert self._parked_at is not None
         due = self._parked_at + p
