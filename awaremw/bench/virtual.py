@@ -174,7 +174,9 @@ def run(
         if ns.networks < 1:
             raise ValueError(f"--networks {ns.networks}: at least 1")
         if ns.networks > 1:
-            return run_networks(motes, ns.networks, duration, seed, workload, mac, collisions)
+            return run_networks(
+                motes, ns.networks, duration, seed, workload, mac, collisions, sinks, profile
+            )
     if workload not in WORKLOADS:
         raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
     check_motes(motes)
@@ -239,6 +241,8 @@ def run_networks(
     workload: str = "aware",
     mac: str = "csma",
     collisions: str = "sinr",
+    sinks: int | None = None,
+    profile: str | None = None,
 ) -> dict[str, Any]:
     """``--networks K``: K independent networks of ``motes`` each (seeds ``seed``
     on), run in one process in turns of :data:`INTERLEAVE_S` emulated seconds.
@@ -256,12 +260,12 @@ def run_networks(
     nets: list[VirtualNetwork] = []
     for k in range(networks):
         if workload == "aware":
-            loads.append(aware_load.build(motes, seed + k, duration, mac, collisions))
+            loads.append(aware_load.build(motes, seed + k, duration, mac, collisions, sinks))
             nets.append(loads[-1].net)
         else:
             nets.append(build(motes, seed + k, mac=mac, collisions=collisions))
     steps = [load.run_until for load in loads] if loads else [net.run_until for net in nets]
-    with settled_gc() as collect:
+    with settled_gc() as collect, profiled(profile):
         c0 = time.process_time()
         t, k, collected = 0.0, 0, 0.0
         while t < duration:
@@ -340,10 +344,11 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
     """``--sizes``: the run at every size, each in a fresh interpreter."""
     sizes = parse_sizes(str(ns.sizes))
     runs: list[dict[str, Any]] = []
+    sinks = [] if ns.sinks is None else ["--sinks", str(ns.sinks)]
     for n in sizes:
         if not ns.json:
             print(f"bench virtual: {n} motes ...", file=sys.stderr, flush=True)
-        runs.append(_child(ns, n, [] if ns.sinks is None else ["--sinks", str(ns.sinks)]))
+        runs.append(_child(ns, n, sinks))
     first, last = runs[0], runs[-1]
     out: dict[str, Any] = {
         "sizes": runs,
@@ -358,7 +363,7 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
         if not ns.json:
             print(f"bench virtual: control, {k} networks of {first['motes']} motes ...",
                   file=sys.stderr, flush=True)  # fmt: skip
-        control = _child(ns, first["motes"], ["--networks", str(k)])
+        control = _child(ns, first["motes"], ["--networks", str(k), *sinks])
         out["control"] = control
         # Above 1: the large network costs more than as many motes in small ones.
         out["cpu_per_mote_ratio_vs_control"] = round(
