@@ -371,7 +371,7 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
         )
         out["control_ratio"] = round(control["cpu_per_mote_s_us"] / first["cpu_per_mote_s_us"], 3)
     if ns.plot:
-        plot_sizes(runs, ns.plot)
+        plot_sizes(runs, ns.plot, out.get("control"))
         out["plot"] = str(ns.plot)
     return out
 
@@ -392,22 +392,35 @@ def _child(ns: argparse.Namespace, motes: int, extra: list[str]) -> dict[str, An
     return result
 
 
-def plot_sizes(runs: list[dict[str, Any]], path: str) -> None:
-    """CPU per mote-second and memory per mote against the number of motes."""
+def plot_sizes(
+    runs: list[dict[str, Any]], path: str, control: dict[str, Any] | None = None
+) -> None:
+    """CPU per mote-second and memory per mote against the number of motes (with
+    ``control``: its CPU at the largest size, as networks of the smallest)."""
     from matplotlib.figure import Figure  # no pyplot: no global state, no display
 
     motes = [r["motes"] for r in runs]
     fig = Figure(figsize=(6.4, 3.8), dpi=120)
     ax = fig.subplots()
-    ax.plot(motes, [r["cpu_per_mote_s_us"] for r in runs], "o-", color="tab:red")
+    ax.plot(motes, [r["cpu_per_mote_s_us"] for r in runs], "o-", color="tab:red", label="CPU")
+    if control is not None:
+        n = control["motes"] * control["networks"]
+        ax.plot([n], [control["cpu_per_mote_s_us"]], "D", mfc="none", color="tab:red",
+                label=f"CPU, {control['networks']} networks of {control['motes']:,}")  # fmt: skip
+        ax.legend(loc="lower right", fontsize="small")
     ax.set_xscale("log")
+    ax.set_xticks(motes, [f"{m:,}" for m in motes])
+    ax.minorticks_off()
     ax.set_xlabel("motes")
     ax.set_ylabel("CPU per mote per emulated second (µs)", color="tab:red")
-    ax.set_ylim(bottom=0)
+    cpus = [r["cpu_per_mote_s_us"] for r in runs]
+    if control is not None:
+        cpus.append(control["cpu_per_mote_s_us"])
+    ax.set_ylim(0, 1.15 * max(cpus))
     mem = ax.twinx()
     mem.plot(motes, [r["rss_per_mote_kb"] for r in runs], "s--", color="tab:blue")
     mem.set_ylabel("memory per mote (KiB)", color="tab:blue")
-    mem.set_ylim(bottom=0)
+    mem.set_ylim(0, 1.25 * max(r["rss_per_mote_kb"] for r in runs))
     w = runs[0]["workload"]
     ax.set_title(f"bench virtual --workload {w}: cost per mote as the network grows")
     fig.tight_layout()
