@@ -405,7 +405,7 @@ def plot_sizes(
     ax.plot(motes, [r["cpu_per_mote_s_us"] for r in runs], "o-", color="tab:red", label="CPU")
     if control is not None:
         n = control["motes"] * control["networks"]
-        ax.plot([n], [control["cpu_per_mote_s_us"]], "D", mfc="none", color="tab:red",
+        ax.plot([n], [control["cpu_per_mote_s_us"]], "D", mfc="white", ms=8, color="tab:red",
                 label=f"CPU, {control['networks']} networks of {control['motes']:,}")  # fmt: skip
         ax.legend(loc="lower right", fontsize="small")
     ax.set_xscale("log")
@@ -421,6 +421,8 @@ def plot_sizes(
     mem.plot(motes, [r["rss_per_mote_kb"] for r in runs], "s--", color="tab:blue")
     mem.set_ylabel("memory per mote (KiB)", color="tab:blue")
     mem.set_ylim(0, 1.25 * max(r["rss_per_mote_kb"] for r in runs))
+    ax.set_zorder(mem.get_zorder() + 1)  # the CPU points over the memory line
+    ax.patch.set_visible(False)
     w = runs[0]["workload"]
     ax.set_title(f"bench virtual --workload {w}: cost per mote as the network grows")
     fig.tight_layout()
