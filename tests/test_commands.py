@@ -35,7 +35,6 @@ class FakeMembership:
 class FakeGroups:
     def __init__(self, member_of: dict[int, int]) -> None:
         self.member_of = member_of
-
         self.app_changes: list[float] = []
 
     def membership(self, group_type: int) -> FakeMembership | None:

@@ -39,6 +39,7 @@ from awaremw.protocol.frames import (
 )
 from awaremw.protocol.groups import (
     ELECTION_BACKOFF_FACTOR,
+    PARK_PERIODS,
     Groups,
     Role,
     condition_holds,
@@ -1141,12 +1142,21 @@ def test_a_group_check_takes_no_reading_outside_what_can_qualify() -> None:
 def test_a_mote_whose_conditions_are_ruled_out_for_good_parks_its_checks() -> None:
     parked, _ = bounded(20.0, until=math.inf)
     ticking, _ = bounded(20.0)  # bounds for the moment only
+    firsts = []
     for h in (parked, ticking):
         h.g.define(1, HOT, 0.0)
+        firsts.append(h.g.timers.get("check"))
         h.advance(500.0)
         assert h.g.role(1) is Role.IDLE
-    assert parked.g.timers.next_deadline() is None and parked.g.stats.checks_parked == 1
-    assert ticking.g.timers.next_deadline() is not None and ticking.g.stats.checks_parked == 0
+    assert firsts[0] == firsts[1] is not None
+    schedule = [firsts[0]]  # the checks' instants: sums of periods, as the mote adds
+    while schedule[-1] < 600.0:
+        schedule.append(schedule[-1] + parked.cfg.check_period)
+    # Parked: one check every PARK_PERIODS periods ("not in", parks again).
+    assert parked.g.stats.checks_parked == 2
+    assert parked.g.timers.next_deadline() == schedule[2 * PARK_PERIODS]
+    assert ticking.g.stats.checks_parked == 0
+    assert ticking.g.timers.next_deadline() == next(t for t in schedule if t > 500.0)
 
 
 def test_a_parked_mote_checks_until_a_finite_horizon_then_on_its_old_schedule() -> None:
@@ -1162,6 +1172,21 @@ def test_a_parked_mote_checks_until_a_finite_horizon_then_on_its_old_schedule() 
     app.until = -math.inf  # from then on, bounds for the moment only: no more parking
     parked.advance(wake)
     assert parked.g.timers.get("check") == wake + parked.cfg.check_period
+
+
+def test_a_mote_parked_until_the_fire_comes_joins_when_a_ticking_one_would() -> None:
+    parked, papp = bounded(20.0, until=30.2)
+    ticking, tapp = bounded(20.0)
+    for h, app in ((parked, papp), (ticking, tapp)):
+        h.g.define(1, HOT, 0.0)
+        h.advance(30.1)
+        app.until = -math.inf
+        app.values[T] = 80.0  # the fire arrives as foretold
+        h.advance(40.0)
+        assert h.g.role(1) is not Role.IDLE
+    assert parked.g.stats.checks_parked == 1
+    assert parked.events() == ticking.events()  # the same decisions at the same instants
+    assert parked.g.timers.get("create") == ticking.g.timers.get("create")
 
 
 def test_a_group_frame_wakes_a_parked_mote_on_the_schedule_it_left() -> None:
@@ -1184,7 +1209,8 @@ def test_a_command_wakes_a_parked_mote() -> None:
     h, app = bounded(20.0, until=math.inf)
     h.g.define(1, HOT, 0.0)
     h.advance(20.0)
-    assert "check" not in h.g.timers
+    parked_until = h.g.timers.get("check")
+    assert parked_until is not None and parked_until > h.now + 100 * h.cfg.check_period
     Commands(h.ctx, h.g).define(0, CommandDef("set_rate", args=(("period_s", 2.0),)), h.now)
     due = h.g.timers.get("check")
     assert due is not None and h.now <= due < h.now + h.cfg.check_period

@@ -237,6 +237,19 @@ def test_read_bounds_of_a_static_mote_hold_for_ever_and_of_a_moving_one_for_now(
         assert b is not None and b.until <= t  # where it is now, not where it goes
 
 
+def test_read_bounds_end_when_the_fire_comes_and_come_back_when_it_has_passed() -> None:
+    fire = Source("f", (Keyframe(0, 0, 50, 5, 80), Keyframe(100, 200, 50, 5, 80)), edge=2.0,
+                  hold=False)  # fmt: skip
+    app = TmoteSky(3, Static(100.0, 50.0).position, World(fires=(fire,)))
+    b = app.read_bounds(A.TEMPERATURE, 0.0)
+    assert b is not None and 20.0 < b.until < 50.0  # 2 m/s: 100 m less 5 + 16 m of reach
+    assert app.read_bounds(A.TEMPERATURE, b.until - 1.0) == b  # kept until then
+    assert app.read_bounds(A.TEMPERATURE, b.until) is None  # the fire may heat it now
+    assert app.read_bounds(A.TEMPERATURE, 50.0) is None
+    after = app.read_bounds(A.TEMPERATURE, 70.0)  # passed, and gone at t = 100 s
+    assert after is not None and after.until == math.inf and (after.lo, after.hi) == (b.lo, b.hi)
+
+
 def test_no_read_bounds_with_a_held_sample_or_another_attribute() -> None:
     app = TmoteSky(3, at(5.0, 5.0), World())
     assert app.read_bounds(A.TEMPERATURE, 1.0) is not None

@@ -430,3 +430,21 @@ def test_sizes_with_control_compare_one_large_network_with_small_ones_in_turns()
     assert out["control_ratio"] == round(
         control["cpu_per_mote_s_us"] / small["cpu_per_mote_s_us"], 3
     )
+
+
+def test_control_and_networks_are_refused_where_they_mean_nothing() -> None:
+    import argparse
+
+    from awaremw.bench.virtual import add_arguments, run
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    parser.add_argument("--json", action="store_true")
+    for argv, words in (
+        (["--control"], "give --sizes"),
+        (["--sizes", "100,250", "--control"], "a multiple of the smallest"),
+        (["--sizes", "100,200", "--networks", "2"], "for one run"),
+        (["--networks", "0"], "at least 1"),
+    ):
+        with pytest.raises(ValueError, match=words):
+            run(parser.parse_args(argv))

@@ -256,8 +256,18 @@ def test_a_source_gives_a_point_exactly_zero_until_its_cold_horizon(
         tk = t + (end - t) * k / 100
         if tk < until:
             assert s.profile(x, y, tk) == 0.0
-    if t < until < math.inf and all(r == legs[0][3] for *_, r in legs):
+    if hold and t < until < math.inf and all(r == legs[0][3] for *_, r in legs):
         assert s.profile(x, y, until + 1e-4) > 0.0  # not later than the heat comes
+
+
+def test_a_source_that_is_not_held_is_still_there_at_its_last_keyframe() -> None:
+    once = Source("f", (Keyframe(10, 0, 0, 5, 80),), hold=False)
+    jump = Source("j", (Keyframe(0, 100, 0, 5, 80), Keyframe(10, 100, 0, 5, 80),
+                        Keyframe(10, 0, 0, 5, 80)), hold=False)  # fmt: skip
+    for s in (once, jump):
+        assert s.profile(0, 0, 10) == 1.0
+        assert 9.0 < s.cold_until(0, 0, 0) <= 10.0
+        assert s.cold_until(0, 0, 10.5) == math.inf  # gone
 
 
 def test_a_sensor_read_is_the_world_value_plus_the_seeded_noise() -> None:

@@ -98,11 +98,11 @@ def settled_gc() -> Iterator[Callable[[], None]]:
     collection by allocation counts reads the header of every old object a
     young one refers to, which at 10,000 motes misses the CPU's caches, and
     the workload makes no cyclic garbage to speak of (none was left after
-    120 s at 10,000 motes). At 10,000 motes GC took about 12 % of the CPU with
+    120 s at 10,000 motes; the oldest generation, what survived two of these
+    collections, waits for the run's end). At 10,000 motes GC took about 12 % of the CPU with
     the young generation collected every 100,000 allocations, 3 % this way
     (docs/scale.md).
     """
-    old = gc.get_threshold()
     was_enabled = gc.isenabled()
     gc.collect()
     gc.freeze()
@@ -112,7 +112,6 @@ def settled_gc() -> Iterator[Callable[[], None]]:
     finally:
         if was_enabled:
             gc.enable()
-        gc.set_threshold(*old)
         gc.unfreeze()
 
 
@@ -166,6 +165,10 @@ def run(
     """Run the benchmark. Also accepts the parsed CLI arguments (bench registry)."""
     if isinstance(motes, argparse.Namespace):
         ns = motes
+        if ns.sizes and ns.networks != 1:
+            raise ValueError("--networks is for one run; with --sizes, --control runs networks")
+        if ns.control and not ns.sizes:
+            raise ValueError("--control compares sizes: give --sizes (for example 1000,10000)")
         if ns.sizes:
             return run_sizes(ns)
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
@@ -343,6 +346,11 @@ def parse_sizes(text: str) -> list[int]:
 def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
     """``--sizes``: the run at every size, each in a fresh interpreter."""
     sizes = parse_sizes(str(ns.sizes))
+    if ns.control and (len(sizes) < 2 or sizes[-1] % sizes[0]):
+        raise ValueError(
+            f"--control runs the largest size as networks of the smallest: "
+            f"--sizes {ns.sizes} needs two sizes, the largest a multiple of the smallest"
+        )
     runs: list[dict[str, Any]] = []
     sinks = [] if ns.sinks is None else ["--sinks", str(ns.sinks)]
     for n in sizes:
@@ -358,7 +366,7 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
         else None,
         **build_facts(),
     }
-    if ns.control and len(runs) > 1:
+    if ns.control:
         k = last["motes"] // first["motes"]
         if not ns.json:
             print(f"bench virtual: control, {k} networks of {first['motes']} motes ...",

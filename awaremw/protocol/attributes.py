@@ -120,7 +120,8 @@ class Bounds(NamedTuple):
     """What :class:`ReadBounds` promises: ``read(attr, t)`` returns a number in
     ``[lo, hi]`` and changes nothing by being read, at ``t = now`` and at every
     ``t`` before ``until`` (``until <= now``: at ``now`` only), as long as the
-    application is sent no command meanwhile."""
+    application is sent no command meanwhile. A mote asks at times that never
+    go back (an application may keep what it answered until ``until``)."""
 
     lo: float
     hi: float

@@ -55,6 +55,9 @@ from awaremw.protocol.frames import (
     Op,
 )
 
+# A parked mote checks once every this many check periods even if nothing can
+# change (see Groups._quiet_until): a bound on the work of finding its schedule.
+PARK_PERIODS = 256
 MAX_GROUP_ID = 0xFFFE
 MAX_WEIGHT = 0xFFFFFFFF
 MAX_HOPS = 0xFF
@@ -527,8 +530,10 @@ class Groups(Component):
                 return
             self._parked_at = now
             self.stats.checks_parked += 1
-            if quiet < math.inf:
-                self.timers.set("check", self._regular_check_after(quiet))
+            # At most PARK_PERIODS at a time (then one check, "not in" again, and
+            # park anew): finding the schedule's next instant walks its periods.
+            horizon = now + PARK_PERIODS * self.ctx.config.check_period
+            self.timers.set("check", self._regular_check_after(min(quiet, horizon)))
             return
         assert isinstance(name, tuple)
         kind, g = name
@@ -618,7 +623,7 @@ class Groups(Component):
             # A reading certain to fail the condition is not taken (most motes,
             # far from what a group tracks, most of the time): the same answer.
             b = ctx.read_bounds(c.attr, now)
-            if b is not None and not condition_may_hold(c, b[0], b[1], relax):
+            if b is not None and not condition_may_hold(c, b.lo, b.hi, relax):
                 return False
             if not condition_holds(c, ctx.read(c.attr, now), relax):
                 return False
@@ -654,8 +659,8 @@ class Groups(Component):
 
     def _regular_check_after(self, t: float) -> float:
         """The first check, at or after ``t``, of the schedule the parked mote left:
-        the same float sums as running every check, so the same instants (a
-        loop over the periods parked, once per wake: cheap beside a check each)."""
+        the same float sums as running every check, so the same instants (a loop
+        over the periods parked, at most PARK_PERIODS: cheap beside a check each)."""
         p = self.ctx.config.check_period
         assert self._parked_at is not None
         due = self._parked_at + p

@@ -250,8 +250,10 @@ class Source:
             s = _first_within(x - cx, y - cy, b.x - a.x, b.y - a.y, b.t - a.t, reach)
             if s is not None and t0 + s <= b.t:
                 return max(t, t0 + s - 1e-6)
+        # At its last keyframe (for good if held, else at that instant only; a
+        # last leg of no duration jumps there).
         k = ks[-1]
-        if self.hold and _within(x, y, k.x, k.y, k.radius + cut):
+        if _within(x, y, k.x, k.y, k.radius + cut):
             return max(t, k.t - 1e-6)
         return math.inf
 
