@@ -180,9 +180,7 @@ def run(
             return run_networks(
                 motes, ns.networks, duration, seed, workload, mac, collisions, sinks, profile
             )
-    if workload not in WORKLOADS:
-        raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
-    check_motes(motes)
+    check_run(workload, motes)
     rss0 = resident_kb()
     load = (
         aware_load.build(motes, seed, duration, mac, collisions, sinks)
@@ -255,9 +253,7 @@ def run_networks(
     cell grid or timer queue larger than a small network's. What one large
     network costs beyond it is the emulator's doing; what the control costs
     beyond one small network is the memory the motes span (the CPU's caches)."""
-    if workload not in WORKLOADS:
-        raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
-    check_motes(motes)
+    check_run(workload, motes)
     rss0 = resident_kb()
     loads: list[aware_load.AwareLoad] = []
     nets: list[VirtualNetwork] = []
@@ -268,17 +264,20 @@ def run_networks(
         else:
             nets.append(build(motes, seed + k, mac=mac, collisions=collisions))
     steps = [load.run_until for load in loads] if loads else [net.run_until for net in nets]
-    with settled_gc() as collect, profiled(profile):
-        c0 = time.process_time()
-        t, k, collected = 0.0, 0, 0.0
-        while t < duration:
-            k += 1
-            t = min(duration, k * INTERLEAVE_S)
+    turn = 0
+
+    def in_turns(end: float) -> None:
+        """Every network up to ``end``, INTERLEAVE_S emulated seconds at a time."""
+        nonlocal turn
+        while turn * INTERLEAVE_S < end:
+            turn += 1
+            t = min(end, turn * INTERLEAVE_S)
             for step in steps:
                 step(t)
-            if t - collected >= GC_EVERY_S:
-                collect()
-                collected = t
+
+    with settled_gc() as collect, profiled(profile):
+        c0 = time.process_time()
+        run_collecting(in_turns, duration, collect)
         cpu = time.process_time() - c0
     rss1 = max(resident_kb(), peak_kb())
     counters = [c for n in nets for c in n.counters.values()]
@@ -300,6 +299,13 @@ def run_networks(
         known = [r for r in ratios if r is not None]
         out["record_delivery_min"] = min(known) if known else None
     return out
+
+
+def check_run(workload: str, motes: int) -> None:
+    """One line for an unknown workload or a network too large (see check_motes)."""
+    if workload not in WORKLOADS:
+        raise ValueError(f"unknown workload {workload!r}; known: {', '.join(WORKLOADS)}")
+    check_motes(motes)
 
 
 def check_motes(motes: int) -> None:

@@ -201,6 +201,11 @@ class _TypeState:
     tent_relayed: int = 0  # the would-be id whose announcement we relayed last
     relay: tuple[int, int] | None = None  # (would-be id, announcer) of the pending relay
 
+    def remembers_nothing(self) -> bool:
+        """No table that the membership check purges holds an entry (most motes,
+        hearing no group most of the time)."""
+        return not (self.nearby or self.upstream or self.failed or self.children or self.tent_heard)
+
 
 def seq_newer(a: int, b: int) -> bool:
     """16-bit serial-number comparison: is ``a`` after ``b``?"""
@@ -508,8 +513,7 @@ class Groups(Component):
         self._wake(now)
 
     def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
-        if self._parked_at is not None:
-            self._wake(now)  # the frame may fill tables that the checks purge
+        self._wake(now)  # if parked: the frame may fill tables that the checks purge
         if isinstance(frame, LeaderBeacon):
             self._on_beacon(frame, rssi_dbm, now)
         elif isinstance(frame, Handover):
@@ -641,9 +645,7 @@ class Groups(Component):
         """
         until = math.inf
         for st in self._types.values():
-            if st.role is not Role.IDLE or st.nearby or st.tent_heard:
-                return now
-            if st.upstream or st.failed or st.children:
+            if st.role is not Role.IDLE or not st.remembers_nothing():
                 return now
             ruled_out = now
             for c in st.defn.conditions:
@@ -693,8 +695,7 @@ class Groups(Component):
             self._start_handover(st, now)
 
     def _purge(self, st: _TypeState, now: float) -> None:
-        # Most motes hear no group most of the time: no tables to purge.
-        if not (st.nearby or st.upstream or st.failed or st.children or st.tent_heard):
+        if st.remembers_nothing():
             return
         ttl = self._timeout()
         if st.nearby:

@@ -226,7 +226,7 @@ class Source:
         # The centre moves on the polyline of the keyframes (linear interpolation).
         pairs = zip(ks, ks[1:] or ks, strict=False)
         d = min(_to_segment(x, y, a.x, a.y, b.x, b.y) for a, b in pairs)
-        return d <= reach * (1.0 + 1e-9) + 1e-6
+        return d <= _with_margin(reach)
 
     def cold_until(self, x: float, y: float, t: float) -> float:
         """A time before which, from ``t`` on, the profile at (x, y) is exactly 0
@@ -234,12 +234,9 @@ class Source:
         a margin: the centre moves on straight lines between keyframes, and the
         reach is the largest radius of each leg plus the falloff's cut."""
         ks = self.keyframes
+        if not self.hold and t > ks[-1].t:
+            return math.inf  # gone
         cut = _CUT_EDGES * self.edge
-        if t >= ks[-1].t:
-            if not self.hold and t > ks[-1].t:
-                return math.inf  # gone
-            k = ks[-1]
-            return t if _within(x, y, k.x, k.y, k.radius + cut) else math.inf
         for a, b in itertools.pairwise(ks):
             if b.t <= t:
                 continue
@@ -253,7 +250,7 @@ class Source:
         # At its last keyframe (for good if held, else at that instant only; a
         # last leg of no duration jumps there).
         k = ks[-1]
-        if _within(x, y, k.x, k.y, k.radius + cut):
+        if math.hypot(x - k.x, y - k.y) <= _with_margin(k.radius + cut):
             return max(t, k.t - 1e-6)
         return math.inf
 
@@ -261,9 +258,9 @@ class Source:
 _CUT_EDGES = 8.0  # a source's falloff is cut (0) this many edges out of its radius
 
 
-def _within(x: float, y: float, cx: float, cy: float, reach: float) -> bool:
-    """(x, y) within ``reach`` of (cx, cy), with :meth:`Source.reaches`'s margin."""
-    return math.hypot(x - cx, y - cy) <= reach * (1.0 + 1e-9) + 1e-6
+def _with_margin(reach: float) -> float:
+    """A source's reach widened for rounding: a point this far is taken as reached."""
+    return reach * (1.0 + 1e-9) + 1e-6
 
 
 def _first_within(
@@ -271,7 +268,7 @@ def _first_within(
 ) -> float | None:
     """The first s >= 0 at which a point at (px, py) from a centre moving by
     (dx, dy) every dt seconds is within ``reach`` of it (None: never)."""
-    r = reach * (1.0 + 1e-9) + 1e-6
+    r = _with_margin(reach)
     c = px * px + py * py - r * r
     if c <= 0:
         return 0.0
