@@ -474,7 +474,9 @@ class Dissemination(Component):
         cur = self.timers.get("summary")
         if cur is None or due < cur:
             self.timers.set("summary", due)
-            self._summary_asks = True
+        # The next summary is an ask, even a boot repeat already due sooner: it is
+        # not skipped, and it is repeated while we still lack items.
+        self._summary_asks = True
 
     def _send_summary(self, now: float, may_skip: bool = False) -> None:
         echoes, self._summary_echoes = self._summary_echoes, 0
