@@ -107,10 +107,13 @@ def test_unknown_workload_and_tiny_fleet_are_refused() -> None:
 
 
 def test_scale_aware_workload_over_zenoh() -> None:
-    """The same load in a real-time fleet (one process, real Zenoh), at 5x speed."""
+    """The same load in a real-time fleet (one process, real Zenoh), at 5x speed.
+    40 s gives 11 to 13 records here (8 on the virtual clock in 30 s; in real time
+    the timers' jitter may split the first group and merge it back, costing epochs),
+    so the bound of 5 is the middleware failing, not a busy machine."""
     from awaremw.bench.scale import run_once
 
-    out = asyncio.run(run_once(64, 30.0, speed=5.0, seed=2, workload="aware"))
+    out = asyncio.run(run_once(64, 40.0, speed=5.0, seed=2, workload="aware"))
     assert out["workload"] == "aware" and out["motes"] == 64
     assert out["delivery_ratio"] is None and out["frames_expected"] is None
     assert out["records_produced"] >= 5 and out["record_delivery"] > 0.9
@@ -123,7 +126,7 @@ def test_scale_aware_over_two_worker_processes() -> None:
     delivered at the gateway's mote (in worker 0) are counted across them."""
     from awaremw.bench.scale import run_once
 
-    out = asyncio.run(run_once(60, 30.0, processes=2, speed=5.0, seed=2, workload="aware"))
+    out = asyncio.run(run_once(60, 40.0, processes=2, speed=5.0, seed=2, workload="aware"))
     assert out["workload"] == "aware" and out["motes"] == 60 and out["processes"] == 2
     assert len(out["cpu_per_process"]) == 2 and out["envelopes_rx"] > 0  # frames crossed
     assert out["records_produced"] >= 5 and out["record_delivery"] >= 0.9

@@ -197,7 +197,7 @@ def test_boot_summary_with_repeats() -> None:
     assert times[1] - times[0] == pytest.approx(2.0) and times[2] - times[1] == pytest.approx(4.0)
 
 
-def test_differing_summary_resets_items_and_answers_when_behind() -> None:
+def _settled_two_items() -> tuple[Dissemination, MoteContext]:
     d, ctx, _ = make(drip_tau_h=1050.0)
     d.start(0.0)
     d.inject(CH, 1, 1, CHAN, 0.0)
@@ -207,17 +207,65 @@ def test_differing_summary_resets_items_and_answers_when_behind() -> None:
     for key in d.items:
         t = d.trickle(*key)
         assert t is not None and t.interval == 1050.0
-    # Same digest: nothing.
+    return d, ctx
+
+
+def _intervals(d: Dissemination) -> list[float]:
+    return [d.trickle(*k).interval for k in d.items]  # type: ignore[union-attr]
+
+
+def test_a_summary_like_ours_changes_nothing() -> None:
+    d, _ = _settled_two_items()
     d.on_frame(DripSummary(5, BROADCAST, d.digest, 2), -70.0, 3000.0)
-    assert all(d.trickle(*k).interval == 1050.0 for k in d.items)  # type: ignore[union-attr]
-    # A newcomer with nothing: every item goes out within tau_l.
+    assert _intervals(d) == [1050.0, 1050.0]
+    assert d.timers.get("answer") is None and d.timers.get("summary") is None
+
+
+def test_a_summary_with_fewer_items_is_answered_at_once_without_resetting_trickles() -> None:
+    d, ctx = _settled_two_items()
     d.on_frame(DripSummary(5, BROADCAST, 0, 0), -70.0, 3000.0)
-    assert all(d.trickle(*k).interval == 1.0 for k in d.items)  # type: ignore[union-attr]
+    due = d.timers.get("answer")
+    assert due is not None and 3000.0 <= due <= 3000.0 + ctx.config.drip_answer_delay
+    assert _intervals(d) == [1050.0, 1050.0]  # the answer says it all
     assert d.timers.get("summary") is None  # we are not behind it
-    # A mote holding more than us: we answer with our summary so it speaks up.
+    advance(d, due)
+    assert sorted((f.kind, f.item_id) for f in sent(ctx) if isinstance(f, DripItem)) == [
+        (GT, 1), (CH, 1)
+    ]  # fmt: skip
+    # A second have-not inside drip_summary_min_gap: no answer, the Trickles instead.
+    d.on_frame(DripSummary(7, BROADCAST, 0, 1), -70.0, due + 0.1)
+    assert d.timers.get("answer") is None and _intervals(d) == [1.0, 1.0]
+
+
+def test_an_answer_sends_the_last_changed_item_first() -> None:
+    d, ctx, _ = make()
+    d.start(0.0)
+    d.inject(CH, 1, 1, CHAN, 0.0)
+    d.inject(GT, 1, 1, HOT, 5.0)  # newer, but after CH in the table
+    advance(d, 100.0)
+    sent(ctx)
+    d.on_frame(DripSummary(5, BROADCAST, 0, 1), -70.0, 100.0)
+    advance(d, 100.0 + ctx.config.drip_answer_delay)
+    items = [(f.kind, f.item_id) for f in sent(ctx) if isinstance(f, DripItem)]
+    assert items == [(GT, 1), (CH, 1)]
+
+
+def test_a_summary_with_as_many_items_at_other_versions_resets_every_trickle() -> None:
+    d, _ = _settled_two_items()
+    d.on_frame(DripSummary(5, BROADCAST, d.digest ^ 1, 2), -70.0, 3000.0)
+    assert _intervals(d) == [1.0, 1.0]  # who is ahead is unknown: both speak
+    assert d.timers.get("answer") is None and d.timers.get("summary") is None
+
+
+def test_a_summary_with_more_items_is_asked_without_resending_ours() -> None:
+    d, ctx = _settled_two_items()
     d.on_frame(DripSummary(6, BROADCAST, 1234, 5), -70.0, 3001.0)
     due = d.timers.get("summary")
-    assert due is not None and 3001.0 <= due <= 3001.5
+    assert due is not None and 3001.0 <= due <= 3001.0 + ctx.config.drip_summary_delay
+    assert _intervals(d) == [1050.0, 1050.0]  # it most likely holds ours too
+    advance(d, due)
+    (ask,) = sent(ctx)  # no item of ours
+    assert isinstance(ask, DripSummary) and ask.n_items == 2
 
 
 def test_empty_mote_answers_but_does_not_reset() -> None:

@@ -4,6 +4,7 @@ and a compromised mote (network key, no gateway signing key)."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import random
 
@@ -161,6 +162,49 @@ def test_item_adopted_only_with_both_signature_parts_in_any_order() -> None:
     assert d.signature_of(ItemKind.CHANNEL, 2) == sig
     adopted = [e for e in ctx.event_list if isinstance(e, ItemAdopted)]
     assert [(e.item_id, e.version, e.source) for e in adopted] == [(2, 5, 7)]
+
+
+def test_a_pending_item_asks_so_a_lost_signature_part_is_answered_at_once() -> None:
+    d, ctx, signer = _signed()
+    d.start(0.0)
+    d.on_frame(DripSummary(7, BROADCAST, d.digest, 0), -60.0, 0.0)  # boot summaries echoed
+    for _ in range(3):  # through the boot summaries
+        t = d.timers.next_deadline()
+        assert t is not None
+        for name in d.timers.due(t):
+            d.on_timer(name, t)
+    ctx.outbox.clear()
+    assert d.timers.get("summary") is None
+    sig = signer.sign(ItemKind.COMMAND, 0, 1, CMD)
+    d.on_frame(DripItem(7, BROADCAST, ItemKind.COMMAND, 0, 1, CMD), -60.0, 20.0)
+    d.on_frame(_sig_frames(7, ItemKind.COMMAND, 0, 1, sig)[0], -60.0, 20.0)  # part 1 lost
+    due = d.timers.get("summary")
+    assert due is not None and due <= 20.0 + ctx.config.drip_summary_delay
+    for name in d.timers.due(due):
+        d.on_timer(name, due)
+    (ask,) = [decode(tx.frame) for tx in ctx.outbox]
+    # It holds nothing yet: a neighbour holding the command answers this ask.
+    assert isinstance(ask, DripSummary) and ask.n_items == 0
+    # No answer came: it asks again, each gap twice the last, while it is pending.
+    asks = [due]
+    for _ in range(3):
+        t = d.timers.get("summary")
+        assert t is not None
+        for name in d.timers.due(t):
+            d.on_timer(name, t)
+        asks.append(t)
+    gaps = [b - a for a, b in itertools.pairwise(asks)]
+    delay = ctx.config.drip_summary_delay
+    assert all(g <= gap <= g + delay for g, gap in zip((2.0, 4.0, 8.0), gaps, strict=True)), gaps
+    assert len([tx for tx in ctx.outbox if isinstance(decode(tx.frame), DripSummary)]) == 4
+    # The part comes: adopted, and the asking stops after the adoption's summary.
+    d.on_frame(_sig_frames(7, ItemKind.COMMAND, 0, 1, sig)[1], -60.0, asks[-1] + 1.0)
+    assert d.version_of(ItemKind.COMMAND, 0) == 1
+    t = d.timers.get("summary")
+    assert t is not None
+    for name in d.timers.due(t):
+        d.on_timer(name, t)
+    assert d.timers.get("summary") is None
 
 
 def test_forwarded_item_carries_its_signature() -> None:

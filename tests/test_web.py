@@ -531,12 +531,17 @@ def _browser() -> Any:
     return sync_playwright
 
 
+# The demo outlives the test's longest path (300 s, its timeout, at speed 4):
+# a demo that ended mid-test would leave the page waiting on a silent fleet.
+DEMO_EMULATED_S = 4 * 300 + 200
+
+
 @contextlib.contextmanager
 def _demo(tmp_path: Path, port: int) -> Iterator[subprocess.Popen[bytes]]:
     log = (tmp_path / "demo.log").open("w")
     p = subprocess.Popen(
         [sys.executable, "-m", "awaremw", "demo", "--web", f"127.0.0.1:{port}", "--plain",
-         "--speed", "4", "--duration", "400", "--mqtt-port", "0"],
+         "--speed", "4", "--duration", str(DEMO_EMULATED_S), "--mqtt-port", "0"],
         stdout=log, stderr=subprocess.STDOUT,
     )  # fmt: skip
     try:
@@ -552,6 +557,25 @@ def _demo(tmp_path: Path, port: int) -> Iterator[subprocess.Popen[bytes]]:
         log.close()
 
 
+def _page_wait(
+    page: Any, demo: subprocess.Popen[bytes], log: Path, expr: str, timeout: float
+) -> None:
+    """``page.wait_for_function(expr)`` in short slices, failing at once (with the
+    demo's log) if the demo process ended: a dead fleet never lights the page."""
+    from playwright.sync_api import TimeoutError as PageTimeout
+
+    end = time.monotonic() + timeout
+    while True:
+        assert demo.poll() is None, "the demo ended:\n" + log.read_text()[-2000:]
+        left = end - time.monotonic()
+        try:
+            page.wait_for_function(expr, timeout=max(1.0, min(5.0, left)) * 1000)
+            return
+        except PageTimeout:
+            if left <= 5.0:
+                raise
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
@@ -559,6 +583,7 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
     port = _free_port()
     shot = tmp_path / "dashboard.png"
     n_motes = len(load("romeo4r").nodes)
+    log = tmp_path / "demo.log"
     with _demo(tmp_path, port) as demo:
         url = f"http://127.0.0.1:{port}"
 
@@ -600,7 +625,7 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
                 page.wait_for_selector("#form-status:has-text('aware/def/channel/5')",
                                        timeout=10_000)  # fmt: skip
                 page.select_option("#gtype", "2")
-                page.wait_for_function("window.awaremw.drawn.leaders.length > 0", timeout=60_000)
+                _page_wait(page, demo, log, "window.awaremw.drawn.leaders.length > 0", 60)
                 # Energy by role (issue 25): the demo's motes have a leader by now, and
                 # the table shows its row with the mJ and frames per hour of the state.
                 page.wait_for_selector("#energy tr[data-role='leader']", timeout=30_000)
@@ -614,10 +639,9 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
                     return int(page.get_attribute(plot, "data-points") or 0)
 
                 first = points()
-                page.wait_for_function(
-                    f'+document.querySelector("{plot}").dataset.points > {max(first, 1)}',
-                    timeout=60_000,
-                )
+                _page_wait(page, demo, log,
+                           f'+document.querySelector("{plot}").dataset.points > {max(first, 1)}',
+                           60)  # fmt: skip
                 assert points() > first
                 assert "motes" in (page.text_content(".plot-box[data-channel='5']") or "")
                 page.check("#show-tree")
@@ -630,9 +654,8 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
                 page.click("#command-form button[type=submit]")
                 page.wait_for_selector("#form-status:has-text('aware/cmd/led')", timeout=10_000)
                 # The command spreads epidemically: most motes lit within a minute.
-                page.wait_for_function(
-                    f"window.awaremw.drawn.lit.length >= {n_motes // 2}", timeout=90_000
-                )
+                _page_wait(page, demo, log, f"window.awaremw.drawn.lit.length >= {n_motes // 2}",
+                           90)  # fmt: skip
                 lit = page.evaluate("window.awaremw.drawn.lit")
                 d = _get_json(url + "/api/state")
                 assert {m["id"] for m in d["motes"] if m["leds"] == ["green"]} >= set(lit)

@@ -11,6 +11,9 @@ the network is left alone until ``--settle`` seconds after the injection
 (every Trickle back near tau_h) and the dissemination frames (DripItem,
 DripSummary) and collection beacons are counted for ``--window`` seconds.
 No data is submitted: this is the control-plane cost of an idle network.
+``--held K``: the gateway injects K other channels at t = 1 s, so every mote
+holds them when the measured one spreads (what a wave costs in a network that
+has definitions already; ``held_items`` in the JSON).
 
 JSON keys:
 
@@ -130,6 +133,10 @@ class TrafficMote(AwareMote):
                 self.refused += 1
             self.next_submit += self.period
         super().handle_timer(now)
+
+
+# Channels a mote may hold besides the measured one (config.max_channels is 8).
+MAX_HELD = 7
 
 
 def inject_at(
@@ -331,6 +338,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 counts["ctp"] += 1
 
     net.on_transmit = on_transmit
+    held = int(getattr(args, "held", 0))
+    if not 0 <= held < MAX_HELD + 1:
+        raise ValueError(f"--held {held}: 0..{MAX_HELD} (channels 2..{MAX_HELD + 1})")
+    for i in range(held):  # items every mote holds before the measured one
+        old = ChannelDef(attr=0, group_type=1, group_id=0xFFFF, period_ms=4000 + i, agg=0)
+        inject_at(net, motes[0], 1.0, ItemKind.CHANNEL, 2 + i, 1, old)
     net.run_until(float(args.warmup))
     # Propagation of one injected item.
     t_inj = net.now
@@ -341,7 +354,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     wave[0] = False
     adopted: dict[int, float] = {}
     for node, e, t in events:
-        if isinstance(e, ItemAdopted) and e.kind == ItemKind.CHANNEL and node != 0:
+        if isinstance(e, ItemAdopted) and (e.kind, e.item_id) == (ItemKind.CHANNEL, 1) and node:
             adopted.setdefault(node, t - t_inj)
     hops = hop_distances(net, motes, 0, float(args.hop_rssi))
     pts = [(hops[n], d) for n, d in adopted.items() if n in hops and hops[n] > 0]
@@ -385,6 +398,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         # Drip frames (items, summaries, signature parts) sent while the item spread
         # (the propagation timeout after the injection), per mote: the wave's cost.
         "propagation_drip_frames_per_mote": round(counts["wave"] / len(motes), 2),
+        "held_items": held,
         "max_hops": max(hops.values()),
         "coverage": round(len(adopted) / (n - 1), 4),
         "tx_per_mote_per_hour": round((counts["drip"] + counts["ctp"]) * per_hour, 3),
@@ -429,6 +443,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--secure",
         action="store_true",
         help="throw-away keys: authenticated frames (MIC-64 + counter), signed items",
+    )
+    parser.add_argument(
+        "--held",
+        type=int,
+        default=0,
+        help=f"items (0..{MAX_HELD}) every mote holds before the measured one spreads",
     )
     parser.add_argument(
         "--parent-death",

@@ -28,6 +28,9 @@ class MiddlewareConfig:
     # A mote that hears a summary with fewer items than it holds answers after a
     # uniform wait in [0, this] s, leaving out what a neighbour sent meanwhile.
     drip_answer_delay: float = 0.05
+    # A mote holding a signed item pending (a signature part missed) asks again this
+    # many times, each gap twice the last (1, 2, 4, ... s), while it is pending.
+    drip_pending_asks: int = 5
     # Unsigned items only: a version heard more than this many steps away from the
     # one held (either way) is a jump no gateway makes; it is refused unless no
     # other mote ever echoed the held version (docs/protocol-dissemination.md).

@@ -173,6 +173,8 @@ class Dissemination(Component):
         self._summary_asks = False  # the summary timer is an ask (_summary_soon)
         self._wanted = 0  # the most items a neighbour's summary announced
         self._ask_retries = 0  # asks left while we hold fewer than that
+        self._pending_asks = 0  # asks left while an item is pending (signed items)
+        self._ask_gap = 0.0  # the gap before the next of those (doubles)
         # Items of an answer waiting for its jitter (see _on_summary); an item a
         # neighbour sends at our version meanwhile leaves it.
         self._answer: set[ItemKey] = set()
@@ -313,10 +315,20 @@ class Dissemination(Component):
                 # ask may all have been dropped for one we did not hear. Ask again.
                 self._ask_retries -= 1
                 self._summary_soon(now)
+            elif asked and self._pending and self._pending_asks > 0:
+                # An item still waits for a signature part: each answer is three
+                # frames, all needed, from a neighbour as busy as the gateway mote
+                # can be. Ask again, backing off (see _pending_for).
+                self._pending_asks -= 1
+                self._ask_gap *= 2.0
+                self._summary_soon(now, self._ask_gap)
             return
         if name == "answer":
-            # In table order: the items no neighbour sent at our version meanwhile.
-            for k in [k for k in self._items if k in self._answer]:
+            # The items no neighbour sent at our version meanwhile, the last changed
+            # first (what the asker lacks is most likely new: it goes out before a
+            # busy channel drops the rest of the burst); ties in table order.
+            keys = [k for k in self._items if k in self._answer]
+            for k in sorted(keys, key=self._changed.__getitem__, reverse=True):
                 self._broadcast(k)
             self._answer.clear()
             return
@@ -376,7 +388,7 @@ class Dissemination(Component):
             if self.verifier is None:
                 self._adopt(f, now, source=f.src)
             else:
-                pend = self._pending_for(key, f.version, f.src)
+                pend = self._pending_for(key, f.version, f.src, now)
                 if pend is not None:
                     pend.body = f.item
                     self._try_complete(key, pend, now)
@@ -394,7 +406,7 @@ class Dissemination(Component):
         d = (heard - held) & _M32
         return step < d < (1 << 32) - step
 
-    def _pending_for(self, key: ItemKey, version: int, src: int) -> _Pending | None:
+    def _pending_for(self, key: ItemKey, version: int, src: int, now: float) -> _Pending | None:
         """The pending entry of ``key`` at ``version`` (made if newer than a pending
         one; None if an even newer version is pending already)."""
         pend = self._pending.get(key)
@@ -404,9 +416,19 @@ class Dissemination(Component):
             if not newer(version, pend.version):
                 return None
             del self._pending[key]
-        if len(self._pending) >= self.ctx.config.max_pending_items:
+        cfg = self.ctx.config
+        if len(self._pending) >= cfg.max_pending_items:
             del self._pending[next(iter(self._pending))]  # the oldest
         pend = self._pending[key] = _Pending(version, src)
+        # A neighbour holds what we lack: ask (our summary), and again while it is
+        # pending (drip_pending_asks times, backing off), so that a lost part comes
+        # in an answer within drip_answer_delay rather than at the haves' next
+        # Trickle point, which doubles away (romeo4r on the virtual clock: a
+        # command waited next to the gateway mote for over 100 s). Normally the
+        # parts follow at once, and the ask is the summary we send after adopting.
+        self._pending_asks = cfg.drip_pending_asks
+        self._ask_gap = cfg.drip_summary_min_gap
+        self._summary_soon(now)
         return pend
 
     def _on_sig(self, f: DripSig, now: float) -> None:
@@ -416,7 +438,7 @@ class Dissemination(Component):
         cur = self._items.get(key)
         if cur is not None and not newer(f.version, cur.version):
             return  # a signature of what we hold (or older)
-        pend = self._pending_for(key, f.version, f.src)
+        pend = self._pending_for(key, f.version, f.src, now)
         if pend is not None:
             pend.parts[f.part] = f.chunk
             self._try_complete(key, pend, now)
@@ -440,36 +462,46 @@ class Dissemination(Component):
         if f.digest == self._digest and f.n_items == n:
             self._summary_echoes += 1
             return
-        if n:
-            # We may be ahead of the sender: speak up about everything soon.
-            for key, trickle in self._trickles.items():
-                trickle.reset(now)
-                self._arm(key)
-            cfg = self.ctx.config
-            if f.n_items < n and now - self._last_answer >= cfg.drip_summary_min_gap:
-                # The sender holds fewer items: it lacks some. Trickle would let our
-                # neighbours' transmissions suppress ours for a whole interval, yet
-                # the sender may hear only us (a hidden "have-not" at the edge of the
-                # items' spread), so answer within drip_answer_delay, at most once
-                # per min_gap. Every have of its neighbourhood heard the same summary:
-                # an item one of them sends at our version during our wait is dropped
-                # from our answer (the sender asks again if it still lacks it, at the
-                # next larger summary it hears, and our Trickles were reset above).
-                self._last_answer = now
-                self._answer = set(self._items)
-                self.timers.set("answer", now + self.ctx.rng.uniform(0.0, cfg.drip_answer_delay))
-        if f.n_items > n:
-            # The sender may be ahead of us: ask it to speak up (it holds items).
-            self._wanted = max(self._wanted, f.n_items)
-            self._ask_retries = self.ctx.config.drip_summary_repeats
-            self._summary_soon(now)
-
-    def _summary_soon(self, now: float) -> None:
-        """Send a summary after a short random wait. Within the rate limit of our
-        last summary, once the limit allows rather than not at all: a summary sent
-        just before we learnt something told the neighbours nothing of it."""
         cfg = self.ctx.config
-        earliest = self._last_summary + cfg.drip_summary_min_gap
+        if f.n_items > n:
+            # The sender holds more: ask it to speak up (our summary, with fewer
+            # items, makes it answer). Our Trickles stay as they are: resetting
+            # them re-sent every item we hold, which the sender most likely holds
+            # too (it cost three frames of old items for each new one spreading
+            # through romeo4r). Should we hold a newer version of something, the
+            # sender's answer carries its older copy, which resets that item here.
+            self._wanted = max(self._wanted, f.n_items)
+            self._ask_retries = cfg.drip_summary_repeats
+            self._summary_soon(now)
+            return
+        if not n:
+            return
+        if f.n_items < n and now - self._last_answer >= cfg.drip_summary_min_gap:
+            # The sender holds fewer items: it lacks some. Trickle would let our
+            # neighbours' transmissions suppress ours for a whole interval, yet
+            # the sender may hear only us (a hidden "have-not" at the edge of the
+            # items' spread), so answer within drip_answer_delay, at most once
+            # per min_gap. Every have of its neighbourhood heard the same summary:
+            # an item one of them sends at our version during our wait is dropped
+            # from our answer (the sender asks again if it still lacks it).
+            self._last_answer = now
+            self._answer = set(self._items)
+            self.timers.set("answer", now + self.ctx.rng.uniform(0.0, cfg.drip_answer_delay))
+            return
+        # As many items, other versions (or an answer inside the rate limit): who
+        # is ahead is unknown, so speak up about everything soon; neighbours that
+        # say the same suppress each other, and whoever is behind adopts.
+        for key, trickle in self._trickles.items():
+            trickle.reset(now)
+            self._arm(key)
+
+    def _summary_soon(self, now: float, gap: float = 0.0) -> None:
+        """Send a summary after a short random wait. Within the rate limit of our
+        last summary (or ``gap`` after it, if longer), once the limit allows rather
+        than not at all: a summary sent just before we learnt something told the
+        neighbours nothing of it."""
+        cfg = self.ctx.config
+        earliest = self._last_summary + max(cfg.drip_summary_min_gap, gap)
         due = max(now, earliest) + self.ctx.rng.uniform(0.0, cfg.drip_summary_delay)
         cur = self.timers.get("summary")
         if cur is None or due < cur:
