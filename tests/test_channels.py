@@ -192,6 +192,37 @@ def test_partials_spread_over_the_slot_jitter_and_leave_the_rest_for_retries() -
     assert sum(o > slot / 2 for o in offsets) > 0.2 * len(offsets)  # beyond half a slot
 
 
+def test_a_leaf_spreads_its_partial_from_the_epoch_start_and_a_parent_keeps_its_slot() -> None:
+    """A member that got no child's partial for LEAF_EPOCHS epochs merges nothing:
+    it sends at any time from the epoch's start to the end of its slot's jitter,
+    so that a dense group's leaves do not crowd into one slot. A member that did
+    (or is new to the channel) waits for its slot, so its children's partials merge."""
+    from awaremw.protocol.channels import LEAF_EPOCHS
+
+    period, hops = 2.0, 2
+    d = MiddlewareConfig().max_group_depth
+    window = (d - hops) * period / (d + 1) + MiddlewareConfig().slot_jitter * period / (d + 1)
+    first = LEAF_EPOCHS + 2  # epochs 1..LEAF_EPOCHS+1 without a child: a leaf from here
+    leaf, parent = [], []
+    for nid in range(200):
+        for fed in (False, True):
+            h = H(nid)
+            h.groups.set(1, 500, hops=hops, parent=5)
+            h.c.define(1, chan(period_ms=int(period * 1000)), 0.0)
+            for e in range(1, first):
+                h.advance(e * period)
+                if fed:
+                    h.hear(partial(31, epoch=e))
+            h.advance(first * period)
+            t = h.c.timers.get(("send", (1, 1, 500, first)))
+            assert t is not None
+            (parent if fed else leaf).append(t - first * period)
+    slot_start = h.c.slot_time(1, first, hops) - first * period
+    assert min(parent) >= slot_start  # its slot, as before
+    assert min(leaf) >= 0.0 and max(leaf) < window
+    assert sum(t < slot_start for t in leaf) > 0.5 * len(leaf)  # mostly before the slot
+
+
 # --------------------------------------------------------------------------- members
 
 

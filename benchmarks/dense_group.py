@@ -1,15 +1,19 @@
-"""How fast a command reaches every mote of romeo4r, and what it costs in Drip frames.
+"""romeo4r with every mote in one group: how fast a command reaches every mote,
+what it costs in Drip frames, and how many readings the group's count gets.
 
 The romeo4r deployment on the virtual clock, secured (throw-away keys), with
 what the dashboard test (tests/test_web.py) defines at ``--define-at``: group
 type 2 (``light > 0``, every mote) and channel 5 (a count every second), then
 a ``led`` command for every mote at ``--command-at``. Per seed: when each mote
-ran it, and the Drip frames (items, signature parts, summaries) sent in the
-30 s after it. ``--no-defs`` leaves the group type and channel out.
+ran the command and the Drip frames (items, signature parts, summaries) sent
+in the 30 s after it; the median count of channel 5's records produced in the
+60 s after it (the group has 20 members), and the partials sent and lost
+after the link layer's retries over the whole run (the motes' channel
+counters). ``--no-defs`` leaves the group type and channel out.
 
-    python benchmarks/command_spread.py --seeds 1-14 [--no-defs] [--json]
+    python benchmarks/dense_group.py --seeds 1-14 [--no-defs] [--json]
 
-docs/protocol-dissemination.md gives the figures.
+docs/protocol-dissemination.md and docs/protocol-groups.md give the figures.
 """
 
 from __future__ import annotations
@@ -88,6 +92,12 @@ def one_seed(seed: int, secrets: str, defs: bool, define_at: float, command_at: 
     net.run_until(end)
     delays = sorted(ran.values())
     n = len(sc.deployment.nodes)
+    counts = [
+        r.count
+        for t, r in run.recorder.produced.values()
+        if r.channel == chan.item_id and command_at <= t <= command_at + 60.0
+    ]
+    stats = [c.channels.stats for c in run.cores.values() if isinstance(c, AwareMote)]
     return {
         "seed": seed,
         "motes": n,
@@ -95,7 +105,15 @@ def one_seed(seed: int, secrets: str, defs: bool, define_at: float, command_at: 
         "half_s": round(delays[n // 2], 2) if len(delays) > n // 2 else None,
         "all_s": round(delays[-1], 2) if len(delays) == n else None,
         "drip_frames": frames[0],
+        "count_median": statistics.median(counts) if counts else None,
+        "partials_sent": sum(st.partials_sent for st in stats),
+        "partials_lost": sum(st.link_dropped for st in stats),
     }
+
+
+def _mean(values: Any) -> float | None:
+    got = [v for v in values if v is not None]
+    return round(statistics.mean(got), 2) if got else None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,6 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         "all_s_range": [min(reached), max(reached)] if reached else None,
         "drip_frames_median": statistics.median(r["drip_frames"] for r in rows),
         "drip_frames_mean": round(statistics.mean(r["drip_frames"] for r in rows), 1),
+        "count_median_mean": _mean(r["count_median"] for r in rows),
+        "partials_sent_mean": _mean(r["partials_sent"] for r in rows),
+        "partials_lost_mean": _mean(r["partials_lost"] for r in rows),
         "rows": rows,
     }
     print(json.dumps(summary) if a.json else {k: v for k, v in summary.items() if k != "rows"})
