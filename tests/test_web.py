@@ -531,9 +531,10 @@ def _browser() -> Any:
     return sync_playwright
 
 
-# The demo outlives the test's longest path (300 s, its timeout, at speed 4):
-# a demo that ended mid-test would leave the page waiting on a silent fleet.
-DEMO_EMULATED_S = 4 * 300 + 200
+# The demo outlives the test (its timeout, at speed 4): a demo that ended
+# mid-test would leave the page waiting on a silent fleet.
+BROWSER_TEST_TIMEOUT_S = 400
+DEMO_EMULATED_S = 4 * BROWSER_TEST_TIMEOUT_S + 200
 
 
 @contextlib.contextmanager
@@ -577,7 +578,7 @@ def _page_wait(
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(BROWSER_TEST_TIMEOUT_S)
 def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
     sync_playwright = _browser()
     port = _free_port()
@@ -653,9 +654,12 @@ def test_dashboard_in_headless_chromium(tmp_path: Path) -> None:
                 page.fill("#command-form input[name=args]", "color=green, state=on")
                 page.click("#command-form button[type=submit]")
                 page.wait_for_selector("#form-status:has-text('aware/cmd/led')", timeout=10_000)
-                # The command spreads epidemically: most motes lit within a minute.
+                # The command spreads epidemically. Here every mote is in group type 2
+                # with a count every second, near what the field's CC1000 radios carry
+                # (docs/protocol-dissemination.md): half the motes lit in 13 to 65 s
+                # of wall time at speed 4 (4 runs).
                 _page_wait(page, demo, log, f"window.awaremw.drawn.lit.length >= {n_motes // 2}",
-                           90)  # fmt: skip
+                           150)  # fmt: skip
                 lit = page.evaluate("window.awaremw.drawn.lit")
                 d = _get_json(url + "/api/state")
                 assert {m["id"] for m in d["motes"] if m["leds"] == ["green"]} >= set(lit)
