@@ -23,18 +23,17 @@ design). On hearing ``DripItem``:
 Catching up without the gateway: at boot a mote broadcasts a
 :class:`DripSummary` (an order-independent digest of every ``(kind, id,
 version)`` it holds, and their number) after a short random wait, and repeats
-it a couple of times in case it was lost. A neighbour whose digest differs and
-that holds items resets all its items' Trickles, so within about ``drip_tau_l``
-it re-broadcasts everything; the newcomer adopts what is newer, and whatever it
-holds that is newer makes the neighbour's copies look old to it, which resets
-its own Trickles. A neighbour that holds *fewer* items than the summary's
-sender may be behind it: it answers with its own summary (rate-limited), so
-the sender resets its Trickles. A mote that adopts an item says so in a
-summary; a neighbour holding fewer items asks (its summary), again if the
-answers miss it, and the motes holding more answer within
-``drip_answer_delay``, leaving out what another answered meanwhile. A boot
-summary echoed by ``drip_k`` neighbours is skipped. See
-docs/protocol-dissemination.md.
+it a couple of times in case it was lost. A neighbour whose digest differs
+acts on who holds more: if the sender holds fewer items, it *answers* within
+``drip_answer_delay`` with every item it holds, the last changed first,
+leaving out what another answered meanwhile; if the sender holds more, it
+*asks* (its own summary, rate-limited, again if the answers miss it); if both
+hold as many, it resets every item's Trickle, so within about ``drip_tau_l``
+both re-broadcast and whoever is behind adopts. A mote that adopts an item
+says so in a summary, so the neighbours that lack it ask. A mote holding a
+signed item pending (a signature part missed) asks too, and again with
+doubling gaps while it is pending. A boot summary echoed by ``drip_k``
+neighbours is skipped. See docs/protocol-dissemination.md.
 
 Signed items (``config.gateway_public_key`` set): every item version carries
 the gateway's Ed25519 signature (:mod:`awaremw.protocol.signing`), sent after
