@@ -207,6 +207,26 @@ def test_a_pending_item_asks_so_a_lost_signature_part_is_answered_at_once() -> N
     assert d.timers.get("summary") is None
 
 
+def test_forged_pending_items_make_a_mote_ask_at_most_once_per_min_gap() -> None:
+    """Each new pending item asks, but asks share the summary's rate limit: a
+    forger sending a new version every 10 ms for 20 s draws at most one summary
+    per drip_summary_min_gap (docs/security.md)."""
+    d, ctx, _ = _signed()
+    d.start(0.0)
+    gap = ctx.config.drip_summary_min_gap
+    t, end, version = 0.0, 20.0, 1
+    while t < end:
+        d.on_frame(DripItem(7, BROADCAST, ItemKind.COMMAND, 0, version, CMD), -60.0, t)
+        version += 1
+        t = round(t + 0.01, 2)
+        while (due := d.timers.next_deadline()) is not None and due <= t:
+            for name in d.timers.due(due):
+                d.on_timer(name, due)
+    asks = [tx for tx in ctx.outbox if isinstance(decode(tx.frame), DripSummary)]
+    assert len(asks) >= end / (gap + ctx.config.drip_summary_delay) - 1  # it does ask
+    assert len(asks) <= end / gap + 1
+
+
 def test_forwarded_item_carries_its_signature() -> None:
     d, ctx, _ = _signed(signer=True)
     d.inject(ItemKind.CHANNEL, 2, 1, CHAN, 0.0)  # the gateway mote signs
