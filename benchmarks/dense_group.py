@@ -59,12 +59,11 @@ def one_seed(seed: int, secrets: str, defs: bool, define_at: float, command_at: 
     led = schema.parse_command(
         "led", b'{"target": "all", "args": {"color": "green", "state": "on"}}', lim
     )
-    roots = [s.id for s in sc.deployment.of_kind("gateway")] or [sc.gateway]
-    gateways = [run.cores[r] for r in roots]
+    gateways = [run.cores[r] for r in run.roots]
     assert all(isinstance(g, AwareMote) for g in gateways)
 
     def inject(items: list[tuple[ItemKind, int, Any]]) -> None:
-        for r, g in zip(roots, gateways, strict=True):
+        for r, g in zip(run.roots, gateways, strict=True):
             for kind, item_id, body in items:
                 net.call(r, lambda g=g, k=kind, i=item_id, b=body: g.inject(k, i, 1, b, net.now))
 

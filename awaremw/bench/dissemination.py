@@ -304,6 +304,9 @@ def _slope(xs: list[float], ys: list[float]) -> float:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     side = int(args.side)
     seed = int(args.seed)
+    held = int(getattr(args, "held", 0))
+    if not 0 <= held <= MAX_HELD:
+        raise ValueError(f"--held {held}: 0..{MAX_HELD} (channels 2..{MAX_HELD + 1})")
     t_wall = time.perf_counter()
     secure = bool(getattr(args, "secure", False))
     security, signer = None, None
@@ -338,9 +341,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 counts["ctp"] += 1
 
     net.on_transmit = on_transmit
-    held = int(getattr(args, "held", 0))
-    if not 0 <= held < MAX_HELD + 1:
-        raise ValueError(f"--held {held}: 0..{MAX_HELD} (channels 2..{MAX_HELD + 1})")
     for i in range(held):  # items every mote holds before the measured one
         old = ChannelDef(attr=0, group_type=1, group_id=0xFFFF, period_ms=4000 + i, agg=0)
         inject_at(net, motes[0], 1.0, ItemKind.CHANNEL, 2 + i, 1, old)

@@ -100,11 +100,11 @@ class VirtualRun:
         self.net.on_event = self.recorder.on_event
         self.cores: dict[int, MoteCore] = {}
         # The gateway service injects every definition at every gateway mote.
-        self._roots = [s.id for s in d.of_kind("gateway")] or [scenario.gateway]
+        self.roots = tuple(s.id for s in d.of_kind("gateway")) or (scenario.gateway,)
         for spec in d.nodes:
             core = factory(spec, d)
             self.cores[spec.id] = core
-            if spec.id in self._roots:
+            if spec.id in self.roots:
                 wrapped = ScriptedCore(core)
                 wrapped.at(scenario.define_at, functools.partial(self._define, spec.id))
                 core = wrapped
