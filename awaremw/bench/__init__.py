@@ -14,4 +14,6 @@ BENCHMARKS: dict[str, str] = {
     "dissemination": "awaremw.bench.dissemination",
     "bridge": "awaremw.bench.bridge",
     "mac": "awaremw.bench.mac",
+    "noise": "awaremw.bench.noise",
+    "links": "awaremw.bench.links",
 }

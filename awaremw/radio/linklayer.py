@@ -121,11 +121,20 @@ def assess(st: LinkStation, air: Air, p: MacParams, now: float) -> tuple[int, fl
     ``TRANSMIT`` (call :func:`put_on_air` with ``t``), ``SENSE`` (assess again,
     ending at ``t``) or ``GIVE_UP`` (call :func:`give_up`)."""
     t0 = now - p.cca_s
+    nz = air.model.noise_at
+    threshold = p.cca_threshold_dbm
+    noise_mw = 0.0
+    if nz is not None:  # the noise varies: the radio hears it too (MacParams.cca_margin_db)
+        noise = nz(st.node_id, now)
+        noise_mw = 10.0 ** (noise / 10.0)
+        if p.cca_margin_db is not None:
+            threshold = noise + p.cca_margin_db
     if st.static and not air.any_near(st.node_id, st.cell, t0, now):
-        busy = False  # no frame of another mote near enough during the assessment
+        # No frame of another mote near enough during the assessment: the noise alone.
+        busy = noise_mw > 0.0 and noise_mw >= 10.0 ** (threshold / 10.0)
     else:
-        busy = air.busy(st.node_id, st.x, st.y, t0, now, p.cca_threshold_dbm, p.carrier_sense,
-                        not st.static)  # fmt: skip
+        busy = air.busy(st.node_id, st.x, st.y, t0, now, threshold, p.carrier_sense,
+                        not st.static, noise_mw)  # fmt: skip
     if busy:
         st.counters.cca_busy += 1
     return st.mac.cca(busy, now)  # type: ignore[union-attr]
@@ -183,13 +192,21 @@ def send_ack(st: LinkStation) -> bool:
 
 
 def ack_heard(
-    model: RadioModel, acker: int, acker_txp: float, dst: int, d: float, seq: int, attempt: int
+    model: RadioModel,
+    acker: int,
+    acker_txp: float,
+    dst: int,
+    d: float,
+    seq: int,
+    attempt: int,
+    t: float = 0.0,
 ) -> bool:
     """Rule 6, the ACK of attempt ``(seq, attempt)`` on the reverse link: does
-    ``dst`` hear the ACK that ``acker`` sends at its own power from distance ``d``?"""
+    ``dst`` hear the ACK that ``acker`` sends at its own power from distance ``d``?
+    ``t``: the data frame's end (the noise at ``dst`` is taken then)."""
     if d > model.max_range_m(acker_txp):
         return False
-    ok, _ = model.ack_reception(acker, dst, d, acker_txp, packet_key(seq, attempt, ack=True))
+    ok, _ = model.ack_reception(acker, dst, d, acker_txp, packet_key(seq, attempt, ack=True), t)
     return ok
 
 

@@ -91,6 +91,11 @@ class MacParams:
     # BE of a retransmission's first backoff (attempt >= 1); None: min_be, as
     # 802.15.4-2006 has it for every attempt.
     retry_be: int | None = None
+    # When the noise varies (radio/noise.py): None, the threshold is fixed and the
+    # noise's energy counts with the frames' (a CC2420's CCA_THR); a margin, the
+    # threshold is that many dB above the noise heard then (B-MAC's outlier test
+    # against a noise floor estimate that follows the noise).
+    cca_margin_db: float | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in MAC_KINDS:
@@ -148,6 +153,7 @@ def mac_params(preset: RadioPreset, kind: str = "csma") -> MacParams:
         cca_threshold_dbm=preset.noise_floor_dbm + 10.0,
         carrier_sense=False,
         aloha_backoff_s=preset.mac_backoff_s,
+        cca_margin_db=10.0,
     )
 
 
@@ -428,12 +434,13 @@ class Air:
         return v
 
     def busy(self, rid: int, x: float, y: float, t0: float, t1: float, threshold_dbm: float,
-             carrier_sense: bool, moving: bool = False) -> bool:  # fmt: skip
+             carrier_sense: bool, moving: bool = False, noise_mw: float = 0.0) -> bool:  # fmt: skip
         """Carrier sense by ``rid`` at ``(x, y)`` over ``[t0, t1]``: the energy of the
-        frames of others on the air then reaches ``threshold_dbm``, or (with
+        frames of others on the air then (plus ``noise_mw``, the noise the radio
+        hears then, when the noise varies) reaches ``threshold_dbm``, or (with
         ``carrier_sense``) one of them is received at or above the sensitivity.
         ``moving``: ``rid`` moves (:meth:`power_mw`)."""
-        total = 0.0
+        total = noise_mw
         sens = self._sens_mw
         cs = self.cell_size
         # power_mw is 0 beyond one cell of the receiver's: only those frames count.
@@ -455,11 +462,14 @@ class Air:
         ry: float,
         others: list[OnAir],
         moving: bool = False,
+        noise_mw: float | None = None,
     ) -> bool:
         """Did frame ``f``, received at ``rssi_dbm`` by ``rid`` at ``(rx, ry)``, survive
         the ``others`` (:meth:`overlapping`)? False if ``rid`` itself transmitted
         during it (deaf) or its SINR fell below the capture threshold at any instant.
-        ``moving``: ``rid`` moves (:meth:`power_mw`)."""
+        ``moving``: ``rid`` moves (:meth:`power_mw`); ``noise_mw``: the noise at
+        ``rid`` then (None: the preset's floor)."""
+        nm = self._noise_mw if noise_mw is None else noise_mw
         if len(others) == 1:  # the usual case (after the driver's cell filter): no spans
             o = others[0]
             if o.src == rid:
@@ -469,7 +479,7 @@ class Air:
                 return True
             cap1 = self.capture_mw
             # One interferer: it is the worst instant (as below).
-            return cap1 is not None and _mw(rssi_dbm) >= cap1 * (self._noise_mw + p1)
+            return cap1 is not None and _mw(rssi_dbm) >= cap1 * (nm + p1)
         spans = []
         for o in others:
             if o.src == rid:
@@ -483,11 +493,11 @@ class Air:
         if cap is None:
             return False
         if len(spans) == 1:  # one interferer: it is the worst instant
-            return _mw(rssi_dbm) >= cap * (self._noise_mw + spans[0][2])
+            return _mw(rssi_dbm) >= cap * (nm + spans[0][2])
         # Worst instant: the interference is piecewise constant and peaks at the start
         # of some overlap.
         worst = 0.0
         for t, _, _ in spans:
             i = sum(p for s, e, p in spans if s <= t < e)
             worst = max(worst, i)
-        return _mw(rssi_dbm) >= cap * (self._noise_mw + worst)
+        return _mw(rssi_dbm) >= cap * (nm + worst)

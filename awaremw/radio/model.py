@@ -17,9 +17,13 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from statistics import NormalDist
-from typing import Final
+from typing import TYPE_CHECKING, Final
+
+if TYPE_CHECKING:
+    from awaremw.radio.environment import RadioEnvironment
 
 # --------------------------------------------------------------------------- hashing
 
@@ -271,6 +275,12 @@ def preset(name: str) -> RadioPreset:
         raise ValueError(f"unknown radio preset {name!r}; known: {', '.join(PRESETS)}") from None
 
 
+# A links file (radio/links.py) fixes who hears whom: positions say nothing of it,
+# so the range is this (every mote in one cell) and a pair without a link has
+# this mean RSSI (no draw delivers it).
+LINKS_RANGE_M: Final = 1e7
+NO_LINK_DBM: Final = -1e9
+
 # --------------------------------------------------------------------------- cells
 
 
@@ -310,6 +320,12 @@ class RadioModel:
     ``symmetric`` makes the static shadowing of a link the same in both
     directions (per-packet fading never is). Airtime and energy depend on the
     preset alone: ``model.preset.airtime_s(n)``, ``.tx_energy_mj``, ``.rx_energy_mj``.
+
+    ``env`` (:mod:`awaremw.radio.environment`) makes the radio realistic:
+    noise that varies per mote and in time (``noise_at(node, t)``; None: the
+    preset's constant floor), per-mote transmit power offsets (hardware
+    variance), or a links file that gives every link's gain instead of
+    positions. None is today's textbook radio, bit for bit.
     """
 
     __slots__ = (
@@ -317,22 +333,42 @@ class RadioModel:
         "_bn_over_r",
         "_d0",
         "_d_min",
+        "_hw",
+        "_links",
         "_max_fade",
         "_pl_d0",
         "_range_cache",
         "_seed_mix",
         "_ten_n",
         "one_snr_db",
+        "env",
+        "noise_at",
         "preset",
         "prr_memo",
         "seed",
         "symmetric",
     )
 
-    def __init__(self, preset: RadioPreset, seed: int, symmetric: bool = True) -> None:
+    def __init__(
+        self,
+        preset: RadioPreset,
+        seed: int,
+        symmetric: bool = True,
+        env: RadioEnvironment | None = None,
+    ) -> None:
         self.preset = preset
         self.seed = seed
         self.symmetric = symmetric
+        self.env = env
+        # The noise at a receiver at an instant (dBm); None: preset.noise_floor_dbm.
+        self.noise_at: Callable[[int, float], float] | None = None
+        self._hw = None if env is None else env.hardware
+        self._links: dict[tuple[int, int], float] | None = None
+        if env is not None:
+            if env.noise is not None:
+                self.noise_at = env.noise.at
+            if env.links is not None:
+                self._links = env.links.gains
         self._bn_over_r = preset.noise_bandwidth_hz / preset.bitrate_bps
         # Bounds (entries; each cache is cleared when full, its values are pure
         # functions, so clearing only costs recomputation):
@@ -384,10 +420,19 @@ class RadioModel:
         )
 
     def mean_rssi(self, src: int, dst: int, distance: float, tx_power: float) -> float:
-        """Noise-free ground truth: P_tx - PL(d) - static shadow (no per-packet part)."""
+        """Noise-free ground truth: P_tx - PL(d) - static shadow (no per-packet part);
+        with a links file, P_tx + the file's gain (:data:`NO_LINK_DBM` without one);
+        with hardware variance, plus the sender's output power offset."""
+        links = self._links
+        if links is not None:
+            g = links.get((src, dst))
+            return NO_LINK_DBM if g is None else tx_power + g
         # path_loss_db inlined (the same operations in the same order: same bits).
         d = distance if distance > self._d_min else self._d_min
         pl = self._pl_d0 + self._ten_n * math.log10(d / self._d0)
+        hw = self._hw
+        if hw is not None:
+            return tx_power + hw.tx_offset(src) - pl - self.static_shadow_db(src, dst)
         return tx_power - pl - self.static_shadow_db(src, dst)
 
     def rssi(self, src: int, dst: int, distance: float, tx_power: float, packet_key: int) -> float:
@@ -406,7 +451,11 @@ class RadioModel:
         r = self._range_cache.get(tx)
         if r is None:
             p.check_tx_power(tx)  # remote powers are checked by the envelope decoder
+            if self._links is not None:
+                return LINKS_RANGE_M
             sigma = math.hypot(p.shadowing_sigma_db, p.fading_sigma_db)
+            if self._hw is not None:  # the output power offsets spread the links further
+                sigma = math.hypot(sigma, self._hw.tx_sigma_db)
             budget = tx - p.sensitivity_dbm + 3.0 * sigma - p.pl_d0_db
             r = p.d0_m * 10.0 ** (budget / (10.0 * p.path_loss_exponent))
             if len(self._range_cache) >= _RANGE_CACHE_MAX:
@@ -453,7 +502,10 @@ class RadioModel:
         p = self.preset
         if rssi_dbm < p.sensitivity_dbm:
             return 0.0
-        snr_db = rssi_dbm - p.noise_floor_dbm
+        return self.prr_snr(rssi_dbm - p.noise_floor_dbm, bits)
+
+    def prr_snr(self, snr_db: float, bits: int) -> float:
+        """PRR of ``bits`` bits at ``snr_db`` (the sensitivity is the caller's check)."""
         if snr_db >= self.one_snr_db:
             return 1.0
         milli = round(snr_db * 1000.0)
@@ -477,15 +529,30 @@ class RadioModel:
         return self.prr_bits(rssi_dbm, 8 * (frame_len + self.preset.phy_overhead_bytes))
 
     def decide(
-        self, link_h: int, mean_rssi_dbm: float, bits: int, packet_key: int
+        self,
+        link_h: int,
+        mean_rssi_dbm: float,
+        bits: int,
+        packet_key: int,
+        noise_dbm: float | None = None,
     ) -> tuple[bool, float]:
         """The per-packet decision from cached link data (the hot path).
 
-        ``link_h`` is :meth:`fading_link_hash`, ``mean_rssi_dbm`` :meth:`mean_rssi`.
+        ``link_h`` is :meth:`fading_link_hash`, ``mean_rssi_dbm`` :meth:`mean_rssi`;
+        ``noise_dbm`` the receiver's noise then (None: the preset's floor).
         """
         h = packet_hash(link_h, packet_key)
         rssi = mean_rssi_dbm - self.preset.fading_sigma_db * NORMAL[h >> SHIFT]
-        return (h & 0xFFFFFFFF) * U32 < self.prr_bits(rssi, bits), rssi
+        if noise_dbm is None:
+            return (h & 0xFFFFFFFF) * U32 < self.prr_bits(rssi, bits), rssi
+        if rssi < self.preset.sensitivity_dbm:
+            return False, rssi
+        return (h & 0xFFFFFFFF) * U32 < self.prr_snr(rssi - noise_dbm, bits), rssi
+
+    def noise_dbm(self, node: int, t: float) -> float:
+        """The noise at ``node``'s receiver at ``t`` (the preset's floor without ``env``)."""
+        nz = self.noise_at
+        return self.preset.noise_floor_dbm if nz is None else nz(node, t)
 
     def reception(
         self,
@@ -495,31 +562,50 @@ class RadioModel:
         tx_power: float,
         frame_len: int,
         packet_key: int,
+        t: float = 0.0,
     ) -> tuple[bool, float]:
-        """(delivered?, rssi) of one frame from ``src`` heard at ``dst``.
+        """(delivered?, rssi) of one frame from ``src`` heard at ``dst`` (ending at ``t``).
 
         Deterministic in (seed, src, dst, distance, tx_power, frame_len,
-        packet_key). Beyond :meth:`max_range_m` nothing is delivered.
+        packet_key) and the noise at ``dst`` at ``t``. Beyond
+        :meth:`max_range_m` nothing is delivered.
         """
         bits = 8 * (frame_len + self.preset.phy_overhead_bytes)
-        return self._reception_bits(src, dst, distance, tx_power, bits, packet_key)
+        return self._reception_bits(src, dst, distance, tx_power, bits, packet_key, t)
 
     def ack_reception(
-        self, src: int, dst: int, distance: float, tx_power: float, packet_key: int
+        self,
+        src: int,
+        dst: int,
+        distance: float,
+        tx_power: float,
+        packet_key: int,
+        t: float = 0.0,
     ) -> tuple[bool, float]:
         """(delivered?, rssi) of the link-layer ACK that ``src`` sends back to ``dst``.
 
         ``packet_key`` must be the data attempt's key with ``ack=True``.
         """
         return self._reception_bits(
-            src, dst, distance, tx_power, 8 * self.preset.ack_bytes, packet_key
+            src, dst, distance, tx_power, 8 * self.preset.ack_bytes, packet_key, t
         )
 
     def _reception_bits(
-        self, src: int, dst: int, distance: float, tx_power: float, bits: int, packet_key: int
+        self,
+        src: int,
+        dst: int,
+        distance: float,
+        tx_power: float,
+        bits: int,
+        packet_key: int,
+        t: float,
     ) -> tuple[bool, float]:
         mean = self.mean_rssi(src, dst, distance, tx_power)
-        ok, rssi = self.decide(self.fading_link_hash(src, dst), mean, bits, packet_key)
+        nz = self.noise_at
+        ok, rssi = self.decide(
+            self.fading_link_hash(src, dst), mean, bits, packet_key,
+            None if nz is None else nz(dst, t),
+        )  # fmt: skip
         if distance > self.max_range_m(tx_power):
             return False, rssi
         return ok, rssi

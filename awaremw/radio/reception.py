@@ -111,12 +111,15 @@ class Reception(Generic[R]):
         others: list[OnAir] | None,
         now: float,
         tap: RadioTap | None,
+        at: float | None = None,
     ) -> bool:
         """Rules 3 to 5 for broadcast ``seq`` of ``src`` (at ``(sx, sy)``, power
         ``txp``) that just ended; ``others``: the frames that overlapped it (None:
         none, or collisions off). ``cached``: the static receivers through the
         sender's receiver cache (a sender standing still), else each evaluated
-        afresh. True if any mote here listens to the sender's cell."""
+        afresh. ``at``: the frame's end, when the receivers' noise is taken
+        (default ``now``). True if any mote here listens to the sender's cell."""
+        t = now if at is None else at
         g = self.guard
         op = None if g is None else g.open(src, BROADCAST, seq, frame)  # once per frame
         n = len(frame)
@@ -131,7 +134,7 @@ class Reception(Generic[R]):
             candidates.extend(nb.moving)
             for r in candidates:
                 heard = self._hear(src, sx, sy, scell, txp, rng, r, frame, n, bits, key, op, f,
-                                   others, now, tap) or heard  # fmt: skip
+                                   others, now, tap, t) or heard  # fmt: skip
             return heard
         c = nb.sender(src, sx, sy, txp)
         if c.near or c.far_loss or c.far_dist:
@@ -143,8 +146,10 @@ class Reception(Generic[R]):
         noise = self.noise
         one = self.one_snr
         sf = self.sigma_f
-        prr_bits = self.model.prr_bits
+        prr_snr = self.model.prr_snr
         memo = self.model.prr_memo
+        nz = self.model.noise_at  # None: the preset's constant floor
+        noise_mw: float | None = None
         normal = NORMAL
         mask = M64
         mul = MUL
@@ -164,13 +169,15 @@ class Reception(Generic[R]):
                     if tap is not None:
                         tap.reception(now, src, r.node_id, rssi, "path_loss")
                 continue
+            if nz is not None:
+                noise = nz(r.node_id, t)
             snr = rssi - noise
             if snr < one:
                 z ^= z >> 31
-                # prr_bits(rssi, bits), its cache looked up inline first.
+                # prr_snr(snr, bits), its cache looked up inline first.
                 pv = memo.get((round(snr * 1000.0) << 16) | bits)
                 if pv is None:
-                    pv = prr_bits(rssi, bits)
+                    pv = prr_snr(snr, bits)
                 if (z & 0xFFFFFFFF) * U32 >= pv:
                     if r.alive:
                         rc.dropped_loss += 1
@@ -185,7 +192,10 @@ class Reception(Generic[R]):
                 rel = rel_by_cell.get(r.cell)
                 if rel is None:
                     rel = rel_by_cell[r.cell] = reaching(others, r.cell)  # type: ignore[arg-type]
-                if rel and not air.survives(f, rssi, r.node_id, r.x, r.y, rel):  # type: ignore[arg-type]
+                if nz is not None:
+                    noise_mw = 10.0 ** (noise / 10.0)
+                if rel and not air.survives(f, rssi, r.node_id, r.x, r.y, rel,  # type: ignore[arg-type]
+                                            False, noise_mw):  # fmt: skip
                     rc.collisions += 1
                     if tap is not None:
                         tap.reception(now, src, r.node_id, rssi, "collision")
@@ -204,7 +214,7 @@ class Reception(Generic[R]):
             rng = self.model.max_range_m(txp)
             for r in list(nb.moving):
                 heard = self._hear(src, sx, sy, scell, txp, rng, r, frame, n, bits, key, op, f,
-                                   others, now, tap) or heard  # fmt: skip
+                                   others, now, tap, t) or heard  # fmt: skip
         return heard
 
     def _hear(
@@ -225,6 +235,7 @@ class Reception(Generic[R]):
         others: list[OnAir] | None,
         now: float,
         tap: RadioTap | None,
+        t: float,
     ) -> bool:
         """One receiver of a broadcast evaluated afresh (moving motes, or any mote
         when the sender moves). False if it does not listen to the sender's cell."""
@@ -243,7 +254,7 @@ class Reception(Generic[R]):
         m = self.model
         rssi = self._decide(rc, r, m.mean_rssi(src, r.node_id, d, txp),
                             m.fading_link_hash(src, r.node_id), n, bits, key, f, others, src, now,
-                            tap)  # fmt: skip
+                            tap, t)  # fmt: skip
         if rssi is None:
             return True
         g = self.guard
@@ -270,11 +281,15 @@ class Reception(Generic[R]):
         src: int,
         now: float,
         tap: RadioTap | None,
+        t: float,
     ) -> float | None:
-        """Rule 5 for one receiver in range: the model decides; lost ->
-        ``dropped_loss``; destroyed by the ``others`` -> ``collisions``; received
-        -> ``frames_rx``, ``bytes_rx``, and the packet's RSSI is returned."""
-        ok, rssi = self.model.decide(link_h, mean, bits, key)
+        """Rule 5 for one receiver in range: the model decides (the noise at ``r``
+        at ``t``); lost -> ``dropped_loss``; destroyed by the ``others`` ->
+        ``collisions``; received -> ``frames_rx``, ``bytes_rx``, and the packet's
+        RSSI is returned."""
+        nz = self.model.noise_at
+        noise = None if nz is None else nz(r.node_id, t)
+        ok, rssi = self.model.decide(link_h, mean, bits, key, noise)
         if not ok:
             rc.dropped_loss += 1
             if tap is not None:
@@ -283,7 +298,10 @@ class Reception(Generic[R]):
         if (
             f is not None
             and others
-            and not self.air.survives(f, rssi, r.node_id, r.x, r.y, others, not r.static)
+            and not self.air.survives(
+                f, rssi, r.node_id, r.x, r.y, others, not r.static,
+                None if noise is None else 10.0 ** (noise / 10.0),
+            )  # fmt: skip
         ):
             rc.collisions += 1
             if tap is not None:
@@ -318,12 +336,14 @@ class Reception(Generic[R]):
         others: list[OnAir] | None,
         now: float,
         tap: RadioTap | None,
+        at: float | None = None,
     ) -> bool:
         """Rules 4 to 6 for attempt ``(seq, attempt)`` of a unicast from ``src``
         (range ``range_m``) at its destination, on ``link``: the destination hears
         it (or not), checks its MIC, filters a duplicate, takes it, and ACKs
         whatever it got. True if it sent the ACK (the caller decides whether the
-        sender hears it and checks the destination's battery)."""
+        sender hears it and checks the destination's battery). ``at``: the
+        frame's end, when the noise is taken (default ``now``)."""
         r, d, mean, link_h = link
         rc = r.counters
         if d > range_m:
@@ -334,7 +354,7 @@ class Reception(Generic[R]):
         n = len(frame)
         key = packet_key(seq, attempt)
         rssi = self._decide(rc, r, mean, link_h, n, 8 * (n + self.overhead), key, f, others,
-                            src, now, tap)  # fmt: skip
+                            src, now, tap, now if at is None else at)  # fmt: skip
         if rssi is None:
             return False
         g = self.guard

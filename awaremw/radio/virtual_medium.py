@@ -505,7 +505,7 @@ class VirtualNetwork:
             ):
                 # The hardware ACK, on the reverse link at the receiver's power.
                 acked = linklayer.ack_heard(
-                    self.model, r.node_id, r.tx_power, s.node_id, link[1], seq, a
+                    self.model, r.node_id, r.tx_power, s.node_id, link[1], seq, a, now
                 )
                 self._check_battery(r)
         self._push(linklayer.outcome_time(self.preset, now, acked), _UC_DONE, s, acked)

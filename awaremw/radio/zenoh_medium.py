@@ -530,7 +530,8 @@ class ZenohMedium:
             return
         now = self.clock.now()
         if env.kind is Kind.ACK:
-            self._ack_in(env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.dest, now)
+            self._ack_in(env.src, env.x, env.y, env.tx_power, env.seq, env.attempt, env.dest, now,
+                         env.t)  # fmt: skip
             return
         # A frame, published when it went on the air: it occupies the air of every
         # process that hears its cell (carrier sense, interference), and is decided
@@ -619,7 +620,7 @@ class ZenohMedium:
         rx = self._rx
         if e.dest == BROADCAST:
             if not rx.broadcast(e.src, e.x, e.y, e.tx_power, True, e.frame, e.seq, f,
-                                others or None, now, self.tap):  # fmt: skip
+                                others or None, now, self.tap, fr.end):  # fmt: skip
                 self.stats.ignored += 1
             return
         r = self.radios.get(e.dest)
@@ -631,7 +632,7 @@ class ZenohMedium:
             else:
                 rng = self.model.max_range_m(e.tx_power)
                 got = rx.unicast(e.src, link, rng, e.frame, e.seq, e.attempt, f, others or None,
-                                 now, self.tap)  # fmt: skip
+                                 now, self.tap, fr.end)  # fmt: skip
                 if got:  # it sent its ACK (and may have spent its battery since)
                     self._check_battery(r, now)
         s = fr.sender
@@ -639,7 +640,7 @@ class ZenohMedium:
             acked = (
                 got
                 and r is not None
-                and self._ack_heard(r.node_id, r.x, r.y, r.tx_power, s, e.seq, e.attempt)
+                and self._ack_heard(r.node_id, r.x, r.y, r.tx_power, s, e.seq, e.attempt, fr.end)
             )
             if s.alive and s.cur is not None and (s.cur_seq, s.cur_attempt) == (e.seq, e.attempt):
                 # The sender resumes when the virtual medium's sender would, unless
@@ -648,8 +649,9 @@ class ZenohMedium:
                 t = max(linklayer.outcome_time(self.preset, fr.end, acked), now)
                 s.handle = self.loop.call_at(self.clock.to_monotonic(t), self._uc_done, s, acked, t)
         elif got and r is not None:
-            # The destination got it: its auto-ACK goes back to the sender's process.
-            self._publish(r, Kind.ACK, e.seq, e.attempt, now, e.src, b"")
+            # The destination got it: its auto-ACK goes back to the sender's process,
+            # stamped with the data frame's end (when the sender's noise is taken).
+            self._publish(r, Kind.ACK, e.seq, e.attempt, fr.end, e.src, b"")
 
     def _malformed(self, key: str, reason: str) -> None:
         """Garbage on a radio key: counted per process and at the local motes that
@@ -685,6 +687,7 @@ class ZenohMedium:
         attempt: int,
         dest: int,
         now: float,
+        frame_end: float,
     ) -> None:
         s = self.radios.get(dest)
         if s is None or s.cur is None or not s.alive:
@@ -694,17 +697,26 @@ class ZenohMedium:
             self.stats.ignored += 1  # a late ACK of an earlier frame
             return
         self._nb.locate(s, now)
-        if self._ack_heard(acker, ax, ay, atxp, s, seq, attempt):
+        if self._ack_heard(acker, ax, ay, atxp, s, seq, attempt, frame_end):
             if s.handle is not None:
                 s.handle.cancel()
                 s.handle = None
             self._uc_done(s, True, now)
 
     def _ack_heard(
-        self, acker: int, ax: float, ay: float, atxp: float, s: Radio, seq: int, attempt: int
+        self,
+        acker: int,
+        ax: float,
+        ay: float,
+        atxp: float,
+        s: Radio,
+        seq: int,
+        attempt: int,
+        frame_end: float,
     ) -> bool:
         d = math.hypot(s.x - ax, s.y - ay)
-        return linklayer.ack_heard(self.model, acker, atxp, s.node_id, d, seq, attempt)
+        return linklayer.ack_heard(self.model, acker, atxp, s.node_id, d, seq, attempt,
+                                   frame_end)  # fmt: skip
 
     # ------------------------------------------------------------------ send side
 

@@ -27,8 +27,13 @@ from msgspec import Meta, Struct
 
 from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.validation import Finite, Invalid, convert
+from awaremw.radio.environment import WHITE, RadioSettings, environment, radio_model
+from awaremw.radio.links import SHIPPED as SHIPPED_LINKS
+from awaremw.radio.links import LinkFile, LinksError, load_links
 from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
 from awaremw.radio.model import PRESETS, RadioModel, RadioPreset
+from awaremw.radio.noise import SHIPPED as SHIPPED_TRACES
+from awaremw.radio.noise import NoiseTraceError, load_trace
 from awaremw.world.mobility import Mobility, Path, Static
 
 Point = tuple[float, float]
@@ -55,6 +60,9 @@ class _File(Struct):
     tx_power_dbm: Finite | None = None  # None: the preset's
     mac: _Name = "csma"
     collisions: _Name = "sinr"
+    noise: _Name = WHITE  # "white", a shipped trace's name, or a trace file (radio/noise.py)
+    hardware_variance: bool = False
+    links: _Name | None = None  # a links file, or a shipped name (radio/links.py)
     nodes: list[dict[str, Any]] = []
     grid: list[dict[str, Any]] = []
     world: dict[str, Any] = {}
@@ -152,13 +160,17 @@ class Deployment:
     path: FsPath | None = None
     mac: str = "csma"  # radio/mac.py MAC_KINDS: "csma" (the preset's CSMA/CA) or "aloha"
     collisions: str = "sinr"  # radio/mac.py COLLISION_MODES: "sinr" or "none"
+    # How real the radio is (radio/environment.py): noise, hardware variance, and a
+    # links file (resolved: a shipped name or an absolute path), read once here.
+    radio_settings: RadioSettings = field(default_factory=RadioSettings)
+    link_file: LinkFile | None = None
 
     @property
     def preset(self) -> RadioPreset:
         return PRESETS[self.radio]
 
     def radio_model(self, symmetric: bool = True) -> RadioModel:
-        return RadioModel(self.preset, self.seed, symmetric)
+        return radio_model(self.preset, self.seed, self.radio_settings, symmetric, self.link_file)
 
     @property
     def ids(self) -> tuple[int, ...]:
@@ -321,6 +333,7 @@ class _Parser:
         tx_power = self.preset.tx_power_dbm if f.tx_power_dbm is None else f.tx_power_dbm
         self._check_power("", tx_power)
         self.area, self.seed = f.area, f.seed
+        settings, link_file = self._radio_settings(f)
 
         specs: dict[int, tuple[NodeSpec, str]] = {}
 
@@ -354,7 +367,61 @@ class _Parser:
             path=self.path,
             mac=f.mac,
             collisions=f.collisions,
+            radio_settings=settings,
+            link_file=self._check_links(link_file, specs),
         )
+
+    def _relative(self, value: str) -> FsPath:
+        p = FsPath(value).expanduser()
+        if not p.is_absolute() and self.path is not None:
+            p = self.path.parent / p
+        return p
+
+    def _radio_settings(self, f: _File) -> tuple[RadioSettings, LinkFile | None]:
+        """The radio's realism keys, checked and their files read (errors name the key)."""
+        noise = f.noise
+        if noise != WHITE and noise not in SHIPPED_TRACES:
+            noise = str(self._relative(noise))
+            try:
+                load_trace(noise)
+            except NoiseTraceError as e:
+                raise self._fail("noise", f"{e} (or 'white', or a shipped trace: "
+                                 f"{', '.join(SHIPPED_TRACES)})") from None  # fmt: skip
+        links = f.links
+        link_file = None
+        if links is not None:
+            if links not in SHIPPED_LINKS:
+                links = str(self._relative(links))
+            try:
+                link_file = load_links(links)
+            except LinksError as e:
+                raise self._fail("links", f"{e} (shipped: {', '.join(SHIPPED_LINKS)})") from None
+        settings = RadioSettings(noise, f.hardware_variance, links)
+        try:
+            settings.check()
+            if link_file is not None:  # a contradiction between the file and the noise
+                environment(self.preset, f.seed, settings, link_file)
+        except ValueError as e:
+            raise self._fail("", str(e)) from None
+        return settings, link_file
+
+    def _check_links(
+        self, link_file: LinkFile | None, specs: Mapping[int, tuple[NodeSpec, str]]
+    ) -> LinkFile | None:
+        if link_file is None:
+            return None
+        for spec, where in specs.values():
+            if spec.path is not None:
+                raise self._fail(
+                    where, "moves (path), but a links file fixes every link: give it a position"
+                )
+        named = link_file.nodes()
+        missing = sorted(set(specs) - named)
+        if missing:
+            raise self._fail(
+                "links", f"{link_file.path} has no link of mote(s) {', '.join(map(str, missing))}"
+            )
+        return link_file
 
     def _node(self, i: int, t: dict[str, Any]) -> tuple[NodeSpec, str]:
         ident = t.get("id")

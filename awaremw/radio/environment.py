@@ -1,0 +1,127 @@
+"""How real the radio is: noise, hardware variance, measured links, in one value.
+
+A deployment's top-level keys ``noise``, ``hardware_variance`` and ``links``
+(docs/deployments.md) become a :class:`RadioSettings`; :func:`environment`
+turns the settings into the :class:`RadioEnvironment` a
+:class:`~awaremw.radio.model.RadioModel` takes (None when the settings are
+today's textbook radio: white noise, identical motes, links from positions).
+Both media read the environment through the model only, so they take the
+same decisions from the same settings.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from awaremw.radio.links import LinkFile, LinkTable, load_links
+from awaremw.radio.model import RadioModel, RadioPreset
+from awaremw.radio.noise import (
+    SHIPPED,
+    GaussianNoise,
+    HardwareVariance,
+    NoiseSource,
+    TraceNoise,
+    WhiteNoise,
+    load_trace,
+)
+
+WHITE = "white"
+
+
+@dataclass(frozen=True)
+class RadioSettings:
+    """``noise``: ``"white"`` (the preset's constant floor), a shipped trace's
+    name (``"meyer-heavy"``) or a trace file's path; ``hardware_variance``:
+    per-mote output power and noise floor offsets; ``links``: a links file's
+    path or a shipped name (None: links from positions)."""
+
+    noise: str = WHITE
+    hardware_variance: bool = False
+    links: str | None = None
+
+    @property
+    def textbook(self) -> bool:
+        return self.noise == WHITE and not self.hardware_variance and self.links is None
+
+    def check(self) -> None:
+        """ValueError if the settings contradict each other (before any file is read)."""
+        if self.links is not None and self.hardware_variance:
+            raise ValueError(
+                "hardware_variance applies to links derived from positions: a links "
+                "file's gains (and noise lines) already carry its motes' differences"
+            )
+
+    def describe(self) -> str:
+        parts = [f"noise {self.noise}"]
+        if self.hardware_variance:
+            parts.append("hardware variance")
+        if self.links is not None:
+            parts.append(f"links {self.links}")
+        return ", ".join(parts)
+
+
+@dataclass(frozen=True)
+class RadioEnvironment:
+    """What the model needs of the settings: a noise source (None: the preset's
+    floor), hardware offsets, a link table (None: links from positions)."""
+
+    noise: NoiseSource | None
+    hardware: HardwareVariance | None
+    links: LinkTable | None
+    settings: RadioSettings
+
+
+def trace_source(name: str) -> str | Path:
+    """A trace setting: a shipped name as it is, else a path."""
+    return name if name in SHIPPED else Path(name)
+
+
+def environment(
+    preset: RadioPreset, seed: int, settings: RadioSettings, links: LinkFile | None = None
+) -> RadioEnvironment | None:
+    """The environment of ``settings`` (None for the textbook radio).
+
+    ``links``: the links file already read (else ``settings.links`` is read
+    here). Raises ValueError (:class:`~awaremw.radio.noise.NoiseTraceError`,
+    :class:`~awaremw.radio.links.LinksError`) naming what is wrong.
+    """
+    settings.check()
+    if settings.textbook:
+        return None
+    hw = HardwareVariance(seed) if settings.hardware_variance else None
+    table = None
+    floors: dict[int, tuple[float, float]] = {}
+    if settings.links is not None:
+        f = links if links is not None else load_links(settings.links)
+        if f.probabilities and settings.noise != WHITE:
+            raise ValueError(
+                f"{f.path}: delivery probabilities were measured over the floor's real "
+                f"noise; noise = {settings.noise!r} would count it twice (use 'white', or "
+                "a file of gains)"
+            )
+        table = LinkTable(f, RadioModel(preset, seed))
+        floors = dict(f.noise)
+    noise: NoiseSource | None
+    if settings.noise == WHITE:
+        if floors:
+            noise = GaussianNoise(seed, floors, (preset.noise_floor_dbm, 0.0))
+        else:
+            noise = None if hw is None else WhiteNoise(preset.noise_floor_dbm, hw)
+    else:
+        trace = load_trace(trace_source(settings.noise))
+        levels = {n: mean for n, (mean, _) in floors.items()}
+        noise = TraceNoise(trace, seed, preset.noise_floor_dbm, hw, levels)
+    return RadioEnvironment(noise, hw, table, settings)
+
+
+def radio_model(
+    preset: RadioPreset,
+    seed: int,
+    settings: RadioSettings | None = None,
+    symmetric: bool = True,
+    links: LinkFile | None = None,
+) -> RadioModel:
+    """A model with the realism ``settings`` ask for (None: the textbook radio)."""
+    env = None if settings is None else environment(preset, seed, settings, links)
+    return RadioModel(preset, seed, symmetric, env)
