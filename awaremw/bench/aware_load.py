@@ -59,6 +59,7 @@ from awaremw.protocol.frames import (
     Op,
 )
 from awaremw.protocol.mote import AwareMote
+from awaremw.radio.environment import RadioSettings
 from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.runtime.deployment import Deployment, parse_deployment
 from awaremw.world.mobility import square_loop
@@ -177,8 +178,10 @@ def deployment(
     mac: str = "csma",
     collisions: str = "sinr",
     sinks: int | None = None,
+    radio: RadioSettings | None = None,
 ) -> Deployment:
-    """``motes`` motes on a square grid, sinks on a lattice, one looping fire per region."""
+    """``motes`` motes on a square grid, sinks on a lattice, one looping fire per region;
+    ``radio``: noise and hardware variance (None: today's radio)."""
     if motes < 2:
         raise ValueError("the aware workload needs at least 2 motes (a gateway and a sensor)")
     grid = Field(motes, spacing)
@@ -195,6 +198,11 @@ def deployment(
         "mac": mac,
         "collisions": collisions,
         "area": list(grid.size),
+        **(
+            {}
+            if radio is None
+            else {"noise": radio.noise, "hardware_variance": radio.hardware_variance}
+        ),
         "world": {"ambient_temperature": 20.0, "fires": fire_loops(grid, duration)},
         "nodes": nodes,
     }
@@ -382,9 +390,10 @@ def build(
     mac: str = "csma",
     collisions: str = "sinr",
     sinks: int | None = None,
+    radio: RadioSettings | None = None,
 ) -> AwareLoad:
     """The network, every core from the fleet's :class:`KindsFactory`."""
-    d = deployment(motes, seed, duration, mac=mac, collisions=collisions, sinks=sinks)
+    d = deployment(motes, seed, duration, mac=mac, collisions=collisions, sinks=sinks, radio=radio)
     factory = KindsFactory()
     net = VirtualNetwork(d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions)
     load = AwareLoad(net, d)

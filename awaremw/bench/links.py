@@ -215,9 +215,9 @@ def _report(
     betas = []
     for pair, out in measured.items():
         if BETA_BAND[0] <= delivery[pair] <= BETA_BAND[1]:
-            b = beta_factor(out)
-            if b is not None:
-                betas.append(b)
+            beta = beta_factor(out)
+            if beta is not None:
+                betas.append(beta)
     result: dict[str, Any] = {
         "source": source,
         "settings": "links file" if model.env is None and f is not None else (
@@ -246,8 +246,8 @@ def _report(
     if trans and table is None:
         result["transitional_m"] = [round(min(trans), 2), round(max(trans), 2)]
     if args.plot:
-        result["figure"] = plot(rows, delivery, pos, table is not None and bool(f and f.probabilities),
-                                args.plot, source, result)  # fmt: skip
+        given = table is not None and f is not None and bool(f.probabilities)
+        result["figure"] = plot(rows, delivery, pos, given, args.plot, source, result)
     result["wall_seconds"] = round(time.perf_counter() - t0, 2)
     return result
 
@@ -325,13 +325,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--deployment", metavar="NAME|PATH", help="a deployment (name or file)")
     parser.add_argument("--links", metavar="FILE", help="a links file alone (or a shipped name)")
     parser.add_argument("--beacons", type=int, default=1000, help="beacons per mote")
-    parser.add_argument("--interval", type=float, default=0.02,
-                        help="seconds between two beacons of a mote (at least the airtime + 1 ms)")  # fmt: skip
+    parser.add_argument(
+        "--interval",
+        type=float,
+        default=0.02,
+        help="seconds between two beacons of a mote (at least the airtime + 1 ms)",
+    )
     parser.add_argument("--radio", choices=sorted(PRESETS), default="cc2420",
                         help="with --links: the radio preset")  # fmt: skip
     parser.add_argument("--seed", type=int, default=None, help="default: the deployment's (or 0)")
-    parser.add_argument("--noise", default=None,
-                        help="override: white, a shipped trace (meyer-heavy) or a trace file")  # fmt: skip
+    parser.add_argument(
+        "--noise", default=None, help="override: white, a shipped trace or a trace file"
+    )
     hv = parser.add_mutually_exclusive_group()
     hv.add_argument("--hardware-variance", dest="hardware_variance", action="store_true",
                     default=None, help="override: per-mote power and noise offsets")  # fmt: skip

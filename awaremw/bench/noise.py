@@ -97,7 +97,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             {
                 "seed": s,
                 "ks": round(ks_distance(x, ref), 4),
-                "acf_max_diff": round(max(abs(a - b) for a, b in zip(model_acf, ref_acf, strict=True)), 4),
+                "acf_max_diff": round(
+                    max(abs(a - b) for a, b in zip(model_acf, ref_acf, strict=True)), 4
+                ),
                 "acf_model": [round(v, 4) for v in model_acf],
             }
         )

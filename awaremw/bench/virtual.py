@@ -65,12 +65,13 @@ from contextlib import contextmanager
 from typing import Any
 
 from awaremw.bench import aware_load
-from awaremw.bench.medium import add_medium_arguments
+from awaremw.bench.medium import add_medium_arguments, add_radio_arguments, radio_of
 from awaremw.bench.profiling import build_facts, profiled
 from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.hello import HelloMote
 from awaremw.protocol.mote import AwareMote
-from awaremw.radio.model import RadioModel, preset
+from awaremw.radio.environment import RadioSettings, radio_model
+from awaremw.radio.model import preset
 from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Static
 
@@ -139,10 +140,11 @@ def build(
     spacing: float = SPACING_M,
     mac: str = "csma",
     collisions: str = "sinr",
+    settings: RadioSettings | None = None,
 ) -> VirtualNetwork:
     """A grid of HelloMotes (period 1 s) on a fresh virtual network."""
     p = preset(radio)
-    net = VirtualNetwork(RadioModel(p, seed), seed, mac=mac, collisions=collisions)
+    net = VirtualNetwork(radio_model(p, seed, settings), seed, mac=mac, collisions=collisions)
     cols = max(1, math.ceil(math.sqrt(motes)))
     for i in range(motes):
         core = HelloMote(i, 1.0, random.Random(seed * 1_000_003 + i), p.mtu)
@@ -161,6 +163,7 @@ def run(
     mac: str = "csma",
     collisions: str = "sinr",
     sinks: int | None = None,
+    radio: RadioSettings | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark. Also accepts the parsed CLI arguments (bench registry)."""
     if isinstance(motes, argparse.Namespace):
@@ -174,20 +177,26 @@ def run(
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
         workload, profile = str(ns.workload), ns.profile
         mac, collisions, sinks = str(ns.mac), str(ns.collisions), ns.sinks
+        radio = radio_of(ns)
         if ns.networks < 1:
             raise ValueError(f"--networks {ns.networks}: at least 1")
         if ns.networks > 1:
             return run_networks(
-                motes, ns.networks, duration, seed, workload, mac, collisions, sinks, profile
-            )
+                motes, ns.networks, duration, seed, workload, mac, collisions, sinks, profile,
+                radio,
+            )  # fmt: skip
     check_run(workload, motes)
     rss0 = resident_kb()
     load = (
-        aware_load.build(motes, seed, duration, mac, collisions, sinks)
+        aware_load.build(motes, seed, duration, mac, collisions, sinks, radio)
         if workload == "aware"
         else None
     )
-    net = load.net if load is not None else build(motes, seed, mac=mac, collisions=collisions)
+    net = (
+        load.net
+        if load is not None
+        else build(motes, seed, mac=mac, collisions=collisions, settings=radio)
+    )
     with settled_gc() as collect:
         t0 = time.perf_counter()
         c0 = time.process_time()
@@ -223,6 +232,7 @@ def run(
         "mac_drops": sum(c.mac_drops for c in counters.values()),
         "mac": mac,
         "collisions_model": collisions,
+        "radio_settings": (radio or RadioSettings()).describe(),
         "preset": net.preset.name,
         "seed": seed,
         "spacing_m": SPACING_M,
@@ -244,6 +254,7 @@ def run_networks(
     collisions: str = "sinr",
     sinks: int | None = None,
     profile: str | None = None,
+    radio: RadioSettings | None = None,
 ) -> dict[str, Any]:
     """``--networks K``: K independent networks of ``motes`` each (seeds ``seed``
     on), run in one process in turns of :data:`INTERLEAVE_S` emulated seconds.
@@ -259,10 +270,12 @@ def run_networks(
     nets: list[VirtualNetwork] = []
     for k in range(networks):
         if workload == "aware":
-            loads.append(aware_load.build(motes, seed + k, duration, mac, collisions, sinks))
+            loads.append(
+                aware_load.build(motes, seed + k, duration, mac, collisions, sinks, radio)
+            )
             nets.append(loads[-1].net)
         else:
-            nets.append(build(motes, seed + k, mac=mac, collisions=collisions))
+            nets.append(build(motes, seed + k, mac=mac, collisions=collisions, settings=radio))
     steps = [load.run_until for load in loads] if loads else [net.run_until for net in nets]
     turn = 0
 
@@ -396,7 +409,8 @@ def _child(ns: argparse.Namespace, motes: int, extra: list[str]) -> dict[str, An
         sys.executable, "-m", "awaremw", "bench", "virtual", "--json",
         "--motes", str(motes), "--duration", str(ns.duration), "--seed", str(ns.seed),
         "--workload", str(ns.workload), "--mac", str(ns.mac),
-        "--collisions", str(ns.collisions), *extra,
+        "--collisions", str(ns.collisions), "--noise", str(ns.noise),
+        *(["--hardware-variance"] if ns.hardware_variance else []), *extra,
     ]  # fmt: skip
     done = subprocess.run(argv, capture_output=True, text=True, check=False)
     if done.returncode != 0:
@@ -467,6 +481,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=100.0, help="simulated seconds")
     parser.add_argument("--seed", type=int, default=1)
     add_workload_arguments(parser)
+    add_radio_arguments(parser)
     parser.add_argument(
         "--sizes",
         metavar="N,N,...",

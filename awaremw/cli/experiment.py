@@ -86,6 +86,20 @@ several seeds and reports their distribution.""",
         help="override the deployment's collision model (sinr: overlap and capture; none)",
     )
     p.add_argument(
+        "--noise",
+        default=None,
+        help="override the deployment's noise: white, a shipped trace (meyer-heavy) or a file",
+    )
+    hv = p.add_mutually_exclusive_group()
+    hv.add_argument(
+        "--hardware-variance",
+        dest="hardware_variance",
+        action="store_true",
+        default=None,
+        help="override: per-mote TX power and noise floor offsets (docs/radio.md)",
+    )
+    hv.add_argument("--no-hardware-variance", dest="hardware_variance", action="store_false")
+    p.add_argument(
         "--pcap",
         default=None,
         metavar="FILE",
@@ -111,11 +125,17 @@ def main(args: argparse.Namespace) -> int:
         sc = load_scenario(args.deployment or EXPERIMENTS[name][0])
     except DeploymentError as e:
         return refuse("awaremw experiment", e)
-    medium = _medium(args)
+    try:
+        medium = _medium(args)
+    except ValueError as e:
+        return refuse("awaremw experiment", e)
     if medium:
         from awaremw.experiments.seeds import with_medium
 
-        sc = scenario_of(with_medium(sc.deployment, medium))
+        try:
+            sc = scenario_of(with_medium(sc.deployment, medium))
+        except ValueError as e:
+            return refuse("awaremw experiment", e)
     if args.speed <= 0:
         return refuse("awaremw experiment", "--speed must be > 0")
     if args.seeds is not None:
@@ -171,6 +191,7 @@ def main(args: argparse.Namespace) -> int:
     metrics = analysis(name)(result, out)
     metrics["mac"] = sc.deployment.mac
     metrics["collisions"] = sc.deployment.collisions
+    metrics["radio_settings"] = sc.deployment.radio_settings.describe()
     metrics["wall_s"] = round(time.monotonic() - started, 2)
     metrics["cpu_s"] = round(time.process_time() - cpu0, 2)
     if metrics.get("duration_s"):
@@ -197,6 +218,10 @@ def _main_seeds(args: argparse.Namespace, name: str, out: Path) -> int:
         seeds = parse_seeds(args.seeds)
     except SeedSpecError as e:
         return refuse("awaremw experiment", e)
+    try:
+        medium = _medium(args)
+    except ValueError as e:
+        return refuse("awaremw experiment", e)
 
     def progress(m: dict[str, Any]) -> None:
         print(
@@ -206,7 +231,7 @@ def _main_seeds(args: argparse.Namespace, name: str, out: Path) -> int:
 
     started = time.monotonic()
     summary = run_seeds(
-        name, seeds, out, args.jobs, args.deployment, args.duration, progress, _medium(args)
+        name, seeds, out, args.jobs, args.deployment, args.duration, progress, medium
     )
     summary["wall_s"] = round(time.monotonic() - started, 2)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
@@ -216,5 +241,19 @@ def _main_seeds(args: argparse.Namespace, name: str, out: Path) -> int:
 
 
 def _medium(args: argparse.Namespace) -> dict[str, str]:
-    """The deployment keys ``--mac`` and ``--collisions`` override (only those given)."""
-    return {k: v for k in ("mac", "collisions") if (v := getattr(args, k, None)) is not None}
+    """The deployment keys ``--mac``, ``--collisions``, ``--noise`` and
+    ``--hardware-variance`` override (only those given). A trace file's path is
+    made absolute here, so that every seed's process finds it."""
+    out = {k: v for k in ("mac", "collisions") if (v := getattr(args, k, None)) is not None}
+    noise = getattr(args, "noise", None)
+    if noise is not None:
+        from awaremw.radio.noise import SHIPPED, load_trace
+
+        if noise != "white" and noise not in SHIPPED:
+            noise = str(Path(noise).resolve())
+            load_trace(noise)  # NoiseTraceError (a ValueError) names the problem
+        out["noise"] = noise
+    hv = getattr(args, "hardware_variance", None)
+    if hv is not None:
+        out["hardware_variance"] = "true" if hv else "false"
+    return out

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
+from awaremw.radio.environment import RadioSettings
 from awaremw.runtime.deployment import Deployment
 
 MAX_SEEDS = 1000
@@ -92,11 +93,23 @@ def run_seed(
 
 
 def with_medium(d: Deployment, medium: Mapping[str, str] | None) -> Deployment:
-    """``d`` with its ``mac`` and ``collisions`` keys replaced by ``medium``'s (if any)."""
+    """``d`` with its ``mac``, ``collisions``, ``noise`` and ``hardware_variance``
+    keys replaced by ``medium``'s (if any; ``hardware_variance`` as "true"/"false")."""
     if not medium:
         return d
+    rs = d.radio_settings
+    hv = medium.get("hardware_variance")
+    radio = RadioSettings(
+        medium.get("noise", rs.noise),
+        rs.hardware_variance if hv is None else hv == "true",
+        rs.links,
+    )
+    radio.check()
     return dataclasses.replace(
-        d, mac=medium.get("mac", d.mac), collisions=medium.get("collisions", d.collisions)
+        d,
+        mac=medium.get("mac", d.mac),
+        collisions=medium.get("collisions", d.collisions),
+        radio_settings=radio,
     )
 
 

@@ -18,7 +18,7 @@ from awaremw.radio.links import LinkFile, LinkTable, load_links
 from awaremw.radio.model import RadioModel, RadioPreset
 from awaremw.radio.noise import (
     SHIPPED,
-    GaussianNoise,
+    LineNoise,
     HardwareVariance,
     NoiseSource,
     TraceNoise,
@@ -105,7 +105,7 @@ def environment(
     noise: NoiseSource | None
     if settings.noise == WHITE:
         if floors:
-            noise = GaussianNoise(seed, floors, (preset.noise_floor_dbm, 0.0))
+            noise = LineNoise(seed, floors, (preset.noise_floor_dbm, 0.0))
         else:
             noise = None if hw is None else WhiteNoise(preset.noise_floor_dbm, hw)
     else:

@@ -4,8 +4,8 @@ Two formats, one a file (``docs/radio.md``, "Links files"):
 
 * **TOSSIM's topology format**: ``gain SRC DST DBM`` (one line per direction:
   the received power of SRC's frames at DST when SRC sends at 0 dBm) and
-  ``noise NODE MEAN_DBM STD_DB`` (the receiver's noise: a Gaussian per
-  instant), as TOSSIM's ``LinkLayerModel`` writes them and its Python
+  ``noise NODE MEAN_DBM RANGE_DB`` (the receiver's noise: uniform in
+  ``MEAN +- RANGE`` per instant, TOSSIM's ``sim_gain_sample_noise``), as TOSSIM's ``LinkLayerModel`` writes them and its Python
   scripts read them.
 * **Measured delivery**: ``SENDER RECEIVER PROBABILITY`` triples, such as the
   Intel Berkeley Research Lab's ``connectivity.txt``. A probability is the
@@ -37,7 +37,7 @@ MAX_LINKS_BYTES: Final = 64 << 20
 MAX_LINKS: Final = 4_000_000
 GAIN_RANGE: Final = (-250.0, 50.0)  # dB a gain line may hold
 NOISE_RANGE: Final = (-200.0, 50.0)
-MAX_NOISE_STD: Final = 50.0
+MAX_NOISE_RANGE: Final = 50.0
 # A delivery probability is the delivery of a frame of this many bytes (ours;
 # the preset's PHY overhead is added on the air): bench links sends its beacons
 # at exactly this length.
@@ -54,7 +54,7 @@ class LinksError(ValueError):
 @dataclass(frozen=True)
 class LinkFile:
     """A parsed links file: gains (dB at 0 dBm), or delivery probabilities, and
-    the ``noise`` lines (mean, std) of a TOSSIM file."""
+    the ``noise`` lines (mean, range) of a TOSSIM file."""
 
     path: str
     gains: Mapping[tuple[int, int], float]
@@ -121,13 +121,13 @@ def parse_links(text: str, name: str = "<links>") -> LinkFile:
                 gains[(a, b)] = g
         elif head == "noise":
             if len(tok) != 4:
-                raise LinksError(f"{where}: a noise line is 'noise NODE MEAN STD', got {s[:60]!r}")
+                raise LinksError(f"{where}: a noise line is 'noise NODE MEAN RANGE', got {s[:60]!r}")
             node = _node(tok[1], where)
             mean = _number(tok[2], where, "noise mean", *NOISE_RANGE)
-            std = _number(tok[3], where, "noise deviation", 0.0, MAX_NOISE_STD)
+            rng = _number(tok[3], where, "noise range", 0.0, MAX_NOISE_RANGE)
             if node in noise:
                 raise LinksError(f"{where}: a second noise line for {node}")
-            noise[node] = (mean, std)
+            noise[node] = (mean, rng)
         elif len(tok) == 3:
             a, b = _node(tok[0], where), _node(tok[1], where)
             p = _number(tok[2], where, "probability", 0.0, 1.0)
@@ -137,7 +137,7 @@ def parse_links(text: str, name: str = "<links>") -> LinkFile:
                 probs[(a, b)] = p
         else:
             raise LinksError(
-                f"{where}: expected 'gain SRC DST DBM', 'noise NODE MEAN STD' or "
+                f"{where}: expected 'gain SRC DST DBM', 'noise NODE MEAN RANGE' or "
                 f"'SENDER RECEIVER PROBABILITY', got {s[:60]!r}"
             )
         if len(gains) + len(probs) > MAX_LINKS:
@@ -248,4 +248,3 @@ class LinkTable:
         if f.probabilities:
             return f.probabilities.get((src, dst))
         return f.gains.get((src, dst))
-

@@ -6,8 +6,8 @@ so does its clear channel assessment (``docs/radio.md``, "Noise").
 
 * :class:`WhiteNoise`: the preset's floor, plus the mote's hardware offset
   (:class:`HardwareVariance`). Today's radio when no offset is set.
-* :class:`GaussianNoise`: per mote a mean and a deviation, one draw per
-  instant: the ``noise node mean std`` lines of a TOSSIM topology file.
+* :class:`LineNoise`: per mote a mean and a range, one uniform draw per
+  instant: the ``noise NODE MEAN RANGE`` lines of a TOSSIM topology file.
 * :class:`TraceNoise`: closest-pattern matching (CPM; Lee, Cerpa and Levis,
   IPSN 2007) on a noise trace, as TOSSIM's ``sim_noise.c`` does it: one reading
   per millisecond; the last :data:`HISTORY` readings, binned by
@@ -315,10 +315,11 @@ class WhiteNoise:
         return self.at(node, 0.0)
 
 
-class GaussianNoise:
-    """Per mote a mean and a deviation (TOSSIM's ``noise node mean std`` lines),
-    one draw per instant (microsecond) from ``(seed, node, t)``; motes without
-    a line hear ``default``."""
+class LineNoise:
+    """Per mote a mean and a range (TOSSIM's ``noise NODE MEAN RANGE`` lines):
+    a draw uniform in ``[mean - range, mean + range]``, as TOSSIM's
+    ``sim_gain_sample_noise`` takes it, one per instant (microsecond) from
+    ``(seed, node, t)``; motes without a line hear ``default``."""
 
     __slots__ = ("_seed", "default", "per_node")
 
@@ -330,11 +331,11 @@ class GaussianNoise:
         self.default = default
 
     def at(self, node: int, t: float) -> float:
-        mean, std = self.per_node.get(node, self.default)
-        if std == 0.0:
+        mean, rng = self.per_node.get(node, self.default)
+        if rng == 0.0:
             return mean
         h = packet_hash(link_hash(self._seed, DOMAIN_NOISE, node, 0), int(t * 1e6) & M64)
-        return mean + std * NORMAL[h >> SHIFT]
+        return mean + rng * (2.0 * (h & 0xFFFFFFFF) / 4294967296.0 - 1.0)
 
     def level(self, node: int) -> float:
         return self.per_node.get(node, self.default)[0]

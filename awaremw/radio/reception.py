@@ -301,7 +301,7 @@ class Reception(Generic[R]):
             and not self.air.survives(
                 f, rssi, r.node_id, r.x, r.y, others, not r.static,
                 None if noise is None else 10.0 ** (noise / 10.0),
-            )  # fmt: skip
+            )
         ):
             rc.collisions += 1
             if tap is not None:
