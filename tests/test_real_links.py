@@ -272,8 +272,13 @@ def test_beta_factor_is_zero_for_independent_and_high_for_bursty_losses() -> Non
 
 # --------------------------------------------------------------------------- deployments
 
-BASE = {"area": [50.0, 50.0], "nodes": [{"id": 1, "kind": "tmote", "position": [1.0, 1.0]},
-                                         {"id": 2, "kind": "tmote", "position": [5.0, 1.0]}]}  # fmt: skip
+BASE = {
+    "area": [50.0, 50.0],
+    "nodes": [
+        {"id": 1, "kind": "tmote", "position": [1.0, 1.0]},
+        {"id": 2, "kind": "tmote", "position": [5.0, 1.0]},
+    ],
+}
 
 
 def test_a_trace_is_found_next_to_the_deployment_file(tmp_path: Path) -> None:

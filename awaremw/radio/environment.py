@@ -18,8 +18,8 @@ from awaremw.radio.links import LinkFile, LinkTable, load_links
 from awaremw.radio.model import RadioModel, RadioPreset
 from awaremw.radio.noise import (
     SHIPPED,
-    LineNoise,
     HardwareVariance,
+    LineNoise,
     NoiseSource,
     TraceNoise,
     WhiteNoise,

@@ -5,8 +5,8 @@ Two formats, one a file (``docs/radio.md``, "Links files"):
 * **TOSSIM's topology format**: ``gain SRC DST DBM`` (one line per direction:
   the received power of SRC's frames at DST when SRC sends at 0 dBm) and
   ``noise NODE MEAN_DBM RANGE_DB`` (the receiver's noise: uniform in
-  ``MEAN +- RANGE`` per instant, TOSSIM's ``sim_gain_sample_noise``), as TOSSIM's ``LinkLayerModel`` writes them and its Python
-  scripts read them.
+  ``MEAN +- RANGE`` per instant, TOSSIM's ``sim_gain_sample_noise``), as
+  TOSSIM's ``LinkLayerModel`` writes them and its Python scripts read them.
 * **Measured delivery**: ``SENDER RECEIVER PROBABILITY`` triples, such as the
   Intel Berkeley Research Lab's ``connectivity.txt``. A probability is the
   delivery of a reference frame (:data:`REFERENCE_BYTES`, ours) over the
@@ -121,7 +121,9 @@ def parse_links(text: str, name: str = "<links>") -> LinkFile:
                 gains[(a, b)] = g
         elif head == "noise":
             if len(tok) != 4:
-                raise LinksError(f"{where}: a noise line is 'noise NODE MEAN RANGE', got {s[:60]!r}")
+                raise LinksError(
+                    f"{where}: a noise line is 'noise NODE MEAN RANGE', got {s[:60]!r}"
+                )
             node = _node(tok[1], where)
             mean = _number(tok[2], where, "noise mean", *NOISE_RANGE)
             rng = _number(tok[3], where, "noise range", 0.0, MAX_NOISE_RANGE)
