@@ -280,7 +280,19 @@ def test_forwarding_increments_thl_and_suppresses_duplicates() -> None:
     u.result(True)
     u.data(7, 7, 1, 0, 20)  # and again, after it left
     assert u.c.stats.duplicates == 2 and not u.sent()
-    u.data(8, 7, 1, 3, 20)  # another copy via another path (THL differs): forwarded
+
+
+def test_a_copy_of_a_forwarded_packet_with_another_thl_is_dropped() -> None:
+    # A lost ACK and a parent change send two copies along two paths; forwarding
+    # both at every forwarder multiplies them on lossy links (docs/protocol-dissemination.md).
+    u = Unit()
+    u.beacon(0, 0, BROADCAST)
+    u.data(7, 7, 1, 0, 20)
+    assert len([f for f in u.sent() if isinstance(f, CtpData)]) == 1
+    u.result(True)
+    u.data(8, 7, 1, 3, 20)  # the same packet via another path (THL differs)
+    assert u.c.stats.duplicates == 1 and not u.sent()
+    u.data(8, 7, 2, 3, 20)  # the next packet of that origin is forwarded
     assert len([f for f in u.sent() if isinstance(f, CtpData)]) == 1
 
 

@@ -455,12 +455,17 @@ class Collection(Component):
             return
         if d.src == self._parent or d.origin == me:
             # Our own packet came back, or our parent routes through us: we are in
-            # a loop. Poison and re-attach; keep the packet. (A packet we already
-            # forwarded arriving with another THL is no proof: after a lost ACK and
-            # a parent change, two copies may travel different paths.)
+            # a loop. Poison and re-attach; keep the packet.
             self.stats.loops += 1
             self._lose_parent(now)
             self._update_route(now)
+        elif heard is not None:
+            # A packet we already forwarded, with another THL, and no sign of a
+            # loop: a copy (a lost ACK, a parent change, two paths). Forwarding
+            # every copy multiplies them at each lossy hop (meyer-heavy noise: 44
+            # records, 4,363 forwards); one copy per forwarder is enough.
+            self.stats.duplicates += 1
+            return
         self._dups[key] = d.thl
         self._dups.move_to_end(key)
         if len(self._dups) > self.ctx.config.ctp_dup_cache:
