@@ -222,7 +222,7 @@ class DeliveryCurve:
 class LinkTable:
     """The links of a deployment: a gain (dB at 0 dBm) per directed pair."""
 
-    __slots__ = ("file", "gains")
+    __slots__ = ("_senders", "file", "gains")
 
     def __init__(self, f: LinkFile, model_for_curve: RadioModel | None = None) -> None:
         self.file = f
@@ -237,6 +237,15 @@ class LinkTable:
             }
         else:
             self.gains = dict(f.gains)
+        self._senders: dict[int, frozenset[int]] = {}
+        by_dst: dict[int, set[int]] = {}
+        for a, b in self.gains:
+            by_dst.setdefault(b, set()).add(a)
+        self._senders = {b: frozenset(s) for b, s in by_dst.items()}
+
+    def senders_to(self, dst: int) -> frozenset[int]:
+        """The motes ``dst`` has a link from (who it may hear)."""
+        return self._senders.get(dst, frozenset())
 
     def gain(self, src: int, dst: int) -> float | None:
         return self.gains.get((src, dst))

@@ -274,6 +274,11 @@ class ZenohMedium:
         # Local motes on the air, by cell; receiver caches of every sender heard.
         self._nb: Neighbourhood[Radio] = Neighbourhood(model, on_cell=self._ensure_columns)
         self._columns: set[int] = set()
+        # With a links file (radio/links.py) positions say nothing of who hears
+        # whom: a process subscribes to the keys of the senders its motes have a
+        # link from, so a frame still goes only towards the motes that can hear it.
+        self._links = None if model.env is None else model.env.links
+        self._link_senders: set[int] = set()
         self._subs: list[zenoh.Subscriber[Any]] = []
         self._chans: list[zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]]] = []
         self._inbox: deque[tuple[bytes, str]] = deque()  # bound: CHANNEL_CAPACITY
@@ -376,7 +381,13 @@ class ZenohMedium:
         self._nb.add(r, self.clock.now())
         if not r.static:
             self._ensure_mobility_tick()
-        self._ensure_columns(r.cell)
+        if self._links is None:
+            self._ensure_columns(r.cell)
+        else:
+            for s in sorted(self._links.senders_to(nid) - self._link_senders):
+                if not self._closed:
+                    self._link_senders.add(s)
+                    self._subscribe(f"{self.prefix}/radio/*/*/{s}")
         self._ensure_publisher(r)  # declared now rather than at the first frame (slow-ish)
         return r
 
@@ -419,9 +430,16 @@ class ZenohMedium:
         """Grid columns this process subscribes to."""
         return frozenset(self._columns)
 
+    @property
+    def link_senders(self) -> frozenset[int]:
+        """With a links file: the senders this process subscribes to."""
+        return frozenset(self._link_senders)
+
     # ------------------------------------------------------------------ subscriptions
 
     def _ensure_columns(self, cell: Cell) -> None:
+        if self._links is not None:
+            return  # subscribed by sender (attach)
         for cx in (cell[0] - 1, cell[0], cell[0] + 1):
             if cx not in self._columns and not self._closed:
                 self._columns.add(cx)
