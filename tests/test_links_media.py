@@ -13,18 +13,32 @@ can hear it.
 from __future__ import annotations
 
 import random
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_mac_zenoh import FIELDS, Media, router, run_virtual, scripted, wait_for  # noqa: F401
+from test_mac_zenoh import FIELDS, Media, run_virtual, scripted, wait_for
 
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio.environment import RadioSettings, radio_model
 from awaremw.radio.model import CC2420
 from awaremw.radio.zenoh_medium import MacSettings
-from awaremw.runtime.zenoh_session import SessionSettings, close_quietly, open_session
+from awaremw.runtime.router import EmbeddedRouter
+from awaremw.runtime.zenoh_session import (
+    SessionSettings,
+    close_quietly,
+    free_tcp_endpoint,
+    open_session,
+)
 
 pytestmark = pytest.mark.zenoh
+
+
+@pytest.fixture(scope="module")
+def router() -> Iterator[str]:
+    ep = free_tcp_endpoint()
+    with EmbeddedRouter([ep]):
+        yield ep
 
 
 def topology(path: Path, ids: list[int], seed: int) -> Path:
