@@ -62,7 +62,13 @@ import time
 from collections import Counter
 from typing import Any
 
-from awaremw.bench.medium import add_medium_arguments, mac_totals, medium_of
+from awaremw.bench.medium import (
+    add_medium_arguments,
+    add_radio_arguments,
+    mac_totals,
+    medium_of,
+    radio_of,
+)
 from awaremw.protocol.attributes import TEMPERATURE
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
@@ -83,7 +89,8 @@ from awaremw.protocol.frames import (
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.energy import MoteEnergy, role_of, role_table
-from awaremw.radio.model import RadioModel, preset
+from awaremw.radio.environment import radio_model
+from awaremw.radio.model import preset
 from awaremw.radio.security import RadioSecurity
 from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Static
@@ -140,6 +147,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also give every mote's role, mJ per hour and frames per hour",
     )
     add_medium_arguments(parser)
+    add_radio_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -159,7 +167,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         cfg = dataclasses.replace(cfg, gateway_public_key=security.gateway_public_key)
     mac, collisions = medium_of(args)
     net = VirtualNetwork(
-        RadioModel(radio, seed), seed, security=security, mac=mac, collisions=collisions
+        radio_model(radio, seed, radio_of(args)),
+        seed,
+        security=security,
+        mac=mac,
+        collisions=collisions,
     )
     cfg = dataclasses.replace(cfg, mtu=net.payload_mtu)
     far = spacing * (side - 1)

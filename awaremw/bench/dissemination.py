@@ -55,7 +55,13 @@ from collections import deque
 from collections.abc import Iterable
 from typing import Any
 
-from awaremw.bench.medium import add_medium_arguments, mac_totals, medium_of
+from awaremw.bench.medium import (
+    add_medium_arguments,
+    add_radio_arguments,
+    mac_totals,
+    medium_of,
+    radio_of,
+)
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.core import Transmission
 from awaremw.protocol.events import ItemAdopted, ParentChanged
@@ -74,7 +80,8 @@ from awaremw.protocol.frames import (
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.energy import MoteEnergy, role_of, role_table
-from awaremw.radio.model import RadioModel, preset
+from awaremw.radio.environment import RadioSettings, radio_model
+from awaremw.radio.model import preset
 from awaremw.radio.security import RadioSecurity
 from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Static
@@ -167,13 +174,18 @@ def build_grid(
     signer: ItemSigner | None = None,
     mac: str = "csma",
     collisions: str = "sinr",
+    realism: RadioSettings | None = None,
 ) -> tuple[VirtualNetwork, dict[int, TrafficMote], list[Event]]:
     """``side`` x ``side`` TrafficMotes (ids row by row); returns the network, the
     motes and the list the network's events are appended to. With ``security``
     the radio is secured, the motes get the payload MTU and verify items with
     its gateway public key, and the roots sign with ``signer``."""
     net = VirtualNetwork(
-        RadioModel(preset(radio), seed), seed, security=security, mac=mac, collisions=collisions
+        radio_model(preset(radio), seed, realism),
+        seed,
+        security=security,
+        mac=mac,
+        collisions=collisions,
     )
     events: list[Event] = []
     net.on_event = lambda node, e, t: events.append((node, e, t))
@@ -324,6 +336,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         signer=signer,
         mac=mac,
         collisions=collisions,
+        realism=radio_of(args),
     )
     counts = {"drip": 0, "ctp": 0, "wave": 0}
     counting = [False]
@@ -456,3 +469,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also kill a parent in a 10 x 10 grid with traffic and time the repair",
     )
     add_medium_arguments(parser)
+    add_radio_arguments(parser)
