@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from awaremw.radio.environment import RadioSettings, radio_model
+from awaremw.radio.environment import RadioSettings, environment_of, radio_model
 from awaremw.radio.links import REFERENCE_BYTES, LinkFile, load_links
 from awaremw.radio.model import PRESETS, Z_MAX, packet_key
 from awaremw.runtime.deployment import DeploymentError, load
@@ -183,7 +183,8 @@ def _report(
     interval: float,
     t0: float,
 ) -> dict[str, Any]:
-    table = None if model.env is None else model.env.links
+    env = environment_of(model)
+    table = None if env is None else env.links
     rows = []
     delivery: dict[tuple[int, int], float] = {}
     for pair, out in measured.items():
@@ -220,8 +221,7 @@ def _report(
                 betas.append(beta)
     result: dict[str, Any] = {
         "source": source,
-        "settings": "links file" if model.env is None and f is not None else (
-            "textbook" if model.env is None else model.env.settings.describe()),
+        "settings": "textbook" if env is None else env.settings.describe(),
         "radio": model.preset.name,
         "seed": model.seed,
         "motes": len(pos),

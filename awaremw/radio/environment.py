@@ -11,6 +11,7 @@ same decisions from the same settings.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,13 +64,30 @@ class RadioSettings:
 
 @dataclass(frozen=True)
 class RadioEnvironment:
-    """What the model needs of the settings: a noise source (None: the preset's
-    floor), hardware offsets, a link table (None: links from positions)."""
+    """What the model needs of the settings (:class:`~awaremw.radio.model.Realism`):
+    a noise source (None: the preset's floor), hardware offsets, a link table
+    (None: links from positions)."""
 
     noise: NoiseSource | None
     hardware: HardwareVariance | None
     links: LinkTable | None
     settings: RadioSettings
+
+    @property
+    def noise_at(self) -> Callable[[int, float], float] | None:
+        return None if self.noise is None else self.noise.at
+
+    @property
+    def tx_offset(self) -> Callable[[int], float] | None:
+        return None if self.hardware is None else self.hardware.tx_offset
+
+    @property
+    def tx_sigma_db(self) -> float:
+        return 0.0 if self.hardware is None else self.hardware.tx_sigma_db
+
+    @property
+    def gains(self) -> dict[tuple[int, int], float] | None:
+        return None if self.links is None else self.links.gains
 
 
 def trace_source(name: str) -> str | Path:
@@ -125,3 +143,9 @@ def radio_model(
     """A model with the realism ``settings`` ask for (None: the textbook radio)."""
     env = None if settings is None else environment(preset, seed, settings, links)
     return RadioModel(preset, seed, symmetric, env)
+
+
+def environment_of(model: RadioModel) -> RadioEnvironment | None:
+    """The environment a model was built with (None: the textbook radio)."""
+    env = model.env
+    return env if isinstance(env, RadioEnvironment) else None

@@ -199,8 +199,7 @@ class DeliveryCurve:
             tot = 0.0
             for z in zs:
                 rssi = mean - sf * z
-                if rssi >= p.sensitivity_dbm:
-                    tot += model.prr_snr(rssi - noise_dbm, bits)
+                tot += model.prr_bits(rssi, bits, noise_dbm)
             self.x.append(mean)
             self.d.append(tot / len(zs))
             if mean >= hi:

@@ -20,10 +20,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from statistics import NormalDist
-from typing import TYPE_CHECKING, Final
-
-if TYPE_CHECKING:
-    from awaremw.radio.environment import RadioEnvironment
+from typing import Final, Protocol
 
 # --------------------------------------------------------------------------- hashing
 
@@ -281,6 +278,33 @@ def preset(name: str) -> RadioPreset:
 LINKS_RANGE_M: Final = 1e7
 NO_LINK_DBM: Final = -1e9
 
+
+class Realism(Protocol):
+    """What a realistic radio adds to the model (``radio/environment.py``'s
+    ``RadioEnvironment`` is the one kind): this module stays the bottom of the
+    radio, importing nothing of the modules that build it."""
+
+    @property
+    def noise_at(self) -> Callable[[int, float], float] | None:
+        """The noise (dBm) at a mote at an instant; None: the preset's floor."""
+        ...
+
+    @property
+    def tx_offset(self) -> Callable[[int], float] | None:
+        """A mote's output power offset (dB); None: none."""
+        ...
+
+    @property
+    def tx_sigma_db(self) -> float:
+        """The deviation of the output power offsets (0 without)."""
+        ...
+
+    @property
+    def gains(self) -> dict[tuple[int, int], float] | None:
+        """Every link's gain (dB at 0 dBm) from a links file; None: from positions."""
+        ...
+
+
 # --------------------------------------------------------------------------- cells
 
 
@@ -333,13 +357,14 @@ class RadioModel:
         "_bn_over_r",
         "_d0",
         "_d_min",
-        "_hw",
         "_links",
         "_max_fade",
         "_pl_d0",
         "_range_cache",
         "_seed_mix",
         "_ten_n",
+        "_tx_offset",
+        "_tx_sigma",
         "env",
         "noise_at",
         "one_snr_db",
@@ -354,7 +379,7 @@ class RadioModel:
         preset: RadioPreset,
         seed: int,
         symmetric: bool = True,
-        env: RadioEnvironment | None = None,
+        env: Realism | None = None,
     ) -> None:
         self.preset = preset
         self.seed = seed
@@ -362,13 +387,11 @@ class RadioModel:
         self.env = env
         # The noise at a receiver at an instant (dBm); None: preset.noise_floor_dbm.
         self.noise_at: Callable[[int, float], float] | None = None
-        self._hw = None if env is None else env.hardware
-        self._links: dict[tuple[int, int], float] | None = None
+        self._tx_offset = None if env is None else env.tx_offset
+        self._tx_sigma = 0.0 if env is None else env.tx_sigma_db
+        self._links = None if env is None else env.gains
         if env is not None:
-            if env.noise is not None:
-                self.noise_at = env.noise.at
-            if env.links is not None:
-                self._links = env.links.gains
+            self.noise_at = env.noise_at
         self._bn_over_r = preset.noise_bandwidth_hz / preset.bitrate_bps
         # Bounds (entries; each cache is cleared when full, its values are pure
         # functions, so clearing only costs recomputation):
@@ -430,9 +453,9 @@ class RadioModel:
         # path_loss_db inlined (the same operations in the same order: same bits).
         d = distance if distance > self._d_min else self._d_min
         pl = self._pl_d0 + self._ten_n * math.log10(d / self._d0)
-        hw = self._hw
-        if hw is not None:
-            return tx_power + hw.tx_offset(src) - pl - self.static_shadow_db(src, dst)
+        off = self._tx_offset
+        if off is not None:
+            return tx_power + off(src) - pl - self.static_shadow_db(src, dst)
         return tx_power - pl - self.static_shadow_db(src, dst)
 
     def rssi(self, src: int, dst: int, distance: float, tx_power: float, packet_key: int) -> float:
@@ -454,8 +477,8 @@ class RadioModel:
             if self._links is not None:
                 return LINKS_RANGE_M
             sigma = math.hypot(p.shadowing_sigma_db, p.fading_sigma_db)
-            if self._hw is not None:  # the output power offsets spread the links further
-                sigma = math.hypot(sigma, self._hw.tx_sigma_db)
+            if self._tx_sigma:  # the output power offsets spread the links further
+                sigma = math.hypot(sigma, self._tx_sigma)
             budget = tx - p.sensitivity_dbm + 3.0 * sigma - p.pl_d0_db
             r = p.d0_m * 10.0 ** (budget / (10.0 * p.path_loss_exponent))
             if len(self._range_cache) >= _RANGE_CACHE_MAX:
@@ -493,7 +516,7 @@ class RadioModel:
                 lo = mid
         return hi
 
-    def prr_bits(self, rssi_dbm: float, bits: int) -> float:
+    def prr_bits(self, rssi_dbm: float, bits: int, noise_dbm: float | None = None) -> float:
         """PRR = (1 - BER(SNR))^bits; 0 below sensitivity.
 
         The SNR is rounded to 0.001 dB so that the values can be cached (the
@@ -502,9 +525,10 @@ class RadioModel:
         p = self.preset
         if rssi_dbm < p.sensitivity_dbm:
             return 0.0
-        return self.prr_snr(rssi_dbm - p.noise_floor_dbm, bits)
+        noise = p.noise_floor_dbm if noise_dbm is None else noise_dbm
+        return self._prr_snr(rssi_dbm - noise, bits)
 
-    def prr_snr(self, snr_db: float, bits: int) -> float:
+    def _prr_snr(self, snr_db: float, bits: int) -> float:
         """PRR of ``bits`` bits at ``snr_db`` (the sensitivity is the caller's check)."""
         if snr_db >= self.one_snr_db:
             return 1.0
@@ -547,12 +571,8 @@ class RadioModel:
             return (h & 0xFFFFFFFF) * U32 < self.prr_bits(rssi, bits), rssi
         if rssi < self.preset.sensitivity_dbm:
             return False, rssi
-        return (h & 0xFFFFFFFF) * U32 < self.prr_snr(rssi - noise_dbm, bits), rssi
+        return (h & 0xFFFFFFFF) * U32 < self._prr_snr(rssi - noise_dbm, bits), rssi
 
-    def noise_dbm(self, node: int, t: float) -> float:
-        """The noise at ``node``'s receiver at ``t`` (the preset's floor without ``env``)."""
-        nz = self.noise_at
-        return self.preset.noise_floor_dbm if nz is None else nz(node, t)
 
     def reception(
         self,

@@ -146,7 +146,7 @@ class Reception(Generic[R]):
         noise = self.noise
         one = self.one_snr
         sf = self.sigma_f
-        prr_snr = self.model.prr_snr
+        prr_bits = self.model.prr_bits
         memo = self.model.prr_memo
         nz = self.model.noise_at  # None: the preset's constant floor
         noise_mw: float | None = None
@@ -174,10 +174,10 @@ class Reception(Generic[R]):
             snr = rssi - noise
             if snr < one:
                 z ^= z >> 31
-                # prr_snr(snr, bits), its cache looked up inline first.
+                # prr_bits(rssi, bits, noise), its cache looked up inline first.
                 pv = memo.get((round(snr * 1000.0) << 16) | bits)
                 if pv is None:
-                    pv = prr_snr(snr, bits)
+                    pv = prr_bits(rssi, bits, noise)
                 if (z & 0xFFFFFFFF) * U32 >= pv:
                     if r.alive:
                         rc.dropped_loss += 1

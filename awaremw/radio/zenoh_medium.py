@@ -50,6 +50,7 @@ from awaremw.radio.envelope import (
     decode_envelope,
     encode_envelope,
 )
+from awaremw.radio.environment import environment_of
 from awaremw.radio.faults import FaultLog
 from awaremw.radio.linklayer import LinkStation
 from awaremw.radio.mac import (
@@ -277,7 +278,8 @@ class ZenohMedium:
         # With a links file (radio/links.py) positions say nothing of who hears
         # whom: a process subscribes to the keys of the senders its motes have a
         # link from, so a frame still goes only towards the motes that can hear it.
-        self._links = None if model.env is None else model.env.links
+        env = environment_of(model)
+        self._links = None if env is None else env.links
         self._link_senders: set[int] = set()
         self._subs: list[zenoh.Subscriber[Any]] = []
         self._chans: list[zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]]] = []
