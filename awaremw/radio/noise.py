@@ -43,12 +43,12 @@ from importlib import resources
 from pathlib import Path
 from typing import Final, Protocol
 
-from awaremw.radio.model import M64, NORMAL, SHIFT, link_hash, packet_hash
+from awaremw.radio.model import GOLDEN, M64, MUL, NORMAL, SHIFT, link_hash, packet_hash
 
 HISTORY: Final = 20  # readings of history (TOSSIM's NOISE_HISTORY)
 BIN_DB: Final = 5.0  # bin width (TOSSIM's NOISE_QUANTIZE_INTERVAL)
 BIN_MIN_DBM: Final = -120.0  # readings below fall in the lowest bin (TOSSIM's NOISE_MIN)
-HORIZON_MS: Final = 100  # a silence longer than this restarts a mote's chain
+HORIZON_MS: Final = 32  # a silence longer than this restarts a mote's chain (ms)
 MIN_READINGS: Final = 10 * HISTORY
 MAX_READINGS: Final = 4_000_000  # about 16 hours at one reading a millisecond
 MAX_TRACE_BYTES: Final = 64 << 20
@@ -177,7 +177,7 @@ class Cpm:
     it), ``n`` if none.
     """
 
-    __slots__ = ("cls", "members", "n", "nxt", "values")
+    __slots__ = ("cls", "members", "n", "nxt", "pool", "values")
 
     def __init__(self, trace: NoiseTrace) -> None:
         v = trace.readings
@@ -204,6 +204,9 @@ class Cpm:
         for p in range(n - 1, HISTORY - 1, -1):
             nxt[p] = p if choice[cls[p]] else nxt[p + 1]
         self.nxt = nxt
+        # The positions to draw from at each position where a draw matters.
+        empty: list[int] = []
+        self.pool = [members[cls[p]] if nxt[p] == p else empty for p in range(n)]
 
     def start(self, h: int, t: int) -> int:
         """A position drawn uniformly (the chain's stationary distribution)."""
@@ -221,6 +224,7 @@ class Cpm:
         """The position at ms ``t1`` of the chain that is at ``p`` at ms ``t`` (``t1 >= t``)."""
         n = self.n
         nxt = self.nxt
+        pool = self.pool
         while t < t1:
             b = nxt[p]
             if b - p >= t1 - t:  # no choice before t1: follow the trace
@@ -232,7 +236,10 @@ class Cpm:
                 continue
             else:
                 t += b - p
-                p = self.pick(b, h, t) + 1
+                # pick(b, h, t) inlined (packet_hash too): one draw per choice.
+                m = pool[b]
+                z = ((h ^ ((t * GOLDEN) & M64)) * MUL) & M64
+                p = m[((z ^ (z >> 31)) & 0xFFFFFFFF) * len(m) >> 32] + 1
                 t += 1
             if p >= n:  # off the trace's end: a fresh start where the walk fell off
                 t -= p - n
@@ -342,16 +349,19 @@ class LineNoise:
 
 
 class _Chain:
-    """One mote's CPM chain: where it was at the last two instants asked."""
+    """One mote's CPM chain: where it was at the last two instants asked, the
+    reading at the last one, and the mote's offset (dB added to readings)."""
 
-    __slots__ = ("h", "p", "p0", "t", "t0")
+    __slots__ = ("h", "off", "p", "p0", "t", "t0", "v")
 
-    def __init__(self, h: int, p: int, t: int) -> None:
+    def __init__(self, h: int, p: int, t: int, off: float) -> None:
         self.h = h
         self.p = p
         self.t = t
         self.p0 = p  # the instant before the last (a question slightly in the past)
         self.t0 = t
+        self.v = float("nan")  # the reading at t (nan: not drawn yet)
+        self.off = off
 
 
 class TraceNoise:
@@ -384,16 +394,25 @@ class TraceNoise:
         self.levels = {n: v - trace.mode for n, v in (levels or {}).items()}
         self._chains: dict[int, _Chain] = {}
 
+    def _chain(self, node: int, ms: int) -> _Chain:
+        if len(self._chains) >= self.MAX_CHAINS:
+            self._chains.clear()
+        h = link_hash(self._seed, DOMAIN_NOISE, node, 0)
+        off = self.levels.get(node, self.shift)
+        if self.hw is not None:
+            off += self.hw.noise_offset(node)
+        c = self._chains[node] = _Chain(h, self.cpm.start(h, ms), ms, off)
+        return c
+
     def reading(self, node: int, ms: int) -> float:
         """The chain's reading (trace dBm, unshifted) at millisecond ``ms``."""
         cpm = self.cpm
         c = self._chains.get(node)
         if c is None:
-            if len(self._chains) >= self.MAX_CHAINS:
-                self._chains.clear()
-            h = link_hash(self._seed, DOMAIN_NOISE, node, 0)
-            c = self._chains[node] = _Chain(h, cpm.start(h, ms), ms)
+            c = self._chain(node, ms)
         elif ms >= c.t:
+            if ms == c.t and c.v == c.v:  # asked again at the same instant (not nan)
+                return c.v
             if ms > c.t:
                 c.p0, c.t0 = c.p, c.t
                 if ms - c.t > HORIZON_MS:
@@ -405,12 +424,12 @@ class TraceNoise:
             return cpm.values[cpm.pick(cpm.advance(c.p0, c.t0, ms, c.h), c.h, ms)]
         else:  # further back than anything kept: a stationary draw
             return cpm.values[cpm.pick(cpm.start(c.h, ms), c.h, ms)]
-        return cpm.values[cpm.pick(c.p, c.h, ms)]
+        v = c.v = cpm.values[cpm.pick(c.p, c.h, ms)]
+        return v
 
     def at(self, node: int, t: float) -> float:
-        v = self.reading(node, int(t * 1000.0)) + self.levels.get(node, self.shift)
-        hw = self.hw
-        return v if hw is None else v + hw.noise_offset(node)
+        v = self.reading(node, int(t * 1000.0))
+        return v + self._chains[node].off
 
     def level(self, node: int) -> float:
         base = self.trace.mode + self.levels.get(node, self.shift)
