@@ -33,6 +33,7 @@ KEYS = {
     "mac_drops",
     "mac",
     "collisions_model",
+    "radio_settings",
     "preset",
     "seed",
     "spacing_m",
@@ -70,6 +71,7 @@ def test_aware_workload_tracks_and_delivers(tmp_path: Path) -> None:
     assert out["records_delivered"] <= out["records_produced"]
     assert out["records_untracked"] == 0
     assert out["mac"] == "csma" and out["collisions_model"] == "sinr" and out["collisions"] > 0
+    assert out["radio_settings"] == "noise white"  # the textbook radio unless asked
     # The profile holds the protocol's own functions (the run went through them);
     # compiled functions are invisible to it, their time charged to the caller.
     stats = pstats.Stats(str(prof))
