@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_mac_zenoh import FIELDS, Media, run_virtual, scripted, wait_for
+from test_mac_zenoh import FIELDS, Media, run_virtual, run_zenoh, scripted, wait_for
 
 from awaremw.protocol.frames import BROADCAST
 from awaremw.radio.environment import RadioSettings, radio_model
@@ -67,23 +67,13 @@ async def test_both_media_decide_the_same_from_a_links_file(
     pos = {i: (100.0 * i, 0.0) for i in ids}
     script = scripted(pos, 40, 3)
     v_got, v_counts, v_results = run_virtual(model, pos, script, mac)
-
-    session = open_session(SessionSettings("peer", (router,)))
-    z = Media(model, [session], f"links{mac}", access=MacSettings(mac, "sinr", 0.005))
-    try:
-        z.attach(0, pos)
-        t_end = z.play(script)
-        await z.settle(t_end)
-        z_counts = z.counters()
-    finally:
-        z.close()
-        close_quietly(session)
+    z_got, z_counts, z_results = await run_zenoh(router, model, pos, script, mac, f"links{mac}")
     total = {f: sum(c[FIELDS.index(f)] for c in v_counts.values()) for f in FIELDS}
     assert total["frames_rx"] >= 20 and total["dropped_loss"] >= 5  # links that lose
     assert total["collisions"] >= 3
-    assert z.got == v_got
+    assert z_got == v_got
     assert z_counts == v_counts
-    assert {i: s.results for i, s in z.sinks.items()} == v_results
+    assert z_results == v_results
 
 
 async def test_a_frame_goes_only_to_the_processes_whose_motes_can_hear_its_sender(

@@ -180,6 +180,31 @@ class Media:
             m.close()
 
 
+Outcome = tuple[set[Reception], dict[int, tuple[int, ...]], dict[int, list[tuple[int, bool]]]]
+
+
+async def run_zenoh(
+    router: str, model: RadioModel, pos: dict[int, tuple[float, float]], script: Script, mac: str,
+    prefix: str,
+) -> Outcome:  # fmt: skip
+    """:func:`run_virtual`'s script on a Zenoh medium in one session (one process).
+
+    Guard 5 ms wall = 0.25 ms emulated: shorter than the ACK exchange (0.54 ms),
+    so an acknowledged sender resumes when the virtual one does (with a longer
+    guard it resumes at end + guard: same rules, later times)."""
+    session = open_session(SessionSettings("peer", (router,)))
+    z = Media(model, [session], prefix, access=MacSettings(mac, "sinr", 0.005))
+    try:
+        z.attach(0, pos)
+        t_end = z.play(script)
+        await z.settle(t_end)
+        counts = z.counters()  # (late decisions cannot matter: no frame comes from elsewhere)
+    finally:
+        z.close()
+        close_quietly(session)
+    return z.got, counts, {i: s.results for i, s in z.sinks.items()}
+
+
 @pytest.fixture(scope="module")
 def router() -> Iterator[str]:
     ep = free_tcp_endpoint()
@@ -210,28 +235,15 @@ async def test_same_seed_same_collisions_virtual_and_zenoh_in_one_process(
     pos = {i: (rnd.uniform(0, 15) + 30 * (i % 2), rnd.uniform(0, 15)) for i in range(8)}
     script = scripted(pos, 40, 3)
     v_got, v_counts, v_results = run_virtual(model, pos, script, mac)
-
-    session = open_session(SessionSettings("peer", (router,)))
-    # Guard 5 ms wall = 0.25 ms emulated: shorter than the ACK exchange (0.54 ms),
-    # so an acknowledged sender resumes when the virtual one does (with a longer
-    # guard it resumes at end + guard: same rules, later times).
-    z = Media(model, [session], f"t1{mac}", access=MacSettings(mac, "sinr", 0.005))
-    try:
-        z.attach(0, pos)
-        t_end = z.play(script)
-        await z.settle(t_end)
-        z_counts = z.counters()  # (late decisions cannot matter: no frame comes from elsewhere)
-    finally:
-        z.close()
-        close_quietly(session)
+    z_got, z_counts, z_results = await run_zenoh(router, model, pos, script, mac, f"t1{mac}")
     # Not a trivial script: frames collided, captured or not, and CSMA deferred.
     total = {f: sum(c[FIELDS.index(f)] for c in v_counts.values()) for f in FIELDS}
     assert total["collisions"] >= 5 and total["frames_rx"] >= 20
     if mac == "csma":
         assert total["cca_busy"] >= 3
-    assert z.got == v_got
+    assert z_got == v_got
     assert z_counts == v_counts
-    assert {i: s.results for i, s in z.sinks.items()} == v_results
+    assert z_results == v_results
 
 
 async def routed(session: zenoh.Session, medium: ZenohMedium, cell: tuple[int, int]) -> None:

@@ -32,6 +32,7 @@ from typing import Final
 
 from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.radio.model import NORMAL, RadioModel
+from awaremw.radio.textfile import read_bounded
 
 MAX_LINKS_BYTES: Final = 64 << 20
 MAX_LINKS: Final = 4_000_000
@@ -159,16 +160,7 @@ def load_links(name_or_path: str | Path) -> LinkFile:
     """A shipped links file by name (``"intel-lab"``), or a path."""
     key = str(name_or_path)
     p = shipped_links_path(key) if key in SHIPPED else Path(key)
-    try:
-        size = p.stat().st_size
-        if size > MAX_LINKS_BYTES:
-            raise LinksError(f"{p}: {size} bytes; a links file may have {MAX_LINKS_BYTES}")
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise LinksError(f"{p}: cannot read: {e.strerror or e}") from None
-    except UnicodeDecodeError as e:
-        raise LinksError(f"{p}: not UTF-8 text: {e}") from None
-    return parse_links(text, str(p))
+    return parse_links(read_bounded(p, MAX_LINKS_BYTES, LinksError, "a links file"), str(p))
 
 
 # --------------------------------------------------------------------------- delivery -> gain

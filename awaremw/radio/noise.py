@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Final, Protocol
 
 from awaremw.radio.model import GOLDEN, M64, MUL, NORMAL, SHIFT, link_hash, packet_hash
+from awaremw.radio.textfile import read_bounded
 
 HISTORY: Final = 20  # readings of history (TOSSIM's NOISE_HISTORY)
 BIN_DB: Final = 5.0  # bin width (TOSSIM's NOISE_QUANTIZE_INTERVAL)
@@ -110,15 +111,7 @@ class NoiseTrace:
     def load(cls, path: str | Path) -> NoiseTrace:
         """Read a trace file: one reading (dBm) a line; blank lines are skipped."""
         p = Path(path)
-        try:
-            size = p.stat().st_size
-            if size > MAX_TRACE_BYTES:
-                raise NoiseTraceError(f"{p}: {size} bytes; a trace may have {MAX_TRACE_BYTES}")
-            text = p.read_text(encoding="utf-8")
-        except OSError as e:
-            raise NoiseTraceError(f"{p}: cannot read: {e.strerror or e}") from None
-        except UnicodeDecodeError as e:
-            raise NoiseTraceError(f"{p}: not UTF-8 text: {e}") from None
+        text = read_bounded(p, MAX_TRACE_BYTES, NoiseTraceError, "a trace")
         out: list[float] = []
         for n, line in enumerate(text.splitlines(), 1):
             s = line.strip()
