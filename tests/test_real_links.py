@@ -336,3 +336,16 @@ def test_experiment_refuses_a_trace_that_cannot_be_read(tmp_path: Path) -> None:
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "missing.txt: cannot read" in lines[0]
+
+
+def test_a_trace_asked_for_with_a_tossim_file_sits_at_each_motes_noise_line(
+    tmp_path: Path,
+) -> None:
+    p = tmp_path / "topo.txt"
+    p.write_text("gain 1 2 -70\ngain 2 1 -70\nnoise 1 -100 4\nnoise 2 -90 4\n", encoding="utf-8")
+    env = environment_of(radio_model(CC2420, 1, RadioSettings("meyer-heavy", False, str(p))))
+    assert env is not None and isinstance(env.noise, TraceNoise)
+    # The trace's floor (its most common reading) at each mote's mean; others at the preset's.
+    assert env.noise.level(1) == -100.0
+    assert env.noise.level(2) == -90.0
+    assert env.noise.level(3) == CC2420.noise_floor_dbm
