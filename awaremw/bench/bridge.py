@@ -55,6 +55,7 @@ from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings
 from awaremw.protocol.events import Delivered
 from awaremw.protocol.frames import DataRecord
+from awaremw.security.redact import mask_url, redact
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -95,6 +96,22 @@ async def broker_url(url: str | None) -> AsyncIterator[str]:
         return
     async with EmbeddedBroker() as b:
         yield b.url
+
+
+async def _reachable(url: str, timeout: float = 5.0) -> None:
+    """ValueError (one line, the password masked) unless the broker of ``url`` accepts us."""
+    client = MqttSettings.from_url(url).client("awaremw-bench-probe", timeout=timeout)
+    try:
+        async with asyncio.timeout(timeout + 1.0), client:
+            return
+    except TimeoutError:
+        raise ValueError(
+            f"the MQTT broker {mask_url(url)} did not answer within {timeout:g} s"
+        ) from None
+    except aiomqtt.MqttError as e:
+        raise ValueError(
+            f"cannot connect to the MQTT broker {mask_url(url)}: {redact(str(e))}"
+        ) from None
 
 
 @dataclass
@@ -203,7 +220,10 @@ async def _main(args: argparse.Namespace) -> dict[str, Any]:
         "speed": args.speed,
     }
     async with broker_url(args.mqtt) as url:
-        out["broker"] = "embedded" if args.mqtt is None else MqttSettings.from_url(url).url
+        if args.mqtt is not None:
+            await _reachable(url)
+        masked = mask_url(MqttSettings.from_url(url).url)
+        out["broker"] = "embedded" if args.mqtt is None else masked
         sub_url = args.sub_mqtt or url
         if not args.no_fleet:
             lat, dlv = await end_to_end(

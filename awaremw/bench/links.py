@@ -99,12 +99,12 @@ def _setup(args: argparse.Namespace) -> tuple[Any, dict[int, tuple[float, float]
                                               dict[int, float], LinkFile | None, str]:  # fmt: skip
     """(model, positions by id (None: none), TX power by id, links file, source)."""
     if (args.deployment is None) == (args.links is None):
-        raise SystemExit("awaremw bench links: give exactly one of --deployment or --links")
+        raise ValueError("give exactly one of --deployment or --links")
     if args.deployment is not None:
         try:
             dep = load(args.deployment)
         except DeploymentError as e:
-            raise SystemExit(f"awaremw bench links: {e}") from None
+            raise ValueError(f"{e}") from None
         s = dep.radio_settings
         settings = RadioSettings(
             args.noise if args.noise is not None else s.noise,
@@ -115,7 +115,7 @@ def _setup(args: argparse.Namespace) -> tuple[Any, dict[int, tuple[float, float]
         try:
             model = radio_model(dep.preset, seed, settings, links=dep.link_file)
         except ValueError as e:
-            raise SystemExit(f"awaremw bench links: {e}") from None
+            raise ValueError(f"{e}") from None
         pos: dict[int, tuple[float, float] | None] = {n.id: n.position for n in dep.nodes}
         txp = {n.id: dep.tx_power_of(n) for n in dep.nodes}
         return model, pos, txp, dep.link_file, dep.name
@@ -124,7 +124,7 @@ def _setup(args: argparse.Namespace) -> tuple[Any, dict[int, tuple[float, float]
         settings = RadioSettings(args.noise or "white", False, str(args.links))
         model = radio_model(PRESETS[args.radio], args.seed or 0, settings, links=f)
     except ValueError as e:
-        raise SystemExit(f"awaremw bench links: {e}") from None
+        raise ValueError(f"{e}") from None
     ids = sorted(f.nodes())
     p = model.preset.tx_power_dbm
     return model, dict.fromkeys(ids), dict.fromkeys(ids, p), f, str(args.links)
@@ -133,7 +133,7 @@ def _setup(args: argparse.Namespace) -> tuple[Any, dict[int, tuple[float, float]
 def run(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     if not 1 <= args.beacons <= 100_000:
-        raise SystemExit("awaremw bench links: --beacons must be in 1..100000")
+        raise ValueError("--beacons must be in 1..100000")
     model, pos, txp, f, source = _setup(args)
     preset = model.preset
     airtime = preset.airtime_s(REFERENCE_BYTES)

@@ -81,7 +81,7 @@ def draw(trace_name: str, seconds: float, seed: int, node: int = 1) -> list[floa
 def run(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     if args.seconds <= 0 or args.seconds > 100_000:
-        raise SystemExit("awaremw bench noise: --seconds must be in (0, 100000]")
+        raise ValueError("--seconds must be in (0, 100000]")
     trace = load_trace(args.trace)
     ref = trace.readings
     ref_acf = acf(ref)

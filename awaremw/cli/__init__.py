@@ -78,11 +78,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as e:
         # Zenoh refusing an endpoint (nothing listens, port taken, access denied) is
         # the user's setup, not our bug: one line without Rust source paths.
-        from awaremw.cli.friendly import is_zenoh_error, zenoh_message
+        from awaremw.cli.friendly import is_zenoh_error, zenoh_message, zenoh_unreachable
 
         if not is_zenoh_error(e):
             raise
-        print(f"awaremw {args.verb}: Zenoh: {zenoh_message(e)}", file=sys.stderr)
+        connect = list(getattr(args, "connect", None) or [])
+        if connect:
+            secrets_given = getattr(args, "secrets", None) is not None
+            why = zenoh_unreachable(connect, e, secrets_given)
+            print(f"awaremw {args.verb}: {why}", file=sys.stderr)
+        else:
+            print(f"awaremw {args.verb}: Zenoh: {zenoh_message(e)}", file=sys.stderr)
         return 1
     return code
 

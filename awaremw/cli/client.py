@@ -31,6 +31,7 @@ from awaremw.gateway import schema
 from awaremw.gateway.local_broker import LOOPBACK, find_local_broker, state_base
 from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
 from awaremw.nodes.kinds import COMMANDS
+from awaremw.security.redact import mask_url, redact
 
 DEFAULT_URL = "mqtt://127.0.0.1:1883"
 # The gateway's own checks, with the commands motes accept.
@@ -377,13 +378,19 @@ def _run(fn: Any, args: argparse.Namespace) -> int:
         return refuse("awaremw", e)
     except aiomqtt.MqttError as e:
         url = args.mqtt or DEFAULT_URL
+        why = redact(str(e))
         hint = ""
-        if "authorized" in str(e).lower() and (args.mqtt is None or "@" not in args.mqtt):
+        if "authorized" in why.lower() and (args.mqtt is None or "@" not in args.mqtt):
             hint = (
                 f"; no embedded broker account found under {state_base()} (is a gateway "
                 "running here?): give --mqtt mqtt://USER:PASS@HOST:PORT"
             )
-        print(f"awaremw: MQTT {url}: {e}{hint}", file=sys.stderr)
+        elif "refused" in why.lower() and args.mqtt is None:
+            hint = (
+                "; no broker answers there: start `awaremw gateway DEPLOYMENT` (it runs the "
+                "embedded broker), or give --mqtt mqtt://USER:PASS@HOST:PORT"
+            )
+        print(f"awaremw: MQTT {mask_url(url)}: {why}{hint}", file=sys.stderr)
         return 1
 
 
@@ -479,7 +486,8 @@ async def watch(
                         except ValueError:
                             value = text
                         line = json.dumps(
-                            {"topic": m.topic.value, "payload": value, "retain": bool(m.retain)}
+                            {"topic": m.topic.value, "payload": value, "retain": bool(m.retain)},
+                            ensure_ascii=False,  # °C as °C: stdout is text, not a wire
                         )
                     else:
                         line = f"{m.topic.value} {text}"

@@ -276,8 +276,8 @@ async def run_demo(
     from awaremw.experiments.realtime import RealtimeRun, RealtimeSettings, RunHooks
     from awaremw.experiments.snapshot import record_line as to_line
     from awaremw.experiments.snapshot import role_energy, snapshot_of
-    from awaremw.gateway.broker import mask_url
     from awaremw.protocol.events import MoteEvent
+    from awaremw.security.redact import mask_url
     from awaremw.view.live import LiveView, PlainLog, View, describe, record_line
     from awaremw.view.snapshot import with_leds
 

@@ -45,7 +45,12 @@ several seeds and reports their distribution.""",
             "awaremw experiment city --virtual --seeds 1-10 --jobs 2",
         ],
     )
-    p.add_argument("name", choices=sorted(EXPERIMENTS), help="which experiment")
+    p.add_argument(
+        "name",
+        metavar="NAME|FILE",
+        help=f"which experiment ({', '.join(sorted(EXPERIMENTS))}), or a deployment file "
+        "whose [experiment] analysis names one",
+    )
     p.add_argument("--out", type=Path, default=None, help="output folder (default: out/NAME)")
     p.add_argument(
         "--speed", type=float, default=1.0, help="emulated seconds per wall second (real time)"
@@ -119,7 +124,10 @@ def main(args: argparse.Namespace) -> int:
     from awaremw.experiments.scenario import load_scenario, scenario_of
     from awaremw.runtime.deployment import DeploymentError
 
-    name: str = args.name
+    try:
+        name = _experiment_of(args)
+    except (DeploymentError, ValueError) as e:
+        return refuse("awaremw experiment", e)
     out: Path = args.out or Path("out") / name
     try:
         sc = load_scenario(args.deployment or EXPERIMENTS[name][0])
@@ -196,7 +204,9 @@ def main(args: argparse.Namespace) -> int:
     metrics["cpu_s"] = round(time.process_time() - cpu0, 2)
     if metrics.get("duration_s"):
         metrics["speedup"] = round(float(metrics["duration_s"]) / max(metrics["wall_s"], 1e-3), 2)
-    metrics["command"] = (
+    from awaremw.security.redact import redact
+
+    metrics["command"] = redact(
         " ".join(["awaremw", "experiment", *sys.argv[2:]])
         if sys.argv[1:2] == ["experiment"]
         else f"awaremw experiment {name}"
@@ -238,6 +248,36 @@ def _main_seeds(args: argparse.Namespace, name: str, out: Path) -> int:
     print(json.dumps(summary, indent=2))
     print(f"wrote {out}/summary.json, {out}/seeds.png and seed-*/metrics.json", file=sys.stderr)
     return 0
+
+
+def _experiment_of(args: argparse.Namespace) -> str:
+    """The experiment to run: the positional is a name (``romeo4r``), or a
+    deployment file whose ``[experiment] analysis`` names one (then it is the
+    deployment, and ``--deployment`` must not be given too)."""
+    from awaremw.experiments.scenario import load_scenario
+    from awaremw.runtime.deployment import find_deployment
+
+    given: str = args.name
+    if given in EXPERIMENTS:
+        return given
+    known = ", ".join(sorted(EXPERIMENTS))
+    try:
+        path = find_deployment(given)
+    except ValueError:
+        raise ValueError(
+            f"{given!r} is no experiment ({known}) and no deployment file"
+        ) from None
+    if args.deployment is not None:
+        raise ValueError(f"give the deployment once: {given} or --deployment {args.deployment}")
+    settings = load_scenario(path).deployment.extra.get("experiment", {})
+    name = settings.get("analysis")
+    if name not in EXPERIMENTS:
+        raise ValueError(
+            f"{path}: to run it as an experiment, its [experiment] table needs "
+            f"analysis = one of {known}" + (f" (it has {name!r})" if name is not None else "")
+        )
+    args.deployment = str(path)
+    return str(name)
 
 
 def _medium(args: argparse.Namespace) -> dict[str, str]:

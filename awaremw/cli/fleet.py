@@ -24,7 +24,14 @@ import json
 import sys
 from typing import Any
 
-from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event, zenoh_message
+from awaremw.cli.friendly import (
+    add_secrets_option,
+    load_secrets,
+    refuse,
+    stop_event,
+    zenoh_message,
+    zenoh_unreachable,
+)
 from awaremw.cli.helptext import add_verb, add_zenoh_mode
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
@@ -273,6 +280,9 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         try:
             await stack.enter_async_context(fleet)
         except zenoh.ZError as e:
+            if args.connect:
+                why = zenoh_unreachable(list(args.connect), e, args.secrets is not None)
+                raise _StartError(why) from None
             raise _StartError(f"cannot start Zenoh on {where}: {zenoh_message(e)}") from None
         except LaunchError as e:
             raise _StartError(str(e)) from None
@@ -414,7 +424,7 @@ def run_ctl(args: argparse.Namespace) -> int:
         replies = control_query(connect, args.prefix, req, args.timeout, config_file)
     except zenoh.ZError as e:
         print(
-            f"awaremw fleet-ctl: cannot reach {', '.join(connect)}: {zenoh_message(e)}",
+            f"awaremw fleet-ctl: {zenoh_unreachable(connect, e, args.secrets is not None)}",
             file=sys.stderr,
         )
         return 1

@@ -39,6 +39,53 @@ def zenoh_message(e: BaseException) -> str:
     return text or type(e).__name__
 
 
+def _listens(endpoint: str) -> bool | None:
+    """Whether a TCP endpoint ``tcp/HOST:PORT`` accepts connections (None: not TCP)."""
+    import socket
+
+    proto, _, addr = endpoint.partition("/")
+    host, _, port = addr.rpartition(":")
+    if proto != "tcp" or not host or not port.isdigit():
+        return None
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def zenoh_unreachable(endpoints: list[str], e: BaseException, secrets_given: bool) -> str:
+    """Why a Zenoh session to ``endpoints`` did not open, and what to do, on one line.
+
+    Zenoh says the same ("Unable to connect ... Timeout!") of a router that is
+    down and of a secured router that refused us; a TCP connection tells the two
+    apart: something listens there (refused: ``--secrets``) or nothing does."""
+    where = ", ".join(endpoints)
+    text = zenoh_message(e)
+    if "Unable to connect" not in text:
+        return f"cannot reach {where}: {text}"
+    listening = [_listens(ep) for ep in endpoints]
+    if any(listening):
+        if secrets_given:
+            return (
+                f"cannot reach {where}: a router listens there but refused the session: "
+                "are --secrets the router's (the same `awaremw keys init` directory)?"
+            )
+        return (
+            f"cannot reach {where}: a router listens there but refused the session: it is "
+            "secured, give --secrets DIR (the directory of `awaremw keys init`)"
+        )
+    if all(v is False for v in listening):
+        return (
+            f"cannot reach {where}: nothing listens there (is `awaremw router` running? "
+            "check --connect)"
+        )
+    return (
+        f"cannot reach {where}: {text} (no router there, or a secured one that refused us: "
+        "then give --secrets DIR)"
+    )
+
+
 def is_zenoh_error(e: BaseException) -> bool:
     """Whether ``e`` is a ``zenoh.ZError`` (without importing zenoh when unused)."""
     zenoh = sys.modules.get("zenoh")
@@ -50,8 +97,8 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     """Connect to the broker of ``url`` once; None if it accepts, else why not (one line)."""
     import aiomqtt
 
-    from awaremw.gateway.broker import mask_url
     from awaremw.gateway.mqtt import MqttSettings
+    from awaremw.security.redact import mask_url
 
     s = MqttSettings.from_url(url)
     client = s.client(f"awaremw-probe-{secrets.token_hex(4)}", timeout=timeout)
@@ -66,8 +113,11 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
 
 
 def refuse(prog: str, why: object) -> int:
-    """Print ``prog: why`` on stderr; return 2, the exit status of a refused command line."""
-    print(f"{prog}: {why}", file=sys.stderr)
+    """Print ``prog: why`` on stderr, any password in it masked; return 2, the exit
+    status of a refused command line."""
+    from awaremw.security.redact import redact
+
+    print(f"{prog}: {redact(str(why))}", file=sys.stderr)
     return 2
 
 

@@ -18,6 +18,8 @@ The ``[experiment]`` table (all optional):
 ``field``                     [xmin, xmax, ymin, ymax] of the sensor field
 ``two_fires_s``, ``merged_s``, ``split_s``  phases of the fire checks
 ``kill_at_s``                 when the failover experiment kills the group's leader
+``analysis``                  which experiment scores the file when it is given by path
+                              (``awaremw experiment ./mine.toml``): romeo4r, fire, ...
 """
 
 from __future__ import annotations
@@ -216,6 +218,7 @@ _SETTINGS: dict[str, str] = {
     "merged_s": "nums2",
     "split_s": "nums2",
     "kill_at_s": "num",
+    "analysis": "name",
 }
 
 
@@ -236,6 +239,7 @@ def _check_settings(s: Mapping[str, Any], where: str) -> None:
             "nums": isinstance(v, list) and all(num(x) for x in v),
             "nums4": isinstance(v, list) and len(v) == 4 and all(num(x) for x in v),
             "nums2": isinstance(v, list) and len(v) == 2 and all(num(x) for x in v),
+            "name": isinstance(v, str) and bool(v),
         }[kind]
         if not ok:
             raise DeploymentError(f"{where}: experiment.{k}: expected {kind}, got {v!r}")

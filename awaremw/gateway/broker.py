@@ -47,6 +47,8 @@ from amqtt.broker import Broker, RetainedApplicationMessage
 from amqtt.contexts import Action
 from amqtt.events import BrokerEvents
 
+from awaremw.security.redact import mask_url
+
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 1883
@@ -93,13 +95,19 @@ def account_for_port(port: int, root: Path | None = None) -> tuple[str, str] | N
     return None
 
 
-def mask_url(url: str) -> str:
-    """``url`` with its password replaced by ``***`` (for logs and summaries)."""
-    scheme, sep, rest = url.partition("://")
-    creds, at, host = rest.rpartition("@")
-    if not sep or not at or ":" not in creds:
-        return url
-    return f"{scheme}://{creds.split(':', 1)[0]}:***@{host}"
+class _NoDataFilter(logging.Filter):
+    """Drops amqtt's "No data from (client ...)" (logged at ERROR for every
+    connection that closes before a CONNECT: a port probe, a client that gave up):
+    a connection's noise, not an error of the broker."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("No data from")
+
+
+def quiet_connections(logger: logging.Logger) -> None:
+    """Install :class:`_NoDataFilter` on ``logger`` once."""
+    if not any(isinstance(f, _NoDataFilter) for f in logger.filters):
+        logger.addFilter(_NoDataFilter())
 
 
 @dataclass(frozen=True, slots=True)
@@ -448,6 +456,7 @@ class EmbeddedBroker:
             # amqtt warns about every client it refuses (the gateway's MQTT 5 probe
             # included) and about harmless protocol quirks: keep its errors only.
             amqtt_log.setLevel(logging.ERROR)
+        quiet_connections(logging.getLogger("amqtt.broker"))
         state = self._open_state()
         if not self.anonymous:
             self._account(state)

@@ -44,6 +44,7 @@ from paho.mqtt.properties import Properties
 from awaremw.gateway.bridge import RateLimitedLog
 from awaremw.gateway.events import Publish
 from awaremw.gateway.inbox import MAX_COMMANDS, MAX_DEFINITIONS, Inbox, Incoming, overflow_report
+from awaremw.security.redact import mask_url, redact
 
 log = logging.getLogger(__name__)
 
@@ -127,13 +128,17 @@ class MqttSettings:
             u = urlsplit(url)
             port = u.port
         except ValueError as e:
-            raise BadMqttUrl(f"bad MQTT URL {url!r}: {e}") from None
+            raise BadMqttUrl(f"bad MQTT URL {mask_url(url)!r}: {redact(str(e))}") from None
         if u.scheme not in ("mqtt", "mqtts"):
-            raise BadMqttUrl(f"bad MQTT URL {url!r}: the scheme must be mqtt:// or mqtts://")
+            raise BadMqttUrl(
+                f"bad MQTT URL {mask_url(url)!r}: the scheme must be mqtt:// or mqtts://"
+            )
         if not u.hostname:
-            raise BadMqttUrl(f"bad MQTT URL {url!r}: no host")
+            raise BadMqttUrl(f"bad MQTT URL {mask_url(url)!r}: no host")
         if u.path not in ("", "/") or u.query or u.fragment:
-            raise BadMqttUrl(f"bad MQTT URL {url!r}: only mqtt[s]://[user:pass@]host:port")
+            raise BadMqttUrl(
+                f"bad MQTT URL {mask_url(url)!r}: only mqtt[s]://[user:pass@]host:port"
+            )
         tls = u.scheme == "mqtts"
         base = cls(
             host=u.hostname,

@@ -35,7 +35,7 @@ from awaremw.protocol.core import MoteCore
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.security import RadioSecurity
-from awaremw.runtime.deployment import Deployment, DeploymentError, NodeSpec
+from awaremw.runtime.deployment import ENTRY_EXTRA_KEYS, Deployment, DeploymentError, NodeSpec
 from awaremw.world.fields import World, WorldError
 from awaremw.world.table import world_from_table
 
@@ -56,8 +56,9 @@ __all__ = [
     "world_of",
 ]
 
-# Keys a node or grid entry may add to the deployment keys (docs/deployments.md).
-NODE_EXTRA_KEYS = frozenset({"middleware", "noise"})
+# Keys a node or grid entry may add to the deployment keys (docs/deployments.md;
+# the parser refuses any other, runtime/deployment.py).
+NODE_EXTRA_KEYS = ENTRY_EXTRA_KEYS
 
 
 def kind_names() -> list[str]:
@@ -116,12 +117,6 @@ def build_app(spec: NodeSpec, deployment: Deployment, world: World | None = None
         info = kind_info(spec.kind)
     except KeyError as e:
         raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {e.args[0]}") from None
-    unknown = sorted(set(spec.extra) - NODE_EXTRA_KEYS)
-    if unknown:
-        raise DeploymentError(
-            f"{_file(deployment)}: node {spec.id}: unknown key(s) {', '.join(unknown)} "
-            f"(node entries may add: {', '.join(sorted(NODE_EXTRA_KEYS))})"
-        )
     noise: dict[str, SensorNoise] = {}
     for sensor, sigma in _table(spec, "noise", deployment).items():
         if isinstance(sigma, bool) or not isinstance(sigma, int | float) or sigma < 0:

@@ -42,8 +42,9 @@ T = TypeVar("T")
 DEFAULT_RADIO = "cc2420"
 
 # The shapes of a deployment file (docs/deployments.md lists each key; a test
-# holds the two equal). A key of a node or grid entry not named here is kept in
-# ``extra`` for the node kind; a top-level key not named here must be a table.
+# holds the two equal). A node or grid entry may add ENTRY_EXTRA_KEYS, kept in
+# ``extra`` for the node kind, and nothing else; a top-level key not named here
+# must be a table.
 _Point = tuple[Finite, Finite]
 _Name = Annotated[str, Meta(min_length=1)]
 _NonNeg = Annotated[float, Meta(ge=0, le=sys.float_info.max)]
@@ -102,6 +103,9 @@ RAW_TABLES = ("world", "groups", "channels", "middleware")
 TOP_KEYS = frozenset(_File.__struct_fields__) - set(RAW_TABLES)
 NODE_KEYS = frozenset(_Node.__struct_fields__)
 GRID_KEYS = frozenset(_Grid.__struct_fields__)
+# Keys a node or grid entry may add for its node kind (docs/deployments.md): its
+# middleware overrides and its sensors' noise (read by awaremw/nodes).
+ENTRY_EXTRA_KEYS = frozenset({"middleware", "noise"})
 _PATH_ONLY = ("speed_mps", "start_s", "loop", "pause_s")
 
 
@@ -423,9 +427,21 @@ class _Parser:
             )
         return link_file
 
+    def _check_keys(self, where: str, t: Mapping[str, Any], keys: frozenset[str]) -> None:
+        """A key an entry cannot have is refused as such, with every key it can."""
+        allowed = keys | ENTRY_EXTRA_KEYS
+        unknown = sorted(k for k in t if k not in allowed)
+        if unknown:
+            raise self._fail(
+                where,
+                f"unknown key(s) {', '.join(map(repr, unknown))} "
+                f"(allowed: {', '.join(sorted(allowed))})",
+            )
+
     def _node(self, i: int, t: dict[str, Any]) -> tuple[NodeSpec, str]:
         ident = t.get("id")
         where = f"nodes[{i}] (id {ident})" if type(ident) is int else f"nodes[{i}]"
+        self._check_keys(where, t, NODE_KEYS)
         n = self._convert(where, t, _Node)
         self._check_id(where, n.id)
         self._check_mote(where, n)
@@ -458,6 +474,7 @@ class _Parser:
         return spec, where
 
     def _grid(self, i: int, t: dict[str, Any]) -> list[tuple[NodeSpec, str]]:
+        self._check_keys(f"grid[{i}]", t, GRID_KEYS)
         g = self._convert(f"grid[{i}]", t, _Grid)
         spacing = g.spacing if isinstance(g.spacing, tuple) else (g.spacing, g.spacing)
         if not all(0 < s < math.inf for s in spacing):
