@@ -184,6 +184,14 @@ def main(args: argparse.Namespace) -> int:
     else:
         if name not in REALTIME:
             return refuse("awaremw experiment", f"{name} runs only with --virtual")
+        import asyncio
+
+        from awaremw.cli.friendly import mqtt_problem
+
+        for url in dict.fromkeys(u for u in (args.mqtt, args.robot_mqtt) if u is not None):
+            if (why := asyncio.run(mqtt_problem(url))) is not None:
+                print(f"awaremw experiment: {why}", file=sys.stderr)
+                return 1
         from awaremw.experiments.realtime import run_realtime
 
         result = run_realtime(
