@@ -95,7 +95,8 @@ battery_mj = 100
     assert d.groups == [{"type": 1}] and d.channels == {"1": {"attr": "temperature"}}
     assert d.extra == {"viewer": {"zoom": 2}}
     gw = d.node(7)
-    assert gw.extra == {"noise": {"temperature": 0.2}} and gw.battery_mj == 500.0 and not gw.is_mobile
+    assert gw.extra == {"noise": {"temperature": 0.2}}
+    assert gw.battery_mj == 500.0 and not gw.is_mobile
     assert isinstance(gw.mobility(), Static) and d.tx_power_of(gw) == -5.0
     robot = d.node(100)
     m = robot.mobility()
