@@ -48,6 +48,13 @@ SKIP: dict[tuple[str, str], str] = {
 ARGV: dict[tuple[str, str], list[str]] = {
     ("security.md", "import sys"): ["secrets", "app", "tcp/127.0.0.1:7447"],
 }
+# What a Python block must print: (document, first line) -> pieces of its stdout.
+EXPECT: dict[tuple[str, str], tuple[str, ...]] = {
+    # The Zenoh HBN example prints the definitions it has just put (issue 33).
+    ("gateway.md", "import json, time"): (
+        "aware/hbn/def/group/1 {", "aware/hbn/def/channel/1 {", "'op': '>', 'value': 45",
+    ),
+}
 NEEDS_TSHARK = "tshark "
 
 
@@ -69,6 +76,8 @@ def shell(tmp_path: Path) -> Iterator[Shell]:
 
 
 def test_every_skip_names_a_block_that_exists() -> None:
+    for doc, first in EXPECT:
+        assert any(b.text.startswith(first) for b in blocks(ROOT / "docs" / doc)), (doc, first)
     for doc, piece in SKIP:
         path = ROOT / "docs" / doc
         assert path.exists(), doc
@@ -94,7 +103,11 @@ def test_doc_blocks_run(doc: Path, shell: Shell) -> None:
         if block.lang == "python":
             argv = next((a for (d, first), a in ARGV.items()
                          if d == doc.name and block.text.startswith(first)), [])  # fmt: skip
-            shell.python(block, argv)
+            out = shell.python(block, argv)
+            for (d, first), pieces in EXPECT.items():
+                if d == doc.name and block.text.startswith(first):
+                    for piece in pieces:
+                        assert piece in out, (doc.name, piece, out[-2000:])
             ran += 1
             continue
         for raw in block.commands:

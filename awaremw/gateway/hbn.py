@@ -219,3 +219,23 @@ class HbnApi:
                     query.reply(key, payload)
             except zenoh.ZError as e:
                 log.debug("query reply on %s: %s", key, e)
+
+
+def wait_for_gateway(session: zenoh.Session, prefix: str = "aware", timeout: float = 10.0) -> None:
+    """Return once a gateway answers a ``get`` on ``<prefix>/hbn/gateway/status``
+    through ``session``: the session is routed to the gateway, so the puts that
+    follow reach it and the gets are answered. TimeoutError after ``timeout``.
+
+    A client that opens a session and puts or gets at once may be faster than
+    Zenoh's routing: its puts go nowhere and its gets find no answer
+    (docs/gateway.md, "Zenoh HBN API")."""
+    deadline = time.monotonic() + timeout
+    key = f"{prefix}/hbn/gateway/status"
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError(f"no gateway answered on {key} within {timeout:g} s")
+        if any(r.ok is not None for r in session.get(key, timeout=min(1.0, left))):
+            return
+        time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))  # poll, not a sync
+
