@@ -94,9 +94,10 @@ def test_client_verbs_publish_the_contract(
     assert "unknown attribute 'temp'" in capsys.readouterr().err
     assert main(["command", "led", "--target", "robot:1", *url]) == 2
     assert main(["define", "channel", "1", "--attr", "x", "--period", "0.1", *url]) == 2
-    # A viewer may not define: the broker drops it (nothing new retained).
+    # A viewer may not define: the broker drops it (nothing new retained), and the
+    # verb says so (tests/test_plain_output.py has its line).
     viewer = ["--mqtt", mosquitto.url("viewer")]
-    assert main(["define", "group", "3", "x > 1", *viewer]) == 0
+    assert main(["define", "group", "3", "x > 1", *viewer]) == 1
     assert [ln.split(" ")[0] for ln in retained(mosquitto, "aware/def/#")] == ["aware/def/group/1"]
 
 

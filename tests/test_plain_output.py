@@ -17,6 +17,7 @@ from pathlib import Path
 
 import aiomqtt
 import pytest
+from mosquitto import Mosquitto, mosquitto_fixture  # noqa: F401
 
 from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.runtime.deployment import DeploymentError, parse_deployment
@@ -204,3 +205,22 @@ async def test_watch_prints_utf8(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     line = out.decode("utf-8").strip()
     assert '"unit": "°C"' in line and "\\u00b0" not in line
+
+
+@pytest.mark.mosquitto
+@pytest.mark.parametrize("wait", [[], ["--wait", "3"]], ids=["no-wait", "wait"])
+def test_define_with_a_read_only_account_is_refused_in_one_line(
+    mosquitto: Mosquitto, tmp_path: Path, wait: list[str]
+) -> None:
+    url = f"mqtt://viewer:viewer-pw@127.0.0.1:{mosquitto.port}"
+    code, out = awaremw(["define", "group", "2", "temperature > 45", "--mqtt", url, *wait],
+                        tmp_path)  # fmt: skip
+    assert code == 1
+    assert out.strip().splitlines() == [
+        "awaremw: the broker did not keep aware/def/group/2 from the account 'viewer': refused "
+        "(its ACL does not let the account publish there), or the account may not read it back"
+    ]
+    # The operator, who may write definitions, is not refused.
+    op = f"mqtt://operator:operator-pw@127.0.0.1:{mosquitto.port}"
+    code, out = awaremw(["define", "group", "2", "temperature > 45", "--mqtt", op], tmp_path)
+    assert code == 0, out

@@ -312,6 +312,15 @@ async def publish(
         if wait > 0:
             await client.subscribe(s.topic("errors"), qos=1)
         await client.publish(topic, payload, qos=1, retain=retain)
+        if retain and not await _kept(client, topic, payload):
+            # An MQTT 3.1.1 broker acknowledges a publish its ACL refuses and drops
+            # it: reading the retained message back is how a client can tell.
+            who = f"the account {s.username!r}" if s.username else "an anonymous client"
+            return {
+                "error": f"the broker did not keep {topic} from {who}: refused (its ACL does "
+                "not let the account publish there), or the account may not read it back",
+                "code": "not_retained",
+            }
         if wait <= 0:
             return None
         with contextlib.suppress(TimeoutError):
@@ -324,6 +333,24 @@ async def publish(
                         if isinstance(err, dict) and err.get("topic") == topic:
                             return err
     return None
+
+
+async def _kept(client: aiomqtt.Client, topic: str, payload: bytes) -> bool:
+    """Whether the broker now retains ``payload`` on ``topic`` (an empty payload:
+    retains nothing there)."""
+    got: bytes | None = None
+    try:
+        await client.subscribe(topic, qos=1)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(RETAINED_WAIT_S):
+                async for m in client.messages:
+                    if m.topic.matches(topic) and m.retain:
+                        got = m.payload if isinstance(m.payload, bytes) else b""
+                        break
+        await client.unsubscribe(topic)
+    except aiomqtt.MqttError:
+        return False  # a subscription refused: it cannot be read back
+    return (got or b"") == payload
 
 
 async def _has_retained(client: aiomqtt.Client, topic: str) -> bool:
@@ -359,6 +386,9 @@ def _send(
             file=sys.stderr,
         )
         defined = None
+    if err is not None and err.get("code") == "not_retained":
+        print(f"awaremw: {err.get('error')}", file=sys.stderr)
+        return 1
     if err is not None and err.get("level") == "warning":
         print(f"warning from the gateway: {err.get('error')} ({err.get('code')})", file=sys.stderr)
     elif err is not None:
