@@ -51,11 +51,11 @@ from typing import Any
 import aiomqtt
 
 from awaremw.gateway.broker import EmbeddedBroker
-from awaremw.gateway.mqtt import MqttSettings
+from awaremw.gateway.mqtt import MqttSettings, mqtt_problem
 from awaremw.gateway.service import GatewayService, GatewaySettings
 from awaremw.protocol.events import Delivered
 from awaremw.protocol.frames import DataRecord
-from awaremw.security.redact import mask_url, redact
+from awaremw.security.redact import mask_url
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -96,22 +96,6 @@ async def broker_url(url: str | None) -> AsyncIterator[str]:
         return
     async with EmbeddedBroker() as b:
         yield b.url
-
-
-async def _reachable(url: str, timeout: float = 5.0) -> None:
-    """ValueError (one line, the password masked) unless the broker of ``url`` accepts us."""
-    client = MqttSettings.from_url(url).client("awaremw-bench-probe", timeout=timeout)
-    try:
-        async with asyncio.timeout(timeout + 1.0), client:
-            return
-    except TimeoutError:
-        raise ValueError(
-            f"the MQTT broker {mask_url(url)} did not answer within {timeout:g} s"
-        ) from None
-    except aiomqtt.MqttError as e:
-        raise ValueError(
-            f"cannot connect to the MQTT broker {mask_url(url)}: {redact(str(e))}"
-        ) from None
 
 
 @dataclass
@@ -220,8 +204,8 @@ async def _main(args: argparse.Namespace) -> dict[str, Any]:
         "speed": args.speed,
     }
     async with broker_url(args.mqtt) as url:
-        if args.mqtt is not None:
-            await _reachable(url)
+        if args.mqtt is not None and (why := await mqtt_problem(url)) is not None:
+            raise ValueError(why)  # one line, the password masked
         masked = mask_url(MqttSettings.from_url(url).url)
         out["broker"] = "embedded" if args.mqtt is None else masked
         sub_url = args.sub_mqtt or url

@@ -22,6 +22,7 @@ from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
+from awaremw.experiments.seeds import parse_seeds
 from awaremw.radio.noise import SHIPPED, TraceNoise, load_trace
 
 LAGS = 20
@@ -54,22 +55,6 @@ def acf(x: Sequence[float], lags: int = LAGS) -> list[float]:
     return out
 
 
-def parse_seeds(text: str) -> list[int]:
-    """``"3"``, ``"1-20"`` or ``"1,4,7"``."""
-    out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.strip().partition("-")
-        try:
-            lo = int(a)
-            hi = int(b) if b else lo
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"bad seeds {text!r} (try 1-20 or 1,4,7)") from None
-        if hi < lo or hi - lo > 10_000:
-            raise argparse.ArgumentTypeError(f"bad seed range {part!r}")
-        out.extend(range(lo, hi + 1))
-    return out
-
-
 def draw(trace_name: str, seconds: float, seed: int, node: int = 1) -> list[float]:
     """``seconds`` of one mote's readings (trace dBm), asked of the model the media
     use (:class:`TraceNoise`) every millisecond."""
@@ -85,8 +70,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     trace = load_trace(args.trace)
     ref = trace.readings
     ref_acf = acf(ref)
-    seeds = args.seeds or [args.seed]
-    per_seed = []
+    # The experiments' seed lists ("1-40", "1,4,7"); a bad one is a ValueError, one line.
+    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
+    per_seed: list[dict[str, Any]] = []
     first: list[float] = []
     for s in seeds:
         x = draw(args.trace, args.seconds, s)
@@ -180,6 +166,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seconds", type=float, default=200.0, help="emulated seconds to draw")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--seeds", type=parse_seeds, default=None, metavar="A-B",
+    parser.add_argument("--seeds", default=None, metavar="A-B",
                         help="draw once per seed and report the distribution")  # fmt: skip
     parser.add_argument("--plot", metavar="FILE", help="draw histograms and autocorrelations (PNG)")

@@ -335,37 +335,34 @@ async def publish(
     return None
 
 
-async def _kept(client: aiomqtt.Client, topic: str, payload: bytes) -> bool:
-    """Whether the broker now retains ``payload`` on ``topic`` (an empty payload:
-    retains nothing there)."""
-    got: bytes | None = None
-    try:
-        await client.subscribe(topic, qos=1)
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(RETAINED_WAIT_S):
-                async for m in client.messages:
-                    if m.topic.matches(topic) and m.retain:
-                        got = m.payload if isinstance(m.payload, bytes) else b""
-                        break
-        await client.unsubscribe(topic)
-    except aiomqtt.MqttError:
-        return False  # a subscription refused: it cannot be read back
-    return (got or b"") == payload
-
-
-async def _has_retained(client: aiomqtt.Client, topic: str) -> bool:
-    """Whether the broker holds a retained message on ``topic`` (sent right after SUBACK)."""
+async def _retained(client: aiomqtt.Client, topic: str) -> bytes:
+    """The retained message the broker holds on ``topic`` (sent right after the
+    SUBACK); empty if none comes within ``RETAINED_WAIT_S``."""
     await client.subscribe(topic, qos=1)
     try:
         async with asyncio.timeout(RETAINED_WAIT_S):
             async for m in client.messages:
-                if m.topic.matches(topic) and m.payload:
-                    return True
+                if m.topic.matches(topic) and m.retain:
+                    return m.payload if isinstance(m.payload, bytes) else b""
     except TimeoutError:
-        return False
+        return b""
     finally:
         await client.unsubscribe(topic)
-    return False
+    return b""
+
+
+async def _has_retained(client: aiomqtt.Client, topic: str) -> bool:
+    """Whether the broker holds a retained message on ``topic``."""
+    return bool(await _retained(client, topic))
+
+
+async def _kept(client: aiomqtt.Client, topic: str, payload: bytes) -> bool:
+    """Whether the broker now retains ``payload`` on ``topic`` (an empty payload:
+    retains nothing there)."""
+    try:
+        return await _retained(client, topic) == payload
+    except aiomqtt.MqttError:
+        return False  # a subscription refused: it cannot be read back
 
 
 def _send(

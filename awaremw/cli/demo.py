@@ -149,8 +149,8 @@ def main(args: argparse.Namespace) -> int:
             return 2
     # A live view needs a terminal: piped or redirected output gets log lines.
     plain = args.plain or not sys.stdout.isatty()
-    from awaremw.cli.friendly import mqtt_problem
     from awaremw.gateway.broker import BrokerError
+    from awaremw.gateway.mqtt import mqtt_problem
     from awaremw.view.web import DashboardError
 
     for url in dict.fromkeys(u for u in (args.mqtt, args.robot_mqtt) if u is not None):

@@ -186,7 +186,7 @@ def main(args: argparse.Namespace) -> int:
             return refuse("awaremw experiment", f"{name} runs only with --virtual")
         import asyncio
 
-        from awaremw.cli.friendly import mqtt_problem
+        from awaremw.gateway.mqtt import mqtt_problem
 
         for url in dict.fromkeys(u for u in (args.mqtt, args.robot_mqtt) if u is not None):
             if (why := asyncio.run(mqtt_problem(url))) is not None:

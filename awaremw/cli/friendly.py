@@ -3,7 +3,6 @@
 Zenoh's errors (``zenoh.ZError``) carry the Rust source location they were
 raised at (``... at /root/.cargo/git/checkouts/.../orchestrator.rs:388.``);
 :func:`zenoh_message` keeps the sentence and drops the location.
-:func:`mqtt_problem` tries a broker URL once before a long run relies on it.
 :func:`add_secrets_option` and :func:`load_secrets` are the one ``--secrets DIR``
 option of every verb: its help, its check and its error line. :func:`refuse` is
 how a verb turns down its command line: ``prog: why`` on stderr, exit status 2.
@@ -16,7 +15,6 @@ import argparse
 import asyncio
 import contextlib
 import re
-import secrets
 import signal
 import sys
 from collections.abc import Callable
@@ -91,25 +89,6 @@ def is_zenoh_error(e: BaseException) -> bool:
     zenoh = sys.modules.get("zenoh")
     zerr = getattr(zenoh, "ZError", None) if zenoh is not None else None
     return isinstance(zerr, type) and isinstance(e, zerr)
-
-
-async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
-    """Connect to the broker of ``url`` once; None if it accepts, else why not (one line)."""
-    import aiomqtt
-
-    from awaremw.gateway.mqtt import MqttSettings
-    from awaremw.security.redact import mask_url
-
-    s = MqttSettings.from_url(url)
-    client = s.client(f"awaremw-probe-{secrets.token_hex(4)}", timeout=timeout)
-    try:
-        async with asyncio.timeout(timeout + 1.0), client:
-            return None
-    except TimeoutError:
-        return f"MQTT broker {mask_url(url)} did not answer within {timeout:g} s"
-    except aiomqtt.MqttError as e:
-        reason = " ".join(str(e).split()) or type(e).__name__
-        return f"cannot connect to the MQTT broker {mask_url(url)}: {reason}"
 
 
 def refuse(prog: str, why: object) -> int:

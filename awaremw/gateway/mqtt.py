@@ -28,6 +28,7 @@ import contextlib
 import json
 import logging
 import math
+import secrets
 import ssl
 import time
 from collections import deque
@@ -61,6 +62,21 @@ MAX_PASSWORD_BYTES = 65_535  # MQTT's binary data: a 16-bit length
 class BadMqttUrl(ValueError):
     """An MQTT URL the gateway cannot use (a configuration error)."""
 
+
+
+async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
+    """Connect to the broker of ``url`` once; None if it accepts, else why not (one
+    line, the password masked): a verb's check before a long run relies on it."""
+    s = MqttSettings.from_url(url)
+    client = s.client(f"awaremw-probe-{secrets.token_hex(4)}", timeout=timeout)
+    try:
+        async with asyncio.timeout(timeout + 1.0), client:
+            return None
+    except TimeoutError:
+        return f"MQTT broker {mask_url(url)} did not answer within {timeout:g} s"
+    except aiomqtt.MqttError as e:
+        reason = " ".join(str(e).split()) or type(e).__name__
+        return f"cannot connect to the MQTT broker {mask_url(url)}: {redact(reason)}"
 
 class BadPasswordFile(ValueError):
     """A password file that is missing, unreadable or empty (a configuration error)."""

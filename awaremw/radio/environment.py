@@ -13,12 +13,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 from awaremw.radio.links import LinkFile, LinkTable, load_links
 from awaremw.radio.model import RadioModel, RadioPreset
 from awaremw.radio.noise import (
-    SHIPPED,
     HardwareVariance,
     LineNoise,
     NoiseSource,
@@ -45,12 +43,19 @@ class RadioSettings:
     def textbook(self) -> bool:
         return self.noise == WHITE and not self.hardware_variance and self.links is None
 
-    def check(self) -> None:
-        """ValueError if the settings contradict each other (before any file is read)."""
+    def check(self, links: LinkFile | None = None) -> None:
+        """ValueError if the settings contradict each other, or ``links`` (the
+        links file, once read) contradicts them."""
         if self.links is not None and self.hardware_variance:
             raise ValueError(
                 "hardware_variance applies to links derived from positions: a links "
                 "file's gains (and noise lines) already carry its motes' differences"
+            )
+        if links is not None and links.probabilities and self.noise != WHITE:
+            raise ValueError(
+                f"{links.path}: delivery probabilities were measured over the floor's real "
+                f"noise; noise = {self.noise!r} would count it twice (use 'white', or "
+                "a file of gains)"
             )
 
     def describe(self) -> str:
@@ -90,11 +95,6 @@ class RadioEnvironment:
         return None if self.links is None else self.links.gains
 
 
-def trace_source(name: str) -> str | Path:
-    """A trace setting: a shipped name as it is, else a path."""
-    return name if name in SHIPPED else Path(name)
-
-
 def environment(
     preset: RadioPreset, seed: int, settings: RadioSettings, links: LinkFile | None = None
 ) -> RadioEnvironment | None:
@@ -112,12 +112,7 @@ def environment(
     floors: dict[int, tuple[float, float]] = {}
     if settings.links is not None:
         f = links if links is not None else load_links(settings.links)
-        if f.probabilities and settings.noise != WHITE:
-            raise ValueError(
-                f"{f.path}: delivery probabilities were measured over the floor's real "
-                f"noise; noise = {settings.noise!r} would count it twice (use 'white', or "
-                "a file of gains)"
-            )
+        settings.check(f)
         table = LinkTable(f, RadioModel(preset, seed))
         floors = dict(f.noise)
     noise: NoiseSource | None
@@ -127,7 +122,7 @@ def environment(
         else:
             noise = None if hw is None else WhiteNoise(preset.noise_floor_dbm, hw)
     else:
-        trace = load_trace(trace_source(settings.noise))
+        trace = load_trace(settings.noise)
         levels = {n: mean for n, (mean, _) in floors.items()}
         noise = TraceNoise(trace, seed, preset.noise_floor_dbm, hw, levels)
     return RadioEnvironment(noise, hw, table, settings)

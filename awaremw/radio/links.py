@@ -10,7 +10,7 @@ Two formats, one a file (``docs/radio.md``, "Links files"):
 * **Measured delivery**: ``SENDER RECEIVER PROBABILITY`` triples, such as the
   Intel Berkeley Research Lab's ``connectivity.txt``. A probability is the
   delivery of a reference frame (:data:`REFERENCE_BYTES`, ours) over the
-  preset's white noise floor; :func:`gain_for_delivery` turns it into the
+  preset's white noise floor; :class:`DeliveryCurve` turns it into the
   gain that delivers exactly that on average (fading included), so that
   frames of other lengths, collisions, capture and RSSI follow from the
   radio model as for any other link.
@@ -61,10 +61,6 @@ class LinkFile:
     gains: Mapping[tuple[int, int], float]
     probabilities: Mapping[tuple[int, int], float]
     noise: Mapping[int, tuple[float, float]]
-
-    @property
-    def kind(self) -> str:
-        return "probability" if self.probabilities else "gain"
 
     def nodes(self) -> set[int]:
         """Every mote the file names."""
@@ -176,7 +172,6 @@ class DeliveryCurve:
 
     def __init__(self, model: RadioModel, nbytes: int, noise_dbm: float) -> None:
         p = model.preset
-        self.noise = noise_dbm
         bits = 8 * (nbytes + p.phy_overhead_bytes)
         step = len(NORMAL) // _QUANTILES
         zs = [NORMAL[i * step + step // 2] for i in range(_QUANTILES)]
@@ -197,12 +192,6 @@ class DeliveryCurve:
             if mean >= hi:
                 break
             k += 1
-
-    def delivery(self, mean_dbm: float) -> float:
-        i = bisect.bisect_right(self.x, mean_dbm) - 1
-        if i < 0:
-            return 0.0
-        return self.d[min(i, len(self.d) - 1)]
 
     def gain_for(self, p: float) -> float:
         """The smallest tabulated mean RSSI whose average delivery reaches ``p``."""
@@ -228,7 +217,6 @@ class LinkTable:
             }
         else:
             self.gains = dict(f.gains)
-        self._senders: dict[int, frozenset[int]] = {}
         by_dst: dict[int, set[int]] = {}
         for a, b in self.gains:
             by_dst.setdefault(b, set()).add(a)
@@ -237,12 +225,6 @@ class LinkTable:
     def senders_to(self, dst: int) -> frozenset[int]:
         """The motes ``dst`` has a link from (who it may hear)."""
         return self._senders.get(dst, frozenset())
-
-    def gain(self, src: int, dst: int) -> float | None:
-        return self.gains.get((src, dst))
-
-    def has_link(self, src: int, dst: int) -> bool:
-        return (src, dst) in self.gains
 
     def given(self, src: int, dst: int) -> float | None:
         """What the file says of the pair: a probability or a gain (dB)."""

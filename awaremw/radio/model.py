@@ -567,11 +567,7 @@ class RadioModel:
         """
         h = packet_hash(link_h, packet_key)
         rssi = mean_rssi_dbm - self.preset.fading_sigma_db * NORMAL[h >> SHIFT]
-        if noise_dbm is None:
-            return (h & 0xFFFFFFFF) * U32 < self.prr_bits(rssi, bits), rssi
-        if rssi < self.preset.sensitivity_dbm:
-            return False, rssi
-        return (h & 0xFFFFFFFF) * U32 < self._prr_snr(rssi - noise_dbm, bits), rssi
+        return (h & 0xFFFFFFFF) * U32 < self.prr_bits(rssi, bits, noise_dbm), rssi
 
 
     def reception(

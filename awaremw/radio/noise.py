@@ -61,7 +61,6 @@ _RESTART: Final = 0x5BD1E9955BD1E995  # salt of the restart draws (another strea
 
 # The shipped traces, by name: noise = "meyer-heavy" in a deployment.
 SHIPPED: Final[dict[str, str]] = {"meyer-heavy": "meyer-heavy.txt"}
-NOISE_KINDS: Final = ("white", *SHIPPED)
 
 
 class NoiseTraceError(ValueError):
@@ -164,13 +163,13 @@ class Cpm:
     """The CPM tables of one trace (built once, shared by every mote).
 
     Positions ``p`` run from :data:`HISTORY` to ``n - 1``: the history of ``p``
-    is ``trace[p - HISTORY:p]``, binned. ``members[cls[p]]`` are the positions
-    with the same binned history; ``nxt[p]`` is the first position ``>= p``
-    where the draw matters (its class has readings of two bins or more after
-    it), ``n`` if none.
+    is ``trace[p - HISTORY:p]``, binned. ``nxt[p]`` is the first position
+    ``>= p`` where the draw matters (the positions with the same binned history
+    are followed by readings of two bins or more), ``n`` if none; at such a
+    position ``pool[p]`` are those positions, to draw from (elsewhere empty).
     """
 
-    __slots__ = ("cls", "members", "n", "nxt", "pool", "values")
+    __slots__ = ("n", "nxt", "pool", "values")
 
     def __init__(self, trace: NoiseTrace) -> None:
         v = trace.readings
@@ -190,8 +189,6 @@ class Cpm:
                 members.append([])
             members[c].append(p)
             cls[p] = c
-        self.cls = cls
-        self.members = members
         choice = [len({bins[q] for q in m}) > 1 for m in members]
         nxt = [n] * (n + 1)
         for p in range(n - 1, HISTORY - 1, -1):
@@ -208,9 +205,9 @@ class Cpm:
 
     def pick(self, p: int, h: int, t: int) -> int:
         """The reading's position at ``p`` and ms ``t``: a draw among ``p``'s class."""
-        if self.nxt[p] != p:
+        m = self.pool[p]
+        if not m:
             return p
-        m = self.members[self.cls[p]]
         return m[(packet_hash(h, t) & 0xFFFFFFFF) * len(m) >> 32]
 
     def advance(self, p: int, t: int, t1: int, h: int) -> int:
@@ -289,10 +286,6 @@ class HardwareVariance:
     @property
     def tx_sigma_db(self) -> float:
         return math.sqrt(self.s22)
-
-    @property
-    def noise_sigma_db(self) -> float:
-        return math.sqrt(self.s11)
 
 
 # --------------------------------------------------------------------------- sources
@@ -387,23 +380,27 @@ class TraceNoise:
         self.levels = {n: v - trace.mode for n, v in (levels or {}).items()}
         self._chains: dict[int, _Chain] = {}
 
-    def _chain(self, node: int, ms: int) -> _Chain:
-        if len(self._chains) >= self.MAX_CHAINS:
-            self._chains.clear()
-        h = link_hash(self._seed, DOMAIN_NOISE, node, 0)
+    def _offset(self, node: int) -> float:
+        """dB added to ``node``'s trace readings: its level, and its hardware offset."""
         off = self.levels.get(node, self.shift)
-        if self.hw is not None:
-            off += self.hw.noise_offset(node)
-        c = self._chains[node] = _Chain(h, self.cpm.start(h, ms), ms, off)
+        return off if self.hw is None else off + self.hw.noise_offset(node)
+
+    def _chain(self, node: int, ms: int) -> _Chain:
+        c = self._chains.get(node)
+        if c is None:
+            if len(self._chains) >= self.MAX_CHAINS:
+                self._chains.clear()
+            h = link_hash(self._seed, DOMAIN_NOISE, node, 0)
+            c = self._chains[node] = _Chain(h, self.cpm.start(h, ms), ms, self._offset(node))
         return c
 
     def reading(self, node: int, ms: int) -> float:
         """The chain's reading (trace dBm, unshifted) at millisecond ``ms``."""
+        return self._read(self._chain(node, ms), ms)
+
+    def _read(self, c: _Chain, ms: int) -> float:
         cpm = self.cpm
-        c = self._chains.get(node)
-        if c is None:
-            c = self._chain(node, ms)
-        elif ms >= c.t:
+        if ms >= c.t:
             if ms == c.t and c.v == c.v:  # asked again at the same instant (not nan)
                 return c.v
             if ms > c.t:
@@ -421,10 +418,9 @@ class TraceNoise:
         return v
 
     def at(self, node: int, t: float) -> float:
-        v = self.reading(node, int(t * 1000.0))
-        return v + self._chains[node].off
+        ms = int(t * 1000.0)
+        c = self._chain(node, ms)
+        return self._read(c, ms) + c.off
 
     def level(self, node: int) -> float:
-        base = self.trace.mode + self.levels.get(node, self.shift)
-        hw = self.hw
-        return base if hw is None else base + hw.noise_offset(node)
+        return self.trace.mode + self._offset(node)

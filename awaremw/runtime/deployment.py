@@ -27,7 +27,7 @@ from msgspec import Meta, Struct
 
 from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.validation import Finite, Invalid, convert
-from awaremw.radio.environment import WHITE, RadioSettings, environment, radio_model
+from awaremw.radio.environment import WHITE, RadioSettings, radio_model
 from awaremw.radio.links import SHIPPED as SHIPPED_LINKS
 from awaremw.radio.links import LinkFile, LinksError, load_links
 from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
@@ -402,9 +402,7 @@ class _Parser:
                 raise self._fail("links", f"{e} (shipped: {', '.join(SHIPPED_LINKS)})") from None
         settings = RadioSettings(noise, f.hardware_variance, links)
         try:
-            settings.check()
-            if link_file is not None:  # a contradiction between the file and the noise
-                environment(self.preset, f.seed, settings, link_file)
+            settings.check(link_file)
         except ValueError as e:
             raise self._fail("", str(e)) from None
         return settings, link_file
