@@ -65,7 +65,8 @@ def test_client_verbs_find_the_account_and_unknown_commands_are_refused(
     # No --mqtt, no account on the command line: the verb reads the broker's state.
     r = awaremw(env, "define", "group", "1", "temperature > 15", "--wait", "2")
     assert r.returncode == 0, r.stderr
-    assert r.stdout.startswith("aware/def/group/1 ")
+    # --wait waited for the gateway's take: its version, on the retained topic.
+    assert r.stdout.startswith("aware/def/group/1 ") and r.stdout.endswith(" (version 1)\n")
     # A loopback URL without an account gets the account of the broker on that port.
     r = awaremw(env, "watch", "aware/def/group/#", "--count", "1", "--timeout", "20",
                 "--mqtt", f"mqtt://127.0.0.1:{port}")  # fmt: skip

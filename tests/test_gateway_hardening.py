@@ -380,11 +380,15 @@ async def test_gateway_restart_keeps_port_account_and_retained_definitions(
             await c.subscribe("aware/def/#", qos=1)
             async with asyncio.timeout(10):
                 async for m in c.messages:
-                    assert (m.topic.value, m.payload, m.retain) == (
-                        "aware/def/group/1",
-                        GROUP,
-                        True,
-                    )
+                    # Kept, as the gateway holds it: canonical, with its version.
+                    assert (m.topic.value, m.retain) == ("aware/def/group/1", True)
+                    assert isinstance(m.payload, bytes)
+                    assert json.loads(m.payload) == {
+                        **json.loads(GROUP),
+                        "conditions": [{"attr": "temperature", "op": ">", "value": 45.0}],
+                        "hysteresis": 0.0,
+                        "version": 1,
+                    }
                     break
     finally:
         _stop(p)

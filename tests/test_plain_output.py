@@ -224,3 +224,22 @@ def test_define_with_a_read_only_account_is_refused_in_one_line(
     op = f"mqtt://operator:operator-pw@127.0.0.1:{mosquitto.port}"
     code, out = awaremw(["define", "group", "2", "temperature > 45", "--mqtt", op], tmp_path)
     assert code == 0, out
+
+
+@pytest.mark.mosquitto
+def test_define_wait_with_no_gateway_says_nobody_took_it(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    """The broker keeps the definition, but no gateway republishes it with a version
+    nor refuses it: --wait says so and exits 1; without --wait the client cannot tell."""
+    op = f"mqtt://operator:operator-pw@127.0.0.1:{mosquitto.port}"
+    code, out = awaremw(["define", "group", "3", "temperature > 45", "--mqtt", op,
+                         "--wait", "1.5"], tmp_path)  # fmt: skip
+    assert code == 1
+    assert out.strip().splitlines() == [
+        "awaremw: no gateway took aware/def/group/3 within 1.5 s (no version on the retained "
+        "topic, no error on aware/errors): is `awaremw gateway` running on this broker with "
+        "prefix 'aware'?"
+    ]
+    code, out = awaremw(["define", "group", "3", "temperature > 45", "--mqtt", op], tmp_path)
+    assert code == 0 and out.startswith("aware/def/group/3 "), out

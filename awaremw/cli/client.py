@@ -2,8 +2,11 @@
 
 Payloads are validated locally with the gateway's own schema before they are
 sent (so most mistakes are reported at once); the gateway validates again and
-reports refusals on ``<prefix>/errors`` -- ``--wait S`` listens there for S
-seconds after publishing and exits 1 if the gateway refused.
+reports refusals on ``<prefix>/errors``. A retained payload is read back: one
+the broker did not keep (an ACL refusal) exits 1. ``--wait S`` then waits up to
+S seconds for the gateway: a definition until its version shows on the retained
+topic (the gateway republishes what it took, with the version), a deletion or a
+command for a refusal; a refusal, or a definition nobody took, exits 1.
 
 Without ``--mqtt`` the verbs talk to the embedded broker of a gateway on this
 machine, with the account it keeps (:mod:`awaremw.gateway.local_broker`); a
@@ -20,7 +23,7 @@ import re
 import secrets
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import aiomqtt
@@ -69,7 +72,9 @@ def _wait_opt(p: argparse.ArgumentParser) -> None:
         type=float,
         default=0.0,
         metavar="S",
-        help="listen S seconds on <prefix>/errors for a refusal (exit 1 if refused)",
+        help="wait up to S seconds for the gateway: a definition until it shows with its "
+        "version, anything else for a refusal on <prefix>/errors (exit 1 if refused or "
+        "not taken)",
     )
 
 
@@ -288,6 +293,21 @@ def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
     return s.client(client_id, timeout=10)  # 3.1.1: the client needs nothing from MQTT 5
 
 
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """What publishing a payload came to.
+
+    ``error``: a refusal (the gateway's document from ``<prefix>/errors``, or the
+    client's own ``not_retained`` / ``not_taken``); ``warning``: the gateway's note
+    on a payload it took; ``version``: the version the gateway gave a definition,
+    seen on the retained topic (None when not waited for, or not a definition).
+    """
+
+    error: dict[str, Any] | None = None
+    warning: dict[str, Any] | None = None
+    version: int | None = None
+
+
 async def publish(
     s: MqttSettings,
     rel_topic: str,
@@ -298,8 +318,12 @@ async def publish(
     client_id: str | None = None,
     defined: list[bool] | None = None,
     check: str | None = None,
-) -> dict[str, Any] | None:
-    """Publish (QoS 1); with ``wait`` return the gateway's refusal of (or warning on) it.
+) -> Answer:
+    """Publish (QoS 1); a retained payload is read back (an MQTT 3.1.1 broker
+    acknowledges a publish its ACL refuses and drops it: reading it back is how a
+    client can tell). With ``wait``, listen that long on ``<prefix>/errors`` for
+    the gateway's refusal, and for a definition, until the gateway has taken it
+    (its version on the retained topic): neither within ``wait`` is ``not_taken``.
 
     With ``defined`` (a list), first look for a retained message on ``check``
     (relative; default the topic itself) and append whether there was one (a
@@ -309,30 +333,117 @@ async def publish(
     async with _client(s, client_id) as client:
         if defined is not None:
             defined.append(await _has_retained(client, s.topic(check or rel_topic)))
-        if wait > 0:
+        listen = _Listener(s, rel_topic, payload)
+        if retain or wait > 0:
             await client.subscribe(s.topic("errors"), qos=1)
         await client.publish(topic, payload, qos=1, retain=retain)
-        if retain and not await _kept(client, topic, payload):
-            # An MQTT 3.1.1 broker acknowledges a publish its ACL refuses and drops
-            # it: reading the retained message back is how a client can tell.
-            who = f"the account {s.username!r}" if s.username else "an anonymous client"
-            return {
-                "error": f"the broker did not keep {topic} from {who}: refused (its ACL does "
-                "not let the account publish there), or the account may not read it back",
+        if retain:
+            await client.subscribe(topic, qos=1)  # the retained message comes back
+        expect = check is not None and defined == [False]  # the gateway warns then
+        return await listen.run(client, retain=retain, wait=wait, expect_warning=expect)
+
+
+class _Listener:
+    """Reads what comes back after a publish: the retained message the broker kept,
+    the gateway's republication with a version, refusals and warnings for the topic."""
+
+    def __init__(self, s: MqttSettings, rel_topic: str, payload: bytes) -> None:
+        self.s, self.rel, self.payload = s, rel_topic, payload
+        self.topic = s.topic(rel_topic)
+        self.kept: bool | None = None  # None: not read back yet
+        self.version: int | None = None
+        self.warning: dict[str, Any] | None = None
+        self.error: dict[str, Any] | None = None
+
+    async def run(
+        self, client: aiomqtt.Client, *, retain: bool, wait: float, expect_warning: bool = False
+    ) -> Answer:
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        read_by = start + RETAINED_WAIT_S  # brokers send the retained message after the SUBACK
+        if not retain:
+            self.kept = True
+        definition = retain and bool(self.payload) and self.rel.startswith("def/")
+        while self.error is None:
+            now = loop.time()
+            if self.kept is None and now >= read_by:
+                self.kept = not self.payload  # nothing retained: right for a deletion only
+            if self.kept is None:
+                until = read_by
+            elif not self.kept:
+                until = read_by + RETAINED_WAIT_S  # the gateway's refusal explains it, if any
+            elif definition and wait > 0:
+                missing = self.version is None or (expect_warning and self.warning is None)
+                until = start + wait if missing else now
+            else:
+                until = start + wait  # a refusal, if one comes
+            if now >= until:
+                break
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout_at(until):
+                    async for m in client.messages:
+                        if self._take(m):
+                            break
+        return self._answer(definition, wait)
+
+    def _take(self, m: aiomqtt.Message) -> bool:
+        """One message; True when it changed what is known."""
+        body = m.payload if isinstance(m.payload, bytes) else b""
+        if m.topic.matches(self.s.topic("errors")):
+            with contextlib.suppress(ValueError, TypeError):
+                doc = json.loads(body)
+                if isinstance(doc, dict) and doc.get("topic") == self.topic:
+                    if doc.get("level") == "warning":
+                        self.warning = doc
+                    else:
+                        self.error = doc
+                    return True
+            return False
+        if not m.topic.matches(self.topic):
+            return False
+        version = _copy_version(self.rel, body, self.payload)
+        if self.kept is None and m.retain:
+            self.kept = body == self.payload or version is not None
+        if version is not None:
+            self.version = version
+            return True
+        return self.kept is not None and m.retain
+
+    def _answer(self, definition: bool, wait: float) -> Answer:
+        if self.error is not None:
+            return Answer(error=self.error)
+        if not self.kept:
+            who = f"the account {self.s.username!r}" if self.s.username else "an anonymous client"
+            return Answer(error={
+                "error": f"the broker did not keep {self.topic} from {who}: refused (its ACL "
+                "does not let the account publish there), or the account may not read it back",
                 "code": "not_retained",
-            }
-        if wait <= 0:
-            return None
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(wait):
-                async for m in client.messages:
-                    if not m.topic.matches(s.topic("errors")):
-                        continue
-                    with contextlib.suppress(ValueError, TypeError):
-                        err = json.loads(bytes(m.payload))
-                        if isinstance(err, dict) and err.get("topic") == topic:
-                            return err
-    return None
+            })  # fmt: skip
+        if definition and wait > 0 and self.version is None:
+            return Answer(error={
+                "error": f"no gateway took {self.topic} within {wait:g} s (no version on the "
+                f"retained topic, no error on {self.s.topic('errors')}): is `awaremw gateway` "
+                f"running on this broker with prefix {self.s.prefix!r}?",
+                "code": "not_taken",
+            })  # fmt: skip
+        return Answer(warning=self.warning, version=self.version)
+
+
+# Bodies are compared whatever the gateway's deployment allows (its MTU, periods).
+_ANY_LIMITS = replace(LIMITS, mtu=1 << 16, min_period_s=0.0)
+
+
+def _copy_version(rel_topic: str, held: bytes, sent: bytes) -> int | None:
+    """The version of ``held`` when it is the gateway's copy of the definition ``sent``
+    (the same body in canonical form, with the version the gateway gave it)."""
+    if not held or not sent:
+        return None
+    try:
+        copy = schema.parse_definition(rel_topic, held, _ANY_LIMITS)
+        ours = schema.parse_definition(rel_topic, sent, _ANY_LIMITS)
+    except schema.SchemaError:
+        return None
+    return copy.version if copy.body == ours.body else None
 
 
 async def _retained(client: aiomqtt.Client, topic: str) -> bytes:
@@ -356,15 +467,6 @@ async def _has_retained(client: aiomqtt.Client, topic: str) -> bool:
     return bool(await _retained(client, topic))
 
 
-async def _kept(client: aiomqtt.Client, topic: str, payload: bytes) -> bool:
-    """Whether the broker now retains ``payload`` on ``topic`` (an empty payload:
-    retains nothing there)."""
-    try:
-        return await _retained(client, topic) == payload
-    except aiomqtt.MqttError:
-        return False  # a subscription refused: it cannot be read back
-
-
 def _send(
     args: argparse.Namespace, rel: str, payload: bytes, retain: bool, needs: str | None = None
 ) -> int:
@@ -372,29 +474,32 @@ def _send(
     that ``needs`` another (a channel's group type) that it exists."""
     s = _settings(args)
     defined: list[bool] | None = [] if not payload or needs else None
-    err = asyncio.run(
+    answer = asyncio.run(
         publish(s, rel, payload, retain=retain, wait=args.wait, client_id=args.client_id,
                 defined=defined, check=needs)
     )  # fmt: skip
-    if needs is not None and defined == [False] and err is None:
+    err, warning = answer.error, answer.warning
+    if needs is not None and defined == [False] and err is None and warning is None:
         print(
             f"warning: {s.topic(needs)} is not defined: the channel waits for its group type "
             "and produces no data until then (waits_for_group_type)",
             file=sys.stderr,
         )
-        defined = None
-    if err is not None and err.get("code") == "not_retained":
+    if err is not None and err.get("code") in ("not_retained", "not_taken"):
         print(f"awaremw: {err.get('error')}", file=sys.stderr)
         return 1
-    if err is not None and err.get("level") == "warning":
-        print(f"warning from the gateway: {err.get('error')} ({err.get('code')})", file=sys.stderr)
-    elif err is not None:
+    if err is not None:
         print(f"refused by the gateway: {err.get('error')} ({err.get('code')})", file=sys.stderr)
         return 1
+    if warning is not None:
+        print(f"warning from the gateway: {warning.get('error')} ({warning.get('code')})",
+              file=sys.stderr)  # fmt: skip
     if not payload and defined == [False]:
         print(f"{s.topic(rel)} was not defined (no retained definition on the broker)")
         return 0
-    print(f"{s.topic(rel)} {payload.decode() if payload else '(deleted)'}")
+    # The version only when waited for: without --wait the gateway may not have taken it yet.
+    taken = "" if answer.version is None or args.wait <= 0 else f" (version {answer.version})"
+    print(f"{s.topic(rel)} {payload.decode() if payload else '(deleted)'}{taken}")
     return 0
 
 

@@ -9,6 +9,11 @@ adopted from the network, a reboot: :meth:`~GatewayBridge.on_mote_event`) and
 with the time (:meth:`~GatewayBridge.tick`). It answers with actions:
 :class:`Publish`, :class:`Inject`, :class:`Report`, :class:`StateChanged`.
 
+One truth: the store is the only source of the definitions in force. Both
+transports show them in the same bytes (:meth:`~GatewayBridge.definition_payloads`:
+the canonical JSON with its ``version``); a payload that carries a ``version``
+is such a copy, so an older one is stale and changes nothing.
+
 It owns the version store (every version decision: the store's count against
 the radio's u32 serial numbers, what the network holds, what to re-assert) and
 the table of live groups; it never blocks, sleeps or talks to a socket.
@@ -35,6 +40,7 @@ from awaremw.gateway.events import (
     Transport,
 )
 from awaremw.gateway.schema import (
+    BadValue,
     Definition,
     Limits,
     PayloadTooLarge,
@@ -42,9 +48,10 @@ from awaremw.gateway.schema import (
     TopicTooLong,
     UnknownTopic,
     agg_name,
-    parse_channel,
+    channel_id,
+    group_type_id,
     parse_command,
-    parse_group_type,
+    parse_definition,
 )
 from awaremw.gateway.store import StoredItem, VersionStore, payload_hash, unwrap, wire_version
 from awaremw.protocol import events as ev
@@ -69,6 +76,10 @@ WAITS_FOR_GROUP_TYPE = "waits_for_group_type"  # warning code: a channel on an u
 MAX_TOPIC = 256  # longest IP-side topic accepted (the contract's are < 40 characters)
 MAX_GROUPS = 4096  # live groups tracked; beyond it the longest-unheard one is dropped
 REFUSAL_LOG_INTERVAL_S = 10.0  # at most one refusal log line per code in this span
+# A declared version is taken in only this far above the store's: a larger jump
+# would read as older on the radio's u32 circle (RFC 1982), and would let one
+# payload use up the store's count.
+MAX_VERSION_JUMP = (1 << 31) - 1
 
 
 def clip(text: str, n: int) -> str:
@@ -139,6 +150,7 @@ class BridgeStats:
     accepted: int = 0
     unchanged: int = 0  # valid payloads equal to the current state: no new version
     replays: int = 0  # retained payloads seen before: ignored
+    stale: int = 0  # copies of a definition under another version than the store's: ignored
     refused: int = 0
     refused_by_code: dict[str, int] = field(default_factory=dict)  # bounded: one key per code
     records: int = 0
@@ -294,16 +306,7 @@ class GatewayBridge:
     def _parse_definition(
         self, rel_topic: str, payload: bytes, groups: Collection[int], channels: Collection[int]
     ) -> Definition:
-        """``def/group/<t>`` or ``def/channel/<id>`` parsed; ``groups``/``channels``: the
-        ids defined already (table sizes)."""
-        parts = rel_topic.split("/")
-        if len(parts) == 3 and parts[:2] == ["def", "group"]:
-            return parse_group_type(parts[2], payload, self.limits, groups)
-        if len(parts) == 3 and parts[:2] == ["def", "channel"]:
-            return parse_channel(parts[2], payload, self.limits, channels)
-        raise UnknownTopic(
-            f"unknown topic {rel_topic!r}; use def/group/<type>, def/channel/<id> or cmd/<name>"
-        )
+        return parse_definition(rel_topic, payload, self.limits, groups, channels)
 
     def _waiting(self, inj: Inject, source: str, payload: bytes) -> ErrorReport | None:
         """A warning when a channel names a group type nobody defined: the channel is
@@ -344,7 +347,7 @@ class GatewayBridge:
                 self.store.defined_ids(ItemKind.GROUP_TYPE),
                 self.store.defined_ids(ItemKind.CHANNEL),
             )
-            return self._store(d.kind, d.item_id, d.body, d.json)
+            return self._define(d)
         if len(parts) == 2 and parts[0] == "cmd":
             c = parse_command(
                 parts[1], payload, self.limits, self.store.defined_ids(ItemKind.GROUP_TYPE)
@@ -358,6 +361,31 @@ class GatewayBridge:
         raise UnknownTopic(
             f"unknown topic {rel_topic!r}; use def/group/<type>, def/channel/<id> or cmd/<name>"
         )
+
+    def _define(self, d: Definition) -> Inject | None:
+        """A valid definition; one with a declared version is a copy of what a gateway
+        published (a retained message, a dashboard's echo): an older copy is stale,
+        a newer one (the store lost, or behind the broker) is taken in under its
+        version, and one at the store's version is a change like any other."""
+        if d.version is None:
+            return self._store(d.kind, d.item_id, d.body, d.json)
+        cur = self.store.get(d.kind, d.item_id)
+        held = 0 if cur is None else cur.version
+        if d.version < held or (d.version > held and cur is not None and cur.body == d.body):
+            self.stats.stale += 1
+            return None
+        if d.version == held:
+            return self._store(d.kind, d.item_id, d.body, d.json)
+        if d.version - held > MAX_VERSION_JUMP:
+            raise BadValue(
+                f"version {d.version} is more than {MAX_VERSION_JUMP} above the gateway's "
+                f"{held}: leave the version out to define it anew"
+            )
+        item = self.store.bump_to(d.kind, d.item_id, d.version, d.body, dict(d.json or {}))
+        self.stats.accepted += 1
+        self._defined_here.add((d.kind, d.item_id))
+        log.info("%s %d taken in at its version %d", d.kind.name.lower(), d.item_id, d.version)
+        return _inject(item)
 
     def _store(self, kind: ItemKind, item_id: int, body: ItemBody | None, js: Any) -> Inject | None:
         item = self.store.apply(kind, item_id, body, None if js is None else dict(js))
@@ -550,16 +578,51 @@ class GatewayBridge:
 
     def definitions(self) -> dict[str, dict[str, Any]]:
         """Current definitions by relative topic (``def/group/1``: JSON, with its version)."""
-        out: dict[str, dict[str, Any]] = {}
-        for item in self.store.items(include_deleted=False):
-            if item.kind is ItemKind.COMMAND:
-                continue
-            sub = "group" if item.kind is ItemKind.GROUP_TYPE else "channel"
-            out[f"def/{sub}/{item.item_id}"] = {**(item.json or {}), "version": item.version}
-        return out
+        return {
+            definition_topic(item.kind, item.item_id): _document(item)
+            for item in self.store.items(include_deleted=False)
+            if item.kind is not ItemKind.COMMAND
+        }
+
+    def definition_payload(self, rel_topic: str) -> bytes | None:
+        """What the transports should show on ``rel_topic``: its definition's payload
+        (``b""`` when deleted or never defined); None if it names no definition."""
+        parts = rel_topic.split("/")
+        try:
+            if len(parts) == 3 and parts[:2] == ["def", "group"]:
+                key = (ItemKind.GROUP_TYPE, group_type_id(parts[2], self.limits))
+            elif len(parts) == 3 and parts[:2] == ["def", "channel"]:
+                key = (ItemKind.CHANNEL, channel_id(parts[2], self.limits))
+            else:
+                return None
+        except SchemaError:
+            return None
+        item = self.store.get(*key)
+        return b"" if item is None or item.deleted else json.dumps(_document(item)).encode()
+
+    def definition_payloads(self) -> dict[str, bytes]:
+        """What both transports show of every definition the store has, by relative
+        topic: the JSON document with its version (MQTT retains it, a Zenoh ``get``
+        answers it), or ``b""`` for a deleted one (no retained message, no answer)."""
+        return {
+            definition_topic(item.kind, item.item_id): (
+                b"" if item.deleted else json.dumps(_document(item)).encode()
+            )
+            for item in self.store.items()
+            if item.kind is not ItemKind.COMMAND
+        }
 
     def item(self, kind: ItemKind, item_id: int) -> StoredItem | None:
         return self.store.get(kind, item_id)
+
+
+def definition_topic(kind: ItemKind, item_id: int) -> str:
+    """``def/group/<type>`` or ``def/channel/<id>`` (relative to the prefix)."""
+    return f"def/{'group' if kind is ItemKind.GROUP_TYPE else 'channel'}/{item_id}"
+
+
+def _document(item: StoredItem) -> dict[str, Any]:
+    return {**(item.json or {}), "version": item.version}
 
 
 def _inject(item: StoredItem) -> Inject:

@@ -238,4 +238,3 @@ def wait_for_gateway(session: zenoh.Session, prefix: str = "aware", timeout: flo
         if any(r.ok is not None for r in session.get(key, timeout=min(1.0, left))):
             return
         time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))  # poll, not a sync
-

@@ -45,6 +45,7 @@ from paho.mqtt.properties import Properties
 from awaremw.gateway.bridge import RateLimitedLog
 from awaremw.gateway.events import Publish
 from awaremw.gateway.inbox import MAX_COMMANDS, MAX_DEFINITIONS, Inbox, Incoming, overflow_report
+from awaremw.gateway.store import payload_hash
 from awaremw.security.redact import mask_url, redact
 
 log = logging.getLogger(__name__)
@@ -55,13 +56,13 @@ OnMessage = Callable[[str, bytes, bool, str], object]  # (rel_topic, payload, re
 STATUS_TOPIC = "gateway/status"
 STATS_TOPIC = "gateway/stats"
 ERRORS_TOPIC = "errors"
+ECHOES_KEPT = 4  # republished definitions per topic recognised when heard back
 HANDLE_SLICE_S = 0.02  # handling yields to the connection this often (wall seconds)
 MAX_PASSWORD_BYTES = 65_535  # MQTT's binary data: a 16-bit length
 
 
 class BadMqttUrl(ValueError):
     """An MQTT URL the gateway cannot use (a configuration error)."""
-
 
 
 async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
@@ -77,6 +78,7 @@ async def mqtt_problem(url: str, timeout: float = 5.0) -> str | None:
     except aiomqtt.MqttError as e:
         reason = " ".join(str(e).split()) or type(e).__name__
         return f"cannot connect to the MQTT broker {mask_url(url)}: {redact(reason)}"
+
 
 class BadPasswordFile(ValueError):
     """A password file that is missing, unreadable or empty (a configuration error)."""
@@ -223,6 +225,7 @@ class MqttStats:
     resent: int = 0  # in flight when the connection broke: sent again
     received: int = 0
     ignored: int = 0  # messages on topics the gateway did not subscribe to
+    echoes: int = 0  # its own republished definitions heard back: not handled again
     reconciles: int = 0  # times the retained definitions were read again after a burst
     protocol: str = ""
 
@@ -256,6 +259,9 @@ class MqttBridge:
         self.changed = asyncio.Event()  # set at every connect, failed attempt and disconnect
         self._fifo: deque[_Item] = deque()
         self._retained: dict[str, bytes] = {}  # full topic -> latest payload
+        # Definitions it republished (full topic -> hashes of the last few): heard back
+        # live, they are its own echo, never to take the place of a client's in the inbox.
+        self._echoes: dict[str, deque[str]] = {}
         self._dirty: dict[str, bytes] = {}  # retained topics still to (re)publish
         self._wakeup = asyncio.Event()
         self._stop = asyncio.Event()
@@ -287,6 +293,9 @@ class MqttBridge:
             else:
                 self._retained.pop(topic, None)
             self._dirty[topic] = p.payload
+            if p.payload and topic.startswith(self._def_prefix):
+                seen = self._echoes.setdefault(topic, deque(maxlen=ECHOES_KEPT))
+                seen.append(payload_hash(p.payload))
         else:
             if len(self._fifo) >= self.settings.buffer_size:
                 self._fifo.popleft()
@@ -466,8 +475,14 @@ class MqttBridge:
             # aware/groups/#), not only of its own.
             self.stats.ignored += 1
             return
-        self.stats.received += 1
         payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
+        if not m.retain and payload and payload_hash(payload) in self._echoes.get(topic, ()):
+            # Its own republication heard back live: the broker got our newer ones
+            # after it, in order. Taken in, it could replace a client's definition
+            # that came meanwhile (the inbox keeps the newest per topic).
+            self.stats.echoes += 1
+            return
+        self.stats.received += 1
         item = Incoming(topic[len(s.prefix) + 1 :], payload, topic, bool(m.retain))
         if item.is_definition and not item.retained:
             self._live_defs += 1

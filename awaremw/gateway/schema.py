@@ -67,6 +67,9 @@ from awaremw.protocol.frames import (
 AGG_NAMES: Mapping[str, int] = {a.name.lower(): int(a) for a in AggId}
 ANY = "*"
 MAX_VERSION = 0xFFFFFFFF
+# A definition's declared ``version`` (the store's count, not the radio's u32):
+# at most the largest integer every JSON reader (JavaScript too) holds exactly.
+MAX_DECLARED_VERSION = (1 << 53) - 1
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 
@@ -225,6 +228,9 @@ class Definition:
     item_id: int
     body: ItemBody | None
     json: Mapping[str, Any] | None = field(default=None, compare=False)
+    # The version the payload says it has: the gateway's own retained copy of a
+    # definition (or a copy of it) carries one; a user's definition does not.
+    version: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -333,6 +339,16 @@ def _integer(v: object, what: str, *, or_any: bool = False) -> int:
     return v
 
 
+def _version(v: object) -> int | None:
+    """The optional ``version`` of a definition: what the gateway published it under."""
+    if v is None:
+        return None
+    n = _integer(v, "version")
+    if not 1 <= n <= MAX_DECLARED_VERSION:
+        raise BadValue(f"version {n} out of range 1..{MAX_DECLARED_VERSION}")
+    return n
+
+
 def _string(v: object, what: str) -> str:
     if not isinstance(v, str):
         raise WrongType(f"{what} must be a string, got {_type_name(v)}")
@@ -390,7 +406,7 @@ def parse_group_type(
     if is_empty(payload, limits):
         return Definition(ItemKind.GROUP_TYPE, gtype, None, None)
     doc = decode_payload(payload, limits)
-    obj = _object(doc, "group definition", ("conditions", "hysteresis"), ("conditions",))
+    obj = _object(doc, "group definition", ("conditions", "hysteresis", "version"), ("conditions",))
     conds_doc = obj["conditions"]
     if not isinstance(conds_doc, list):
         raise WrongType(f"conditions must be an array, got {_type_name(conds_doc)}")
@@ -418,7 +434,9 @@ def parse_group_type(
             f"{limits.max_group_types} group types are already defined (the motes' limit); "
             "delete one first"
         )
-    return Definition(ItemKind.GROUP_TYPE, gtype, body, group_type_json(body))
+    return Definition(
+        ItemKind.GROUP_TYPE, gtype, body, group_type_json(body), _version(obj.get("version"))
+    )
 
 
 def group_type_json(body: GroupTypeDef) -> dict[str, Any]:
@@ -453,7 +471,7 @@ def parse_channel(
     if is_empty(payload, limits):
         return Definition(ItemKind.CHANNEL, ch, None, None)
     doc = decode_payload(payload, limits)
-    keys = ("attr", "group_type", "group_id", "period_s", "agg")
+    keys = ("attr", "group_type", "group_id", "period_s", "agg", "version")
     obj = _object(doc, "channel definition", keys, ("attr", "period_s"))
     attr = _attribute(_string(obj["attr"], "attr"), "")
     gt_doc = obj.get("group_type", ANY)
@@ -485,7 +503,26 @@ def parse_channel(
             f"{limits.max_channels} channels are already defined (the motes' limit); "
             "delete one first"
         )
-    return Definition(ItemKind.CHANNEL, ch, body, channel_json(body))
+    return Definition(ItemKind.CHANNEL, ch, body, channel_json(body), _version(obj.get("version")))
+
+
+def parse_definition(
+    rel_topic: str,
+    payload: bytes,
+    limits: Limits,
+    groups: Collection[int] = (),
+    channels: Collection[int] = (),
+) -> Definition:
+    """``def/group/<type>`` or ``def/channel/<id>`` (relative to the prefix) parsed;
+    ``groups`` / ``channels``: the ids defined already (table sizes)."""
+    parts = rel_topic.split("/")
+    if len(parts) == 3 and parts[:2] == ["def", "group"]:
+        return parse_group_type(parts[2], payload, limits, groups)
+    if len(parts) == 3 and parts[:2] == ["def", "channel"]:
+        return parse_channel(parts[2], payload, limits, channels)
+    raise UnknownTopic(
+        f"unknown topic {rel_topic!r}; use def/group/<type>, def/channel/<id> or cmd/<name>"
+    )
 
 
 def channel_json(body: ChannelDef) -> dict[str, Any]:

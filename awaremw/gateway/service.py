@@ -151,6 +151,8 @@ class GatewayService:
         self.injected = 0
         self.inject_failures = 0
         self._refresh_due = False
+        # What MQTT was last given of each definition (bounded by the item ids).
+        self._mirrored: dict[str, bytes] = {}
         # Pacing of definition injections (bounded by the item ids: 255 + 256 keys).
         self._last_inject: dict[tuple[ItemKind, int], float] = {}
         self._deferred: dict[tuple[ItemKind, int], asyncio.TimerHandle] = {}
@@ -182,8 +184,11 @@ class GatewayService:
                 inbox=Inbox(valid=self._valid),
             )
             self.hbn.start()
-            self._refresh_now()
             self.hbn.publish(Publish(STATUS_TOPIC, b"online", retain=True))
+        # Both transports show the store from the start: the query's snapshot, and
+        # on MQTT every definition retained with its version (a deleted one cleared),
+        # over whatever the broker kept while the gateway was away.
+        self._sync_views()
         if self.mqtt is not None:
             self._tasks.append(asyncio.create_task(self.mqtt.run(), name="gateway-mqtt"))
         self._tasks.append(asyncio.create_task(self._expiry_loop(), name="gateway-expiry"))
@@ -239,8 +244,24 @@ class GatewayService:
             rel, payload, source=topic or rel, retained=retained, size=size, via=via
         )
         self._apply(out.actions, paced=True)
+        if via is Transport.MQTT and not (out.replay and self.settings.retained_only is not None):
+            self._answer_retained(rel, payload)
         self.handled.set()
         return out
+
+    def _answer_retained(self, rel: str, payload: bytes) -> None:
+        """The broker now retains ``payload`` on ``rel``: if that is not what the store
+        holds there (a plain definition, one refused, an older copy, one changed
+        while the gateway was away and replayed), publish the store's over it. The
+        gateway hears its own publication back equal to the store: no loop."""
+        want = self.bridge.definition_payload(rel)
+        if want is None or self.mqtt is None:
+            return
+        # Either way MQTT ends up holding ``want``: the views' sync need not send it
+        # again (a client's deletion is on the broker already, with nothing to add).
+        self._mirrored[rel] = want
+        if payload != want:
+            self.mqtt.publish(Publish(rel, want, retain=True))
 
     def _valid(self, m: Incoming) -> bool:
         """Whether a waiting definition is valid on its own (the inbox does not let a
@@ -267,7 +288,7 @@ class GatewayService:
                 case Report():
                     pass  # a local payload, or its transport is off: the Outcome has it
                 case StateChanged():
-                    self._refresh_hbn()
+                    self._views_changed()
                     self.handled.set()
                 case _:
                     assert_never(a)
@@ -351,9 +372,7 @@ class GatewayService:
 
     def state(self) -> dict[str, bytes]:
         """What the Zenoh queryable answers: definitions, groups, status and stats."""
-        st: dict[str, bytes] = {
-            rel: json.dumps(doc).encode() for rel, doc in self.bridge.definitions().items()
-        }
+        st = {rel: p for rel, p in self.bridge.definition_payloads().items() if p}
         st.update(self.bridge.group_states())
         st[STATUS_TOPIC] = b"online"
         st[STATS_TOPIC] = json.dumps(self.stats()).encode()
@@ -372,19 +391,27 @@ class GatewayService:
             }
         return out
 
-    def _refresh_hbn(self) -> None:
-        """Renew the queryable's snapshot once the loop is free: a burst of
+    def _views_changed(self) -> None:
+        """Renew what the transports show once the loop is free: a burst of
         definitions makes one snapshot, not one per definition (each is a JSON
         dump of every definition and group)."""
-        if self.hbn is None or self._refresh_due:
+        if self._refresh_due or (self.hbn is None and self.mqtt is None):
             return
         self._refresh_due = True
-        asyncio.get_running_loop().call_soon(self._refresh_now)
+        asyncio.get_running_loop().call_soon(self._sync_views)
 
-    def _refresh_now(self) -> None:
+    def _sync_views(self) -> None:
+        """The store, shown on both transports: the Zenoh queryable's snapshot, and
+        each definition that changed retained on MQTT in the same bytes."""
         self._refresh_due = False
         if self.hbn is not None:
             self.hbn.set_state(self.state())
+        if self.mqtt is None:
+            return
+        for rel, payload in self.bridge.definition_payloads().items():
+            if self._mirrored.get(rel) != payload:
+                self._mirrored[rel] = payload
+                self.mqtt.publish(Publish(rel, payload, retain=True))
 
 
 def attach_to_fleet(
