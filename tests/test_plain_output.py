@@ -13,13 +13,16 @@ import socket
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import aiomqtt
 import pytest
 from mosquitto import Mosquitto, mosquitto_fixture  # noqa: F401
 
+from awaremw.cli.client import publish
 from awaremw.gateway.broker import EmbeddedBroker
+from awaremw.gateway.mqtt import MqttSettings
 from awaremw.runtime.deployment import DeploymentError, parse_deployment
 from awaremw.runtime.zenoh_session import free_tcp_endpoint
 from awaremw.security.redact import mask_url, redact
@@ -215,10 +218,10 @@ def test_define_with_a_read_only_account_is_refused_in_one_line(
     url = f"mqtt://viewer:viewer-pw@127.0.0.1:{mosquitto.port}"
     code, out = awaremw(["define", "group", "2", "temperature > 45", "--mqtt", url, *wait],
                         tmp_path)  # fmt: skip
+    # Mosquitto speaks MQTT 5: its PUBACK says why.
     assert code == 1
     assert out.strip().splitlines() == [
-        "awaremw: the broker did not keep aware/def/group/2 from the account 'viewer': refused "
-        "(its ACL does not let the account publish there), or the account may not read it back"
+        "awaremw: the broker refused aware/def/group/2 from the account 'viewer': Not authorized"
     ]
     # The operator, who may write definitions, is not refused.
     op = f"mqtt://operator:operator-pw@127.0.0.1:{mosquitto.port}"
@@ -243,3 +246,29 @@ def test_define_wait_with_no_gateway_says_nobody_took_it(
     ]
     code, out = awaremw(["define", "group", "3", "temperature > 45", "--mqtt", op], tmp_path)
     assert code == 0 and out.startswith("aware/def/group/3 "), out
+
+
+@pytest.mark.mosquitto
+def test_a_refused_command_names_the_account_topic_and_reason(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    url = f"mqtt://viewer:viewer-pw@127.0.0.1:{mosquitto.port}"
+    code, out = awaremw(["command", "led", "--target", "all", "--arg", "state=on",
+                         "--mqtt", url], tmp_path)  # fmt: skip
+    assert code == 1
+    assert out.strip().splitlines() == [
+        "awaremw: the broker refused aware/cmd/led from the account 'viewer': Not authorized"
+    ]
+
+
+@pytest.mark.mosquitto
+async def test_on_mqtt_3_1_1_the_read_back_is_the_check(mosquitto: Mosquitto) -> None:
+    """MQTT 3.1.1 has no refusal in its PUBACK: Mosquitto acknowledges and drops the
+    publish, and reading the retained message back is how the client tells."""
+    s = MqttSettings.from_url(mosquitto.url("viewer"), protocol="3.1.1")
+    answer = await publish(s, "def/group/4", b'{"conditions": [{"attr": "x", "op": ">", '
+                           b'"value": 1}]}', retain=True)  # fmt: skip
+    assert answer.error is not None and answer.error["code"] == "not_retained"
+    five = await publish(replace(s, protocol="auto"), "def/group/4", b"", retain=True)
+    assert five.error is not None and five.error["code"] == "refused_by_broker"
+    assert five.error["error"].endswith("from the account 'viewer': Not authorized")

@@ -32,7 +32,7 @@ from awaremw.cli.friendly import refuse
 from awaremw.cli.helptext import add_verb, add_wall_timeout
 from awaremw.gateway import schema
 from awaremw.gateway.local_broker import LOOPBACK, find_local_broker, state_base
-from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
+from awaremw.gateway.mqtt import AckedClient, BadMqttUrl, MqttSettings, speaks_mqtt5
 from awaremw.nodes.kinds import COMMANDS
 from awaremw.security.redact import mask_url, redact
 
@@ -195,8 +195,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         sub,
         "watch",
         "print what arrives on a topic (default <prefix>/#)",
-        "Subscribe and print one line per message: topic and payload (or JSON).\n\n"
-        + _BROKER_NOTE,
+        "Subscribe and print one line per message: topic and payload (or JSON).\n\n" + _BROKER_NOTE,
         [
             "awaremw watch 'aware/data/#' --count 3",
             "awaremw watch aware/errors --json --timeout 60",
@@ -286,11 +285,27 @@ def _settings(args: argparse.Namespace) -> MqttSettings:
     return s
 
 
-def _client(s: MqttSettings, client_id: str | None) -> aiomqtt.Client:
+def _client(
+    s: MqttSettings,
+    client_id: str | None,
+    protocol: aiomqtt.ProtocolVersion = aiomqtt.ProtocolVersion.V311,
+) -> AckedClient:
     # A random id, never the empty one: amqtt gives every client that sends an
     # empty id the same session, subscriptions included.
     client_id = client_id or f"awaremw-cli-{secrets.token_hex(4)}"
-    return s.client(client_id, timeout=10)  # 3.1.1: the client needs nothing from MQTT 5
+    return s.client(client_id, timeout=10, protocol=protocol)
+
+
+async def _publishing_protocol(s: MqttSettings) -> aiomqtt.ProtocolVersion:
+    """MQTT 5 where the broker speaks it (its PUBACK says why a publish was refused),
+    else 3.1.1; an unreachable broker is left to the connection to report."""
+    if s.protocol != "auto":
+        return aiomqtt.ProtocolVersion.V5 if s.protocol == "5" else aiomqtt.ProtocolVersion.V311
+    try:
+        five = await speaks_mqtt5(s)
+    except (OSError, TimeoutError):
+        five = False
+    return aiomqtt.ProtocolVersion.V5 if five else aiomqtt.ProtocolVersion.V311
 
 
 @dataclass(frozen=True, slots=True)
@@ -330,13 +345,18 @@ async def publish(
     delete of something never defined, a channel on an undefined group type).
     """
     topic = s.topic(rel_topic)
-    async with _client(s, client_id) as client:
+    async with _client(s, client_id, await _publishing_protocol(s)) as client:
         if defined is not None:
             defined.append(await _has_retained(client, s.topic(check or rel_topic)))
         listen = _Listener(s, rel_topic, payload)
         if retain or wait > 0:
             await client.subscribe(s.topic("errors"), qos=1)
         await client.publish(topic, payload, qos=1, retain=retain)
+        if client.refusals:  # MQTT 5: the broker said why
+            return Answer(error={
+                "error": f"the broker refused {topic} from {_who(s)}: {client.refusals[-1]}",
+                "code": "refused_by_broker",
+            })  # fmt: skip
         if retain:
             await client.subscribe(topic, qos=1)  # the retained message comes back
         expect = check is not None and defined == [False]  # the gateway warns then
@@ -413,7 +433,7 @@ class _Listener:
         if self.error is not None:
             return Answer(error=self.error)
         if not self.kept:
-            who = f"the account {self.s.username!r}" if self.s.username else "an anonymous client"
+            who = _who(self.s)
             return Answer(error={
                 "error": f"the broker did not keep {self.topic} from {who}: refused (its ACL "
                 "does not let the account publish there), or the account may not read it back",
@@ -427,6 +447,10 @@ class _Listener:
                 "code": "not_taken",
             })  # fmt: skip
         return Answer(warning=self.warning, version=self.version)
+
+
+def _who(s: MqttSettings) -> str:
+    return f"the account {s.username!r}" if s.username else "an anonymous client"
 
 
 # Bodies are compared whatever the gateway's deployment allows (its MTU, periods).
@@ -485,7 +509,7 @@ def _send(
             "and produces no data until then (waits_for_group_type)",
             file=sys.stderr,
         )
-    if err is not None and err.get("code") in ("not_retained", "not_taken"):
+    if err is not None and err.get("code") in ("not_retained", "not_taken", "refused_by_broker"):
         print(f"awaremw: {err.get('error')}", file=sys.stderr)
         return 1
     if err is not None:

@@ -190,11 +190,11 @@ class MqttSettings:
             ctx.verify_mode = ssl.CERT_NONE
         return ctx
 
-    def client(self, identifier: str, **options: Any) -> aiomqtt.Client:
+    def client(self, identifier: str, **options: Any) -> AckedClient:
         """An aiomqtt client of this broker with this account and TLS; MQTT 3.1.1
         (every broker speaks it) unless ``options`` name another ``protocol``."""
         options.setdefault("protocol", aiomqtt.ProtocolVersion.V311)
-        return aiomqtt.Client(
+        return AckedClient(
             self.host,
             self.port,
             username=self.username,
@@ -239,6 +239,58 @@ class _Item:
     payload: bytes
     qos: int
     enqueued: float = field(default_factory=time.monotonic)
+
+
+async def speaks_mqtt5(s: MqttSettings) -> bool:
+    """Whether the broker of ``s`` speaks MQTT 5 (OSError / TimeoutError: unreachable).
+
+    Sends a bare MQTT 5 CONNECT (no credentials, no properties: some 3.1.1
+    brokers, amqtt among them, hang on CONNECT properties) under a probe
+    client id, so no real session is touched, and reads the CONNACK: a 3.1.1
+    broker answers "unacceptable protocol version" (code 1) or just closes;
+    any MQTT 5 reason code, even "not authorized", means the broker speaks 5.
+    """
+    cid = f"{s.client_id}-probe-{secrets.token_hex(3)}".encode()
+    var = b"\x00\x04MQTT\x05\x02\x00\x0a\x00"  # name, level 5, clean start, keepalive, props
+    body = var + len(cid).to_bytes(2, "big") + cid
+    packet = bytes([0x10, len(body)]) + body  # len(body) < 128: one-byte length
+    async with asyncio.timeout(s.timeout_s):
+        reader, writer = await asyncio.open_connection(
+            s.host, s.port, ssl=s.ssl_context(), server_hostname=s.host if s.tls else None
+        )
+        try:
+            writer.write(packet)
+            await writer.drain()
+            head = await reader.read(4)
+            if len(head) >= 4 and head[0] == 0x20 and head[3] not in (0x01, 0x84):
+                writer.write(b"\xe0\x00")  # DISCONNECT
+                await writer.drain()
+                return True
+            return False
+        finally:
+            writer.close()
+            with contextlib.suppress(OSError):
+                await writer.wait_closed()
+
+
+class AckedClient(aiomqtt.Client):
+    """aiomqtt's client, keeping the reason codes of the PUBACKs that refused a
+    publish (MQTT 5: "Not authorized", "Quota exceeded", ...). aiomqtt 2.5 hands
+    paho's reason code to its ``_on_publish`` and drops it; this override is the
+    one place that reads it, bounded to the last ``MAX_REFUSALS``."""
+
+    MAX_REFUSALS = 16
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.refusals: deque[str] = deque(maxlen=self.MAX_REFUSALS)
+
+    def _on_publish(
+        self, client: Any, userdata: Any, mid: int, reason_code: Any, properties: Any
+    ) -> None:
+        if getattr(reason_code, "is_failure", False):
+            self.refusals.append(str(reason_code))
+        super()._on_publish(client, userdata, mid, reason_code, properties)
 
 
 class MqttBridge:
@@ -375,43 +427,14 @@ class MqttBridge:
         return client
 
     async def _probe(self) -> aiomqtt.ProtocolVersion:
-        """With ``protocol="auto"``: does the broker speak MQTT 5?
-
-        Sends a bare MQTT 5 CONNECT (no credentials, no properties: some 3.1.1
-        brokers, amqtt among them, hang on CONNECT properties) under a probe
-        client id, so the gateway's own session is not touched, and reads the
-        CONNACK: a 3.1.1 broker answers "unacceptable protocol version" (code
-        1) or just closes; any MQTT 5 reason code, even "not authorized", means
-        the broker speaks 5.
-        """
-        s = self.settings
-        cid = f"{s.client_id}-probe".encode()
-        var = b"\x00\x04MQTT\x05\x02\x00\x0a\x00"  # name, level 5, clean start, keepalive, props
-        body = var + len(cid).to_bytes(2, "big") + cid
-        packet = bytes([0x10, len(body)]) + body  # len(body) < 128: one-byte length
+        """With ``protocol="auto"``: does the broker speak MQTT 5?"""
         try:
-            async with asyncio.timeout(s.timeout_s):
-                reader, writer = await asyncio.open_connection(
-                    s.host,
-                    s.port,
-                    ssl=self.settings.ssl_context(),
-                    server_hostname=s.host if s.tls else None,
-                )
-                try:
-                    writer.write(packet)
-                    await writer.drain()
-                    head = await reader.read(4)
-                    if len(head) >= 4 and head[0] == 0x20 and head[3] not in (0x01, 0x84):
-                        writer.write(b"\xe0\x00")  # DISCONNECT
-                        await writer.drain()
-                        return aiomqtt.ProtocolVersion.V5
-                finally:
-                    writer.close()
-                    with contextlib.suppress(OSError):
-                        await writer.wait_closed()
+            five = await speaks_mqtt5(self.settings)
         except (OSError, TimeoutError) as e:
             raise aiomqtt.MqttError(f"cannot reach the broker: {e}") from None
-        log.info("broker %s does not speak MQTT 5; using MQTT 3.1.1", s.url)
+        if five:
+            return aiomqtt.ProtocolVersion.V5
+        log.info("broker %s does not speak MQTT 5; using MQTT 3.1.1", self.settings.url)
         return aiomqtt.ProtocolVersion.V311
 
     def _on_connected(self, protocol: aiomqtt.ProtocolVersion) -> None:
