@@ -29,6 +29,7 @@ LAYERS = (
     "nodes",
     "gateway",
     "view",
+    "ops",
     "experiments",
     "bench",
     "cli",

@@ -92,9 +92,11 @@ async def test_only_the_operator_may_define_or_command(mosquitto: Mosquitto) -> 
     inbox = Inbox()
     bridge = MqttBridge(MqttSettings.from_url(mosquitto.url("gateway")), inbox)
     async with running(bridge):
+        r = pub(mosquitto, "viewer", "aware/def/group/1", GROUP)
+        assert b"Not authorized" in r.stderr, r
+        # The gateway account writes definitions only to republish what it holds
+        # (docs/gateway.md, One truth); neither it nor a viewer sends commands.
         for user in ("viewer", "gateway"):
-            r = pub(mosquitto, user, "aware/def/group/1", GROUP)
-            assert b"Not authorized" in r.stderr, r
             r = pub(mosquitto, user, "aware/cmd/reset", "{}", retain=False)
             assert b"Not authorized" in r.stderr, r
         # The broker handles one client's publishes in order and had refused the

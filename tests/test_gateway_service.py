@@ -184,12 +184,13 @@ async def test_restart_keeps_versions_and_reinjects(mosquitto: Mosquitto, tmp_pa
         assert wsn.injected[-1][1].version == 2
 
     # Restart: the stored state is injected at once (same versions); the broker's
-    # retained copy is recognised, not applied again.
+    # retained copy (the gateway's own, with its version: One truth) is recognised,
+    # not applied again.
     wsn2 = FakeWsn()
     async with service(mosquitto, tmp_path, wsn2) as svc:
         assert [(n, i.item_id, i.version) for n, i in wsn2.injected] == [(0, 1, 2), (5, 1, 2)]
         assert svc.mqtt is not None
-        await until(lambda: svc.bridge.stats.replays >= 1, svc.handled)
+        await until(lambda: svc.bridge.stats.unchanged >= 1, svc.handled)
         assert len(wsn2.injected) == 2
         # A definition published after the restart takes effect, with version 3.
         pub(mosquitto, "operator", "aware/def/channel/1", CHANNEL)

@@ -131,8 +131,8 @@ def main(args: argparse.Namespace) -> int:
             except BadMqttUrl as e:
                 return refuse("awaremw demo", e)
     if args.web is not None:
-        from awaremw.view.guard import check_bind
-        from awaremw.view.web import PASSWORD_ENV, parse_host_port
+        from awaremw.view.guard import check_bind, parse_host_port
+        from awaremw.view.web import PASSWORD_ENV
 
         try:
             check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))

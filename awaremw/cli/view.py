@@ -63,12 +63,11 @@ def main(args: argparse.Namespace) -> int:
     from awaremw.gateway.mqtt import BadMqttUrl, MqttSettings
     from awaremw.nodes import world_of
     from awaremw.runtime.deployment import DeploymentError, load
-    from awaremw.view.guard import check_bind
+    from awaremw.view.guard import check_bind, parse_host_port
     from awaremw.view.web import (
         PASSWORD_ENV,
         DashboardError,
         dashboard_for,
-        parse_host_port,
         run_view,
     )
 

@@ -306,6 +306,7 @@ class MqttBridge:
         self.on_message = on_message
         self.stats = MqttStats()
         self.connected = asyncio.Event()
+        self.subscribed = asyncio.Event()  # set while connected and subscribed (ready)
         self.disconnected = asyncio.Event()  # set whenever not connected
         self.disconnected.set()
         self.changed = asyncio.Event()  # set at every connect, failed attempt and disconnect
@@ -392,6 +393,7 @@ class MqttBridge:
             except aiomqtt.MqttError as e:
                 self._note_failure(e)
             finally:
+                self.subscribed.clear()
                 if self.connected.is_set():
                     self.connected.clear()
                     self.disconnected.set()
@@ -463,6 +465,7 @@ class MqttBridge:
         await client.subscribe([(s.topic("def/#"), 1), (s.topic("cmd/#"), 1)])
         # Online once subscribed: a definition published after "online" is heard live.
         await client.publish(s.topic(STATUS_TOPIC), b"online", qos=1, retain=True)
+        self.subscribed.set()
         self._wakeup.set()
         handler = asyncio.create_task(self._handler())
         sender = asyncio.create_task(self._sender(client))

@@ -55,14 +55,30 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def check_bind(host: str, port: int, password: str | None) -> None:
+def check_bind(
+    host: str,
+    port: int,
+    password: str | None,
+    *,
+    what: str = "the dashboard",
+    risk: str = "anyone reaching it could define groups and send commands",
+    env: str = "AWAREMW_WEB_PASSWORD",
+) -> None:
     """Refuse to serve beyond this machine without a password."""
     if not is_loopback(host) and not password:
         raise InsecureBind(
-            f"refusing to serve the dashboard on {host}:{port} without a password (anyone "
-            "reaching it could define groups and send commands): set AWAREMW_WEB_PASSWORD, "
-            "or serve on 127.0.0.1"
+            f"refusing to serve {what} on {host}:{port} without a password ({risk}): "
+            f"set {env}, or serve on 127.0.0.1"
         )
+
+
+def parse_host_port(text: str, option: str = "--web") -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:8080`` for IPv6); port 0 picks a free one."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"bad {option} address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8080")
+    return host, int(port)
 
 
 def _split_host(value: str) -> tuple[str, int | None]:

@@ -56,6 +56,7 @@ from awaremw.view.guard import (
     InsecureBind,
     RequestGuard,
     check_bind,
+    parse_host_port,
 )
 from awaremw.view.snapshot import MoteDot
 from awaremw.world.fields import World
@@ -846,15 +847,6 @@ def wall_clock_estimate(state: DashboardState, speed: float) -> Callable[[], flo
         return seen["t"] + (time.monotonic() - seen["wall"]) * speed
 
     return now
-
-
-def parse_host_port(text: str) -> tuple[str, int]:
-    """``HOST:PORT`` (``[::1]:8080`` for IPv6); port 0 picks a free one."""
-    host, sep, port = text.rpartition(":")
-    host = host.strip("[]")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ValueError(f"bad --web address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8080")
-    return host, int(port)
 
 
 def dashboard_for(

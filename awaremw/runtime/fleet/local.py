@@ -30,14 +30,16 @@ import zenoh
 
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.events import EventHook
-from awaremw.radio.capture import Capture
+from awaremw.radio.capture import Capture, RadioTap
 from awaremw.radio.counters import MoteCounters
+from awaremw.radio.frame_counts import Taps
 from awaremw.radio.model import RadioModel
 from awaremw.radio.zenoh_medium import MacSettings, ZenohMedium
 from awaremw.runtime.deployment import Deployment
 from awaremw.runtime.driver import LagStats
 from awaremw.runtime.fleet.clock import ClockSync
 from awaremw.runtime.fleet.control import ControlService
+from awaremw.runtime.fleet.figures import FigureTaker
 from awaremw.runtime.fleet.guard import LoopGuard
 from awaremw.runtime.fleet.motes import CoreFactory, FleetMotes, NodeFilter
 from awaremw.runtime.fleet.settings import FleetSettings
@@ -82,7 +84,13 @@ class Fleet:
         self.lag: LagStats | None = LagStats() if s.collect_lag else None
         self.motes = FleetMotes(deployment, core_factory, node_filter, self.lag, s.name)
         self.runners = self.motes.runners  # the same dict: every mote this process ran
-        self.stats = FleetStats(s.name, self.clock, self.lag, self.counters, self.motes.on_air)
+        self.figures: FigureTaker | None = None
+        if s.figures:
+            self.figures = FigureTaker(deployment, self.motes.runners, self.lag)
+            self.motes.on_event(self.figures.on_event)
+        self.stats = FleetStats(
+            s.name, self.clock, self.lag, self.counters, self.motes.on_air, self.figures
+        )
         self.control = ControlService(s.name, s.prefix, self.motes, self.stats)
         self._guard = LoopGuard(s.name)
         self.clock_sync = ClockSync(s.name, self.clock, self._rearm)
@@ -212,9 +220,13 @@ class Fleet:
         s = self.settings
         self.clock.restart(time.time() if start_wall is None else start_wall)
         self._cpu0, self._wall0 = time.process_time(), time.perf_counter()
+        taps: list[RadioTap] = [] if self.figures is None else [self.figures.frames]
         if s.pcap is not None:
             # The medium's own tap: every frame its motes send or hear, with receptions.
-            self.capture = self.medium.tap = Capture.to_file(s.pcap, epoch=self.clock.start_wall)
+            self.capture = Capture.to_file(s.pcap, epoch=self.clock.start_wall)
+            taps.append(self.capture)
+        if taps:
+            self.medium.tap = taps[0] if len(taps) == 1 else Taps(taps)
         self.motes.start()
         self.clock_sync.activate()
         if self.lag is not None:

@@ -60,6 +60,9 @@ class FleetSettings:
     ``plugin``: a :class:`WorkerPlugin` run beside the fleet. ``pcap``: the
     medium's tap writes every frame and reception to this file (pcapng).
     ``lag_from_s``: timer lag is sampled from this emulated time on (a warm-up).
+    ``figures``: measure what the metrics show (frames by kind on a counting tap,
+    records produced, a timer-lag histogram, energy by mote kind): sent with
+    every progress snapshot (:mod:`awaremw.runtime.fleet.figures`).
     """
 
     name: str = "main"
@@ -78,6 +81,7 @@ class FleetSettings:
     security: RadioSecurity | None = None
     plugin: WorkerPlugin | None = None
     pcap: str | None = None
+    figures: bool = False
     lag_from_s: float = 0.0
 
     def __post_init__(self) -> None:
@@ -107,7 +111,8 @@ class LauncherSettings:
     times within ``restart_window_s`` wall seconds (then the run fails); 0: a
     dead worker fails the run at once. ``pcap``: a capture of the radio (one
     process: the medium's tap, receptions included; more: a sniffer on the
-    router, docs/capture.md). ``lag_from_s``: as :attr:`FleetSettings.lag_from_s`.
+    router, docs/capture.md). ``lag_from_s``, ``figures``: as in
+    :class:`FleetSettings`.
 
     In this process only (one process, no ``router_config_file``):
     ``start_wall`` (the shared start of fleets on several hosts) and
@@ -138,6 +143,7 @@ class LauncherSettings:
     lag_from_s: float = 0.0
     start_wall: float | None = None
     client: bool = False
+    figures: bool = False
 
     def __post_init__(self) -> None:
         if self.max_restarts < 0:
@@ -177,6 +183,7 @@ class LauncherSettings:
             security=self.security,
             plugin=self.plugin,
             lag_from_s=self.lag_from_s,
+            figures=self.figures,
         )
 
     def in_process(self) -> FleetSettings:

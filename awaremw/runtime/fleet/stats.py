@@ -12,6 +12,7 @@ from typing import Any
 
 from awaremw.radio.counters import MoteCounters
 from awaremw.runtime.driver import LagStats, percentile
+from awaremw.runtime.fleet.figures import FigureTaker, ProcessFigures, merge_figures
 from awaremw.world.clock import EmulatedClock
 
 
@@ -29,6 +30,7 @@ class FleetSnapshot:
     malformed: int
     lag_p50_ms: float  # over the samples since the previous snapshot
     lag_p99_ms: float
+    figures: ProcessFigures | None = None  # with FleetSettings.figures: for the metrics
 
     def line(self) -> str:
         def ms(v: float) -> str:
@@ -57,6 +59,11 @@ def merge_snapshots(snaps: Iterable[FleetSnapshot], name: str = "fleet") -> Flee
         malformed=sum(x.malformed for x in s),
         lag_p50_ms=max((x.lag_p50_ms for x in s if not math.isnan(x.lag_p50_ms)), default=0.0),
         lag_p99_ms=max((x.lag_p99_ms for x in s if not math.isnan(x.lag_p99_ms)), default=0.0),
+        figures=(
+            merge_figures(x.figures for x in s if x.figures is not None)
+            if any(x.figures is not None for x in s)
+            else None
+        ),
     )
 
 
@@ -71,25 +78,30 @@ class FleetStats:
         lag: LagStats | None,
         counters: Callable[[], Mapping[int, MoteCounters]],
         on_air: Callable[[], int],
+        figures: FigureTaker | None = None,
     ) -> None:
         self.name = name
         self.clock = clock
         self.lag = lag
         self._counters = counters
         self._on_air = on_air
+        self._figures = figures
         self._lag_mark = 0
         # Totals of earlier incarnations of this worker (a restarted one goes on from them).
         self.base: dict[str, int] = {}
 
-    def snapshot(self) -> FleetSnapshot:
-        """Totals so far; lag percentiles over the samples since the last snapshot."""
+    def snapshot(self, *, window: bool = True) -> FleetSnapshot:
+        """Totals so far; lag percentiles over the samples since the last snapshot
+        (``window=False``: a look that does not start a new window, e.g. a scrape)."""
         tot = MoteCounters()
-        for c in self._counters().values():
+        counters = self._counters()
+        for c in counters.values():
             tot.add(c)
         p50 = p99 = math.nan
         if self.lag is not None:
             recent = self.lag.since(self._lag_mark)  # bounded: LagStats keeps a ring
-            self._lag_mark = self.lag.count
+            if window:
+                self._lag_mark = self.lag.count
             p50, p99 = percentile(recent, 50), percentile(recent, 99)
         b = self.base
         return FleetSnapshot(
@@ -103,6 +115,7 @@ class FleetStats:
             malformed=tot.malformed + b.get("malformed", 0),
             lag_p50_ms=p50,
             lag_p99_ms=p99,
+            figures=None if self._figures is None else self._figures.take(counters),
         )
 
 
@@ -112,7 +125,8 @@ class MergedStats:
     def __init__(self) -> None:
         self.latest: dict[int, FleetSnapshot] = {}  # worker index -> its last snapshot
 
-    def snapshot(self) -> FleetSnapshot:
+    def snapshot(self, *, window: bool = True) -> FleetSnapshot:
+        """The workers' latest snapshots merged (taking it changes nothing)."""
         return merge_snapshots(self.latest.values())
 
 
