@@ -329,7 +329,8 @@ class MosquittoSub:
     async def _read(self) -> None:
         assert self._proc is not None and self._proc.stdout is not None
         async for raw in self._proc.stdout:
-            topic, _, payload = raw.decode().rstrip("\n").partition(" ")
+            # A payload need not be UTF-8 (a refused definition a viewer may read).
+            topic, _, payload = raw.decode(errors="replace").rstrip("\n").partition(" ")
             self.lines.append((topic, payload))
             self._changed.set()
         self._changed.set()

@@ -53,8 +53,8 @@ def test_the_newest_definition_replaces_the_waiting_one_in_its_place() -> None:
     got = [(m.rel, m.payload) for m in drain(box)]
     assert got == [("def/channel/1", b""), ("def/group/1", b"g"), ("cmd/led", b"c1"),
                    ("cmd/led", b"c2")]  # fmt: skip
-    assert box.stats.as_dict() == {"taken": 6, "coalesced": 2, "dropped": 0, "handed": 4,
-                                   "peak": 4}  # fmt: skip
+    assert box.stats.as_dict() == {"taken": 6, "coalesced": 2, "copies": 0, "dropped": 0,
+                                   "handed": 4, "peak": 4}  # fmt: skip
 
 
 def test_an_invalid_definition_keeps_its_place_to_be_refused_in_its_turn() -> None:

@@ -23,6 +23,7 @@ from awaremw.cli.client import publish
 from awaremw.gateway.bridge import MAX_VERSION_JUMP, GatewayBridge
 from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.gateway.hbn import wait_for_gateway
+from awaremw.gateway.inbox import Inbox, Incoming
 from awaremw.gateway.mqtt import MqttSettings
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
 from awaremw.gateway.store import VersionStore
@@ -285,3 +286,26 @@ async def test_mqtt_and_zenoh_show_one_truth(
         f"median {sorted(latencies)[len(latencies) // 2] * 1000:.0f} ms, "
         f"max {max(latencies) * 1000:.0f} ms"
     )
+
+
+def test_a_copy_never_takes_the_place_of_a_clients_waiting_definition() -> None:
+    """In a burst the gateway hears its own older republications among the client's
+    definitions: the inbox keeps the client's newest, whatever copy comes after it."""
+    inbox = Inbox(is_copy=lambda m: GatewayBridge.is_copy(m.payload))
+    topic = "aware/def/group/1"
+
+    def put(payload: bytes) -> None:
+        assert inbox.put(Incoming("def/group/1", payload, topic)) is None
+
+    put(group(10))
+    put(copy(group(5), 4))  # our echo of an older version: the client's stays
+    assert inbox.stats.copies == 1
+    put(group(20))  # the client's newer one replaces its older one
+    put(copy(group(20), 6))  # a copy after it: ignored again
+    m = inbox.pop()
+    assert m is not None and m.payload == group(20) and inbox.pop() is None
+    put(copy(group(20), 6))  # alone, a copy waits like any definition
+    put(copy(group(30), 7))  # and a newer copy replaces an older one
+    m = inbox.pop()
+    assert m is not None and json.loads(m.payload)["version"] == 7
+    assert not GatewayBridge.is_copy(b"\xff") and not GatewayBridge.is_copy(b'"version"')

@@ -27,7 +27,7 @@ from pathlib import Path
 from types import FrameType
 
 from awaremw.cli.friendly import refuse
-from awaremw.cli.helptext import add_verb
+from awaremw.cli.helptext import add_log_format, add_verb
 
 READY_TIMEOUT_S = 10.0
 
@@ -70,6 +70,7 @@ test passwords <name>-pw (broker_cfg/make_passwd.sh makes real ones).""",
         "(retained definitions across restarts) is on only with it (default: a temporary "
         "directory, persistence off)",
     )
+    add_log_format(p)
     p.set_defaults(func=run)
 
 

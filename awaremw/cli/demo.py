@@ -24,7 +24,7 @@ from rich.console import Console
 from rich.table import Table
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
-from awaremw.cli.helptext import add_verb
+from awaremw.cli.helptext import add_log_format, add_metrics_option, add_verb
 
 
 def register(sub: Any) -> None:
@@ -96,6 +96,8 @@ authenticated radio frames, signed definitions; --insecure runs it all open.""",
         metavar="FILE",
         help="also write the summary here (default $XDG_STATE_HOME/awaremw/demo-summary.txt)",
     )
+    add_metrics_option(p)
+    add_log_format(p)
     p.set_defaults(func=main)
 
 
@@ -138,6 +140,13 @@ def main(args: argparse.Namespace) -> int:
             check_bind(*parse_host_port(args.web), os.environ.get(PASSWORD_ENV))
         except ValueError as e:
             return refuse("awaremw demo", e)
+    if args.metrics is not None:
+        from awaremw.ops.endpoint import metrics_address, metrics_password
+
+        try:
+            args.metrics = metrics_address(args.metrics, metrics_password())
+        except ValueError as e:
+            return refuse("awaremw demo", e)
     if not sc.deployment.of_kind("gateway"):
         return refuse("awaremw demo", f"{sc.name} has no gateway mote")
     if args.insecure and args.secrets is not None:
@@ -172,6 +181,7 @@ def main(args: argparse.Namespace) -> int:
                     mqtt_port=args.mqtt_port,
                     mqtt_anonymous=args.mqtt_anonymous,
                     web=args.web,
+                    metrics=args.metrics,
                 )
             )
         except (BrokerError, DashboardError) as e:
@@ -253,6 +263,7 @@ async def run_demo(
     mqtt_anonymous: bool = False,
     web: str | None = None,
     fresh_broker: bool = False,
+    metrics: tuple[str, int] | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the summary figures.
 
@@ -270,7 +281,7 @@ async def run_demo(
             print(f"embedded MQTT broker: mqtt://{broker.host}:{broker.port} {account}",
                   flush=True)  # fmt: skip
             return await run_demo(sc, duration, speed, broker.url, plain, robot_mqtt, secrets,
-                                  web=web, fresh_broker=True)  # fmt: skip
+                                  web=web, fresh_broker=True, metrics=metrics)  # fmt: skip
     from awaremw.experiments import metrics as M
     from awaremw.experiments.client import Received
     from awaremw.experiments.realtime import RealtimeRun, RealtimeSettings, RunHooks
@@ -314,7 +325,7 @@ async def run_demo(
     run = RealtimeRun(
         sc,
         RealtimeSettings(speed=speed, mqtt=mqtt, fresh_broker=fresh_broker,
-                         robot_mqtt=robot_mqtt, secrets=secrets),
+                         robot_mqtt=robot_mqtt, secrets=secrets, metrics=metrics),
         hooks=RunHooks(on_tick=tick, on_event=event, on_record=record),
     )
     end = sc.duration if duration is None else duration

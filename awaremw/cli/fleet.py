@@ -32,7 +32,7 @@ from awaremw.cli.friendly import (
     zenoh_message,
     zenoh_unreachable,
 )
-from awaremw.cli.helptext import add_verb, add_zenoh_mode
+from awaremw.cli.helptext import add_log_format, add_metrics_option, add_verb, add_zenoh_mode
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT, SessionSettings
 
 
@@ -114,6 +114,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "connect with role fleet (DIR from awaremw keys init): to the router at "
         "--connect, else to an embedded router started here with DIR's access rules",
     )
+    add_metrics_option(p)
+    add_log_format(p)
     p.set_defaults(func=run_fleet)
 
     c = add_verb(
@@ -187,6 +189,13 @@ def run_fleet(args: argparse.Namespace) -> int:
         return refuse("awaremw fleet", f"--part {args.part}: {e}")
     if args.zenoh_mode == "client" and (not args.connect or args.listen):
         return refuse("awaremw fleet", "--zenoh-mode client needs --connect and no --listen")
+    if args.metrics is not None:
+        from awaremw.ops.endpoint import metrics_address, metrics_password
+
+        try:
+            args.metrics = metrics_address(args.metrics, metrics_password())
+        except ValueError as e:
+            return refuse("awaremw fleet", e)
     args.role_config = args.router_config = args.security = None
     if args.secrets is not None:
         from awaremw.security.material import load_radio_security
@@ -271,12 +280,15 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
             pcap=args.pcap,
             start_wall=args.start_at,
             client=args.zenoh_mode == "client",
+            figures=args.metrics is not None,
         )
         fleet = open_fleet(dep, factory, settings, part=args.part_filter)
     except ValueError as e:
         raise _StartError(str(e)) from None
     code = 0
     async with contextlib.AsyncExitStack() as stack:
+        if args.metrics is not None:  # up first: /readyz says 503 until the motes run
+            await _serve_fleet_metrics(stack, args.metrics, fleet)
         try:
             await stack.enter_async_context(fleet)
         except zenoh.ZError as e:
@@ -316,6 +328,28 @@ async def _run_fleet(args: argparse.Namespace, dep: Any) -> int:
         with open(args.links_json, "w", encoding="utf-8") as f:
             json.dump([[s, d, n] for (s, d), n in sorted(links.items())], f)
     return code
+
+
+async def _serve_fleet_metrics(
+    stack: contextlib.AsyncExitStack, address: tuple[str, int], fleet: Any
+) -> None:
+    """One endpoint for the fleet's processes together (a launcher merges its
+    workers' figures, sent with their progress snapshots)."""
+    from awaremw.ops.endpoint import OpsEndpoint, metrics_password
+    from awaremw.ops.metrics import FleetMetrics, fleet_readiness, registry_of
+
+    def snapshot() -> Any:
+        return fleet.stats.snapshot(window=False)
+
+    ops = OpsEndpoint(
+        *address, registry_of(FleetMetrics(snapshot)), lambda: fleet_readiness(snapshot),
+        metrics_password(),
+    )  # fmt: skip
+    try:
+        await stack.enter_async_context(ops)
+    except OSError as e:
+        raise _StartError(f"cannot serve metrics on {address[0]}:{address[1]}: {e}") from None
+    print(f"awaremw fleet: metrics on {ops.url}/metrics (/healthz, /readyz)", flush=True)
 
 
 def _secured(security: Any) -> str:

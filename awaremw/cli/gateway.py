@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event
-from awaremw.cli.helptext import add_verb, add_zenoh_mode
+from awaremw.cli.helptext import add_log_format, add_metrics_option, add_verb, add_zenoh_mode
 from awaremw.gateway.mqtt import BadMqttUrl, BadPasswordFile, MqttSettings
 
 if TYPE_CHECKING:
@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from awaremw.gateway.leftovers import Leftovers
     from awaremw.gateway.service import GatewayService
     from awaremw.gateway.state import DeploymentState
+    from awaremw.ops.endpoint import OpsEndpoint
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +150,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="apply the deployment's [[groups]] and [[channels]] at start",
     )
+    add_metrics_option(p)
+    add_log_format(p)
     p.set_defaults(func=run)
 
 
@@ -206,6 +209,13 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.mqtt_port is not None and not 0 <= args.mqtt_port <= 65535:
         return refuse("awaremw gateway", "--mqtt-port must be in 0..65535")
+    if args.metrics is not None:
+        from awaremw.ops.endpoint import metrics_address, metrics_password
+
+        try:
+            args.metrics = metrics_address(args.metrics, metrics_password())
+        except ValueError as e:
+            return refuse("awaremw gateway", e)
     try:
         return asyncio.run(_main(args, mqtt))
     except KeyboardInterrupt:
@@ -247,6 +257,14 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             + (f" (--fresh: forgot {', '.join(state.forgotten)})" if state.forgotten else ""),
             flush=True,
         )
+        ops = None
+        if args.metrics is not None:  # up first: /readyz says 503 until the gateway is
+            try:
+                ops = await stack.enter_async_context(_ops_endpoint(args.metrics))
+            except OSError as e:
+                where = f"{args.metrics[0]}:{args.metrics[1]}"
+                return refuse("awaremw gateway", f"cannot serve metrics on {where}: {e}")
+            print(f"awaremw gateway: metrics on {ops.url}/metrics (/healthz, /readyz)", flush=True)
         broker: EmbeddedBroker | None = None
         if mqtt is None:
             try:
@@ -275,6 +293,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
                 autostart=False,
                 session=args.session_settings,
                 security=args.security,
+                figures=ops is not None,
             ),
             node_filter=lambda s: s.kind == "gateway",
         )
@@ -285,10 +304,11 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         fleet.start(start_wall)
         if args.pcap is not None:
             from awaremw.radio.capture import Capture
+            from awaremw.radio.frame_counts import with_tap
 
             capture = Capture.to_file(args.pcap, epoch=fleet.clock.start_wall)
             stack.callback(capture.close)  # closed before the fleet: later taps are ignored
-            fleet.medium.tap = capture
+            fleet.medium.tap = with_tap(fleet.medium.tap, capture)
         settings = GatewaySettings(prefix=args.prefix, state_dir=state.dir)
         try:
             svc = attach_to_fleet(fleet, settings=settings, mqtt=mqtt, hbn=not args.no_hbn)
@@ -296,6 +316,8 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
             return refuse("awaremw gateway", e)
         leftovers = await _leftovers(replace(mqtt, prefix=args.prefix), set(dep.ids))
         await stack.enter_async_context(svc)
+        if ops is not None:
+            _serve_gateway_metrics(ops, svc, fleet)
         _report_write_errors(svc, broker)
         if leftovers is not None:
             for rel in leftovers.foreign:  # led by a mote this network does not have
@@ -335,6 +357,26 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
 
 
 RETRY_WRITES_S = 5.0  # how often changes a full or read-only disk refused are written again
+
+
+def _ops_endpoint(address: tuple[str, int]) -> OpsEndpoint:
+    """The metrics endpoint, not ready (and no metrics) until the gateway is up."""
+    from awaremw.ops.endpoint import OpsEndpoint, Readiness, metrics_password
+    from awaremw.ops.metrics import registry_of
+
+    return OpsEndpoint(
+        *address, registry_of(), lambda: Readiness(False, "starting"), metrics_password()
+    )
+
+
+def _serve_gateway_metrics(ops: OpsEndpoint, svc: GatewayService, fleet: object) -> None:
+    from awaremw.ops.metrics import FleetMetrics, GatewayMetrics, gateway_readiness
+    from awaremw.runtime.fleet import Fleet
+
+    assert isinstance(fleet, Fleet)
+    ops.registry.register(GatewayMetrics(svc))
+    ops.registry.register(FleetMetrics(lambda: fleet.stats.snapshot(window=False)))
+    ops.ready = lambda: gateway_readiness(svc)
 
 
 def _open_state(dep: object, state_dir: str | None, fresh: bool) -> DeploymentState:

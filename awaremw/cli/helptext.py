@@ -82,6 +82,28 @@ def add_wall_timeout(p: argparse.ArgumentParser, what: str) -> None:
     )
 
 
+def add_log_format(p: argparse.ArgumentParser) -> None:
+    """``--log-format human|json`` on a long-running verb (docs/monitoring.md)."""
+    p.add_argument(
+        "--log-format",
+        choices=("human", "json"),
+        default="human",
+        help="json: every line one JSON object (time, level, component, message and the "
+        "event's fields), for a log collector (default human)",
+    )
+
+
+def add_metrics_option(p: argparse.ArgumentParser) -> None:
+    """``--metrics HOST:PORT``: /metrics, /healthz and /readyz (docs/monitoring.md)."""
+    p.add_argument(
+        "--metrics",
+        default=None,
+        metavar="HOST:PORT",
+        help="serve /metrics (Prometheus), /healthz and /readyz there (docs/monitoring.md); "
+        "beyond loopback only with a password in $AWAREMW_METRICS_PASSWORD",
+    )
+
+
 def add_zenoh_mode(p: argparse.ArgumentParser) -> None:
     """``--zenoh-mode peer|client``: how the process's Zenoh session joins the router."""
     p.add_argument(

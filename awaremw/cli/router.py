@@ -9,10 +9,15 @@ import sys
 import threading
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
-from awaremw.cli.helptext import add_verb
+from awaremw.cli.helptext import add_log_format, add_metrics_option, add_verb
 from awaremw.runtime.zenoh_session import DEFAULT_ROUTER_ENDPOINT
+
+if TYPE_CHECKING:
+    from awaremw.ops.endpoint import EndpointThread
+    from awaremw.runtime.router import EmbeddedRouter
 
 CLOSE_TIMEOUT_S = 5.0
 
@@ -48,6 +53,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "authenticate every session and apply the access rules of DIR/zenoh/router.json5 "
         "(from awaremw keys init DIR)",
     )
+    add_metrics_option(p)
+    add_log_format(p)
     p.set_defaults(func=run)
 
 
@@ -74,6 +81,14 @@ def run(args: argparse.Namespace) -> int:
         config_file = load_secrets("awaremw router", args.secrets, linkable)
         if config_file is None:
             return 2
+    metrics = None
+    if args.metrics is not None:
+        from awaremw.ops.endpoint import metrics_address, metrics_password
+
+        try:
+            metrics = metrics_address(args.metrics, metrics_password())
+        except ValueError as e:
+            return refuse("awaremw router", e)
     try:
         router = EmbeddedRouter(listen, args.connect, config_file=config_file).start()
     except Exception as e:  # bad endpoint, port in use: the user's input, not our bug
@@ -86,12 +101,25 @@ def run(args: argparse.Namespace) -> int:
         from awaremw.security.material import warn_open
 
         warn_open("awaremw router")
+    ops = None
+    if metrics is not None:
+        try:
+            ops = _serve_metrics(router, metrics)
+        except OSError as e:
+            router.close()
+            return refuse(
+                "awaremw router", f"cannot serve metrics on {metrics[0]}:{metrics[1]}: {e}"
+            )
+        print(f"awaremw router: metrics on {ops.endpoint.url}/metrics (/healthz, /readyz)",
+              flush=True)  # fmt: skip
     # serve_forever closes the session once ``stop`` is set; on a loaded machine a Zenoh
     # close can stall, so it runs in a thread and the process leaves after a bounded wait.
     server = threading.Thread(target=router.serve_forever, args=(stop,), daemon=True)
     server.start()
     while not stop.wait(0.5):
         pass
+    if ops is not None:
+        ops.stop()
     server.join(CLOSE_TIMEOUT_S)
     if server.is_alive():
         print(
@@ -102,3 +130,21 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.flush()
         os._exit(0)
     return 0
+
+
+def _serve_metrics(router: EmbeddedRouter, address: tuple[str, int]) -> EndpointThread:
+    """/metrics, /healthz, /readyz on a thread of their own (the router has no loop)."""
+    from awaremw.ops.endpoint import EndpointThread, OpsEndpoint, Readiness, metrics_password
+    from awaremw.ops.metrics import RouterMetrics, registry_of
+
+    def linked() -> tuple[int, int]:
+        info = router.session.info
+        return len(list(info.peers_zid())), len(list(info.routers_zid()))
+
+    endpoint = OpsEndpoint(
+        *address, registry_of(RouterMetrics(linked)), lambda: Readiness(True),
+        metrics_password(),
+    )  # fmt: skip
+    thread = EndpointThread(endpoint)
+    thread.start()
+    return thread

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse, stop_event
-from awaremw.cli.helptext import add_verb, add_wall_timeout
+from awaremw.cli.helptext import add_log_format, add_verb, add_wall_timeout
 
 DISSECTOR = Path(__file__).resolve().parent.parent / "wireshark" / "awaremw.lua"
 
@@ -60,6 +60,7 @@ dissector. See docs/capture.md.""",
     p.add_argument(
         "--dissector", action="store_true", help="print the Wireshark dissector's path and exit"
     )
+    add_log_format(p)
     p.set_defaults(func=main)
 
 

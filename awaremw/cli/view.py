@@ -21,7 +21,7 @@ import os
 from typing import Any
 
 from awaremw.cli.friendly import add_secrets_option, load_secrets, refuse
-from awaremw.cli.helptext import add_verb, add_wall_timeout
+from awaremw.cli.helptext import add_log_format, add_verb, add_wall_timeout
 
 
 def register(sub: Any) -> None:
@@ -56,6 +56,7 @@ every member. Details: docs/dashboard.md.""",
     p.add_argument("--group-type", type=int, default=None,
                    help="the group type the map colours (default: the lowest seen)")  # fmt: skip
     add_wall_timeout(p, "stop serving")
+    add_log_format(p)
     p.set_defaults(func=main)
 
 

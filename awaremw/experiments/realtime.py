@@ -28,6 +28,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from awaremw.experiments.client import GroupSeen, Received, RobotClient, definition_payloads
 from awaremw.experiments.metrics import Recorder, RunResult
@@ -41,7 +42,32 @@ from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.deployment import Deployment, NodeSpec
 from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint
 
+if TYPE_CHECKING:
+    from awaremw.ops.endpoint import OpsEndpoint
+
 log = logging.getLogger(__name__)
+
+
+def _ops_endpoint(address: tuple[str, int]) -> OpsEndpoint:
+    """The run's metrics endpoint: not ready, and no figures, until the gateway is up."""
+    from awaremw.ops.endpoint import OpsEndpoint, Readiness, metrics_password
+    from awaremw.ops.metrics import registry_of
+
+    return OpsEndpoint(
+        *address, registry_of(), lambda: Readiness(False, "starting"), metrics_password()
+    )
+
+
+def _serve_run_metrics(ops: OpsEndpoint, svc: object, fleets: list[Any]) -> None:
+    """The gateway's figures and those of every fleet of the run, merged."""
+    from awaremw.ops.metrics import FleetMetrics, GatewayMetrics, gateway_readiness
+    from awaremw.runtime.fleet.stats import merge_snapshots
+
+    ops.registry.register(GatewayMetrics(svc))
+    ops.registry.register(
+        FleetMetrics(lambda: merge_snapshots(f.stats.snapshot(window=False) for f in fleets))
+    )
+    ops.ready = lambda: gateway_readiness(svc)
 
 
 @dataclass
@@ -75,6 +101,9 @@ class RealtimeSettings:
     secrets: str | None = None
     # A capture of the radio (awaremw.radio.capture): every fleet's medium taps it.
     pcap: str | None = None
+    # (host, port) of the metrics endpoint (/metrics, /healthz, /readyz;
+    # docs/monitoring.md): the gateway's figures and every fleet's, together.
+    metrics: tuple[str, int] | None = None
 
     def __post_init__(self) -> None:
         if not self.speed > 0:
@@ -218,6 +247,10 @@ class RealtimeRun:
             self.broker_url = url
             gw_mqtt = MqttSettings.from_url(url, client_id=f"awaremw-gw-{id(self):x}",
                                             prefix=self.prefix)  # fmt: skip
+            ops = None
+            if self.settings.metrics is not None:  # up first: not ready until the gateway is
+                ops = await stack.enter_async_context(_ops_endpoint(self.settings.metrics))
+                print(f"metrics: {ops.url}/metrics (/healthz, /readyz)", flush=True)
             endpoint = free_tcp_endpoint()
             if self.secrets is not None:
                 from awaremw.runtime.router import EmbeddedRouter
@@ -247,6 +280,7 @@ class RealtimeRun:
                     control=False,
                     session=self._session_settings(name, endpoint),
                     security=factory.security,
+                    figures=ops is not None,
                 )
                 f = Fleet(d, factory, settings, node_filter=flt)
                 await stack.enter_async_context(f)
@@ -263,6 +297,8 @@ class RealtimeRun:
             gw_settings = GatewaySettings(prefix=self.prefix, retained_only=own)
             svc = attach_to_fleet(gw_fleet, settings=gw_settings, mqtt=gw_mqtt, hbn=True)
             await stack.enter_async_context(svc)
+            if ops is not None:
+                _serve_run_metrics(ops, svc, fleets)
             for f in fleets:
                 for n, r in f.runners.items():
                     app = app_of(r.core)

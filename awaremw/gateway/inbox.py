@@ -13,7 +13,10 @@ Both are bounded: at most ``max_definitions`` distinct definition topics and
 reports it on the errors topic of its transport (:func:`overflow_report`):
 nothing is dropped silently. An invalid definition is never replaced (see
 :class:`Inbox`): it is refused with its code in its turn, even when a good one
-followed it at once.
+followed it at once. Nor is a client's definition replaced by a *copy* (a
+definition with its ``version``, as the gateway republishes it: docs/gateway.md,
+One truth): a copy heard after a client's newer definition is the gateway's own
+older republication, and taking its place would lose what the client said last.
 
 A transport takes every message it is handed (aiomqtt's own queue would
 discard, and log a line per message, when the gateway lags), so a burst costs
@@ -55,6 +58,7 @@ class Incoming:
 class InboxStats:
     taken: int = 0  # messages accepted into the inbox
     coalesced: int = 0  # definitions replaced by a newer one before they were handled
+    copies: int = 0  # copies (with a version) not taken over a client's waiting definition
     dropped: int = 0  # messages refused because the inbox was full (reported)
     handed: int = 0  # entries handed to the gateway
     peak: int = 0  # most entries waiting at once
@@ -70,6 +74,8 @@ class Inbox:
     waiting definition that is *invalid* is not replaced by a newer one: it keeps
     its place, to be refused with its code when its turn comes, and the newer one
     waits behind it (counted with the commands: events, not values).
+    ``is_copy(m)`` (pure; optional) says whether a definition is a copy with its
+    version: one is not taken over a waiting definition that is not (``copies``).
     """
 
     def __init__(
@@ -77,12 +83,14 @@ class Inbox:
         max_definitions: int = MAX_DEFINITIONS,
         max_commands: int = MAX_COMMANDS,
         valid: Callable[[Incoming], bool] | None = None,
+        is_copy: Callable[[Incoming], bool] | None = None,
     ) -> None:
         if max_definitions < 1 or max_commands < 1:
             raise ValueError("an inbox holds at least one definition and one command")
         self.max_definitions = max_definitions
         self.max_commands = max_commands
         self.valid = valid
+        self.is_copy = is_copy
         self._verdicts: dict[tuple[str, bytes, int | None], bool] = {}  # MAX_VERDICTS
         self.stats = InboxStats()
         # Arrival number -> message, in order; definition topic -> the number of
@@ -101,6 +109,10 @@ class Inbox:
             at = self._latest.get(m.topic)
             if at is not None:
                 old = self._entries[at]
+                if self.is_copy is not None and self.is_copy(m) and not self.is_copy(old):
+                    self.stats.copies += 1  # the client's definition stays
+                    self.stats.taken += 1
+                    return None
                 if self._valid(old):
                     self._entries[at] = m  # the newest wins, at the older one's place
                     self.stats.coalesced += 1

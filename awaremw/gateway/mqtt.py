@@ -301,6 +301,7 @@ class MqttBridge:
         settings: MqttSettings,
         on_message: OnMessage,
         valid: Callable[[Incoming], bool] | None = None,
+        is_copy: Callable[[Incoming], bool] | None = None,
     ) -> None:
         self.settings = settings
         self.on_message = on_message
@@ -326,7 +327,7 @@ class MqttBridge:
         self._reported_dropped = 0
         self._last_error = ""
         # ``valid``: an invalid definition is not coalesced away (it is refused in its turn).
-        self.inbox = Inbox(settings.max_definitions, settings.max_incoming, valid)
+        self.inbox = Inbox(settings.max_definitions, settings.max_incoming, valid, is_copy)
         self._inbox_ready = asyncio.Event()
         self._burst = asyncio.Event()  # a reconcile is due once definitions go quiet
         self._live_defs = 0  # live definitions since the last reconcile

@@ -141,6 +141,7 @@ class GatewayService:
                     rel, payload, retained=retained, topic=topic, via=Transport.MQTT
                 ),
                 self._valid,
+                self._is_copy,
             )
         self._session = zenoh_session
         self.hbn: HbnApi | None = None
@@ -181,7 +182,7 @@ class GatewayService:
                 ),
                 prefix=self.settings.prefix,
                 max_payload_bytes=self.settings.max_payload_bytes,
-                inbox=Inbox(valid=self._valid),
+                inbox=Inbox(valid=self._valid, is_copy=self._is_copy),
             )
             self.hbn.start()
             self.hbn.publish(Publish(STATUS_TOPIC, b"online", retain=True))
@@ -268,6 +269,12 @@ class GatewayService:
         newer one replace an invalid one, so that it is refused in its turn). Pure:
         the HBN inbox calls it on Zenoh's threads."""
         return self.bridge.validate(m.rel, m.payload, source=m.topic, size=m.size) is None
+
+    @staticmethod
+    def _is_copy(m: Incoming) -> bool:
+        """Whether a waiting definition is a copy with its version (pure: the HBN inbox
+        calls it on Zenoh's threads)."""
+        return GatewayBridge.is_copy(m.payload)
 
     def _apply(self, actions: Iterable[Action], *, paced: bool = False) -> None:
         """Carry out the bridge's actions; ``paced``: injections of definitions

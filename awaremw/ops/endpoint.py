@@ -11,12 +11,17 @@ The dashboard's rules apply (:mod:`awaremw.view.guard`): loopback by default;
 any other address needs a password (HTTP Basic, ``$AWAREMW_METRICS_PASSWORD``),
 or it is refused (:class:`~awaremw.view.guard.InsecureBind`); requests must
 name the endpoint in ``Host``; at most ``MAX_CONNECTIONS`` connections at once.
+``/healthz`` and ``/readyz`` answer without the password (an orchestrator's
+probe; they tell nothing but "up" and "ready").
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
-from collections.abc import Callable
+import threading
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
 from aiohttp import web
@@ -25,6 +30,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 from awaremw.view.guard import BoundedListener, RequestGuard, check_bind, parse_host_port
 
 PASSWORD_ENV = "AWAREMW_METRICS_PASSWORD"
+HEALTH_PATHS = frozenset({"/healthz", "/readyz"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,7 +91,21 @@ class OpsEndpoint:
         listener = BoundedListener(self.host, self.port)
         self.port = listener.port
         guard = RequestGuard(self.host, self.port, self.password)
-        app = web.Application(middlewares=[listener.middleware, guard.middleware])
+
+        @web.middleware
+        async def guarded(
+            request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+        ) -> web.StreamResponse:
+            # Health answers say nothing but "up" and "ready": an orchestrator's probe
+            # asks them without the password (the Host check still holds).
+            if request.path in HEALTH_PATHS and guard.own_host(request.headers.get("Host")):
+                return await handler(request)
+            refused = guard.refusal(request)
+            if refused is not None:
+                raise refused
+            return await handler(request)
+
+        app = web.Application(middlewares=[listener.middleware, guarded])
         app.router.add_get("/metrics", self._metrics)
         app.router.add_get("/healthz", self._healthz)
         app.router.add_get("/readyz", self._readyz)
@@ -136,3 +156,24 @@ class OpsEndpoint:
         if r.ready:
             return web.Response(text="ready\n")
         return web.Response(status=503, text=f"not ready: {r.why}\n")
+
+
+class EndpointThread:
+    """An :class:`OpsEndpoint` on an event loop of its own, in a daemon thread: for a
+    process without asyncio (the router). ``start()`` returns once it listens (or
+    raises what binding raised); ``stop()`` closes it."""
+
+    def __init__(self, endpoint: OpsEndpoint) -> None:
+        self.endpoint = endpoint
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, daemon=True)
+
+    def start(self) -> OpsEndpoint:
+        self._thread.start()
+        asyncio.run_coroutine_threadsafe(self.endpoint.start(), self._loop).result(10)
+        return self.endpoint
+
+    def stop(self) -> None:
+        with contextlib.suppress(Exception):  # leaving anyway: nothing to report to
+            asyncio.run_coroutine_threadsafe(self.endpoint.close(), self._loop).result(5)
+        self._loop.call_soon_threadsafe(self._loop.stop)

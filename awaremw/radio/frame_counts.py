@@ -80,3 +80,8 @@ class Taps:
     ) -> None:
         for tap in self.taps:
             tap.reception(t, src, dst, rssi, cause)
+
+
+def with_tap(current: RadioTap | None, tap: RadioTap) -> RadioTap:
+    """What a medium's ``tap`` becomes when ``tap`` joins the one it has."""
+    return tap if current is None else Taps((current, tap))

@@ -37,6 +37,27 @@ compose() {
     fi
 }
 
+# The health check of container NAME, run now (exit 0: healthy). podman 4 without
+# systemd does not run health checks by itself, so `podman healthcheck run` asks;
+# Docker runs them: its last status is read.
+healthy() { # CONTAINER
+    if [ "$ENGINE" = podman ]; then
+        podman healthcheck run "$1" >/dev/null 2>&1
+    else
+        [ "$(docker inspect --format '{{.State.Health.Status}}' "$1" 2>/dev/null)" = healthy ]
+    fi
+}
+
+# Waits until container NAME is healthy, at most S seconds.
+wait_healthy() { # CONTAINER S
+    local i
+    for ((i = 0; i < $2 * 2; i++)); do
+        healthy "$1" && return 0
+        sleep 0.5
+    done
+    return 1
+}
+
 # Stops and removes project PROJECT of compose FILE: containers, volumes and
 # networks (podman-compose 1.0 leaves networks, which would keep stale settings).
 compose_down() { # FILE PROJECT

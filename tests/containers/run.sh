@@ -50,13 +50,21 @@ log "images ready in $((SECONDS - t0)) s"
 export AWARE_START_AT=$(( $(date +%s) + 8 ))
 log "up: keys, router, broker, gateway, $AWARE_FLEETS fleets (broker TLS on 127.0.0.1:$AWARE_MQTT_PORT)"
 UP=1
-compose -p "$PROJECT" up -d --no-build > "$CACHE/$PROJECT-up.log" 2>&1 \
+# The services by name: podman-compose 1.0 ignores `profiles` (the `monitoring`
+# profile's Prometheus is not started here).
+compose -p "$PROJECT" up -d --no-build keys router broker gateway fleet > "$CACHE/$PROJECT-up.log" 2>&1 \
     || { cat "$CACHE/$PROJECT-up.log" >&2; die "compose up failed"; }
 load_mqtt_secrets "$PROJECT" 90
 wait_status online 90 || die "the gateway never said online on aware/gateway/status"
 router_log="$(compose -p "$PROJECT" logs router 2>&1 || true)"   # no pipe: pipefail + grep -q
 grep -q 'authenticated, access control by role' <<<"$router_log" \
     || die "the router does not run with the secrets (authentication, access control)"
+# Each service's health check (/readyz of its --metrics port) passes.
+for c in "${PROJECT}_router_1" "${PROJECT}_gateway_1" "${PROJECT}_fleet_1"; do
+    [ "$ENGINE" = podman ] || c="${c//_/-}"   # Docker Compose v2 names PROJECT-SERVICE-N
+    wait_healthy "$c" 60 || die "$c never became healthy (its /readyz)"
+done
+log "router, gateway and fleet healthy (/readyz)"
 log "gateway online, router authenticating; defining group type 1 and channel 1 as the operator"
 mqtt_pub operator aware/def/group/1 \
     '{"conditions": [{"attr": "temperature", "op": ">", "value": 15}]}'

@@ -30,9 +30,9 @@ import zenoh
 
 from awaremw.protocol.core import MoteCore
 from awaremw.protocol.events import EventHook
-from awaremw.radio.capture import Capture, RadioTap
+from awaremw.radio.capture import Capture
 from awaremw.radio.counters import MoteCounters
-from awaremw.radio.frame_counts import Taps
+from awaremw.radio.frame_counts import with_tap
 from awaremw.radio.model import RadioModel
 from awaremw.radio.zenoh_medium import MacSettings, ZenohMedium
 from awaremw.runtime.deployment import Deployment
@@ -220,13 +220,12 @@ class Fleet:
         s = self.settings
         self.clock.restart(time.time() if start_wall is None else start_wall)
         self._cpu0, self._wall0 = time.process_time(), time.perf_counter()
-        taps: list[RadioTap] = [] if self.figures is None else [self.figures.frames]
+        if self.figures is not None:
+            self.medium.tap = with_tap(self.medium.tap, self.figures.frames)
         if s.pcap is not None:
             # The medium's own tap: every frame its motes send or hear, with receptions.
             self.capture = Capture.to_file(s.pcap, epoch=self.clock.start_wall)
-            taps.append(self.capture)
-        if taps:
-            self.medium.tap = taps[0] if len(taps) == 1 else Taps(taps)
+            self.medium.tap = with_tap(self.medium.tap, self.capture)
         self.motes.start()
         self.clock_sync.activate()
         if self.lag is not None:

@@ -16,9 +16,11 @@ import contextlib
 import dataclasses
 import logging
 import multiprocessing.connection
+import os
 import sys
 from typing import Any
 
+from awaremw.runtime import logs
 from awaremw.runtime.fleet.local import Fleet
 from awaremw.runtime.fleet.pool import Resume, WorkerParams
 from awaremw.runtime.fleet.stats import WorkerResult, lost
@@ -36,7 +38,10 @@ def main() -> None:
     params = conn.recv()
     if not isinstance(params, WorkerParams):
         raise SystemExit("awaremw worker: bad parameters from the launcher")
-    logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s {params.name} %(message)s")
+    if os.environ.get(logs.ENV) == "json":  # as the launcher's process logs
+        logs.use_json_logs(f"awaremw worker {params.name}", logging.WARNING)
+    else:
+        logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s {params.name} %(message)s")
     try:
         asyncio.run(_worker(params, conn))
     except KeyboardInterrupt:
