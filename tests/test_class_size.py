@@ -33,6 +33,7 @@ HOLD_DATA = {
     "runtime.deployment.Deployment",
     "runtime.fleet.settings.FleetSettings",
     "runtime.fleet.settings.LauncherSettings",
+    "experiments.realtime.RealtimeSettings",
     "runtime.fleet.stats.FleetSnapshot",
     "runtime.fleet.stats.WorkerResult",
     "world.fields.World",

@@ -25,6 +25,7 @@ from awaremw.gateway.broker import EmbeddedBroker
 from awaremw.gateway.hbn import wait_for_gateway
 from awaremw.gateway.inbox import Inbox, Incoming
 from awaremw.gateway.mqtt import MqttSettings
+from awaremw.gateway.schema import is_copy
 from awaremw.gateway.service import GatewayService, GatewaySettings, attach_to_fleet
 from awaremw.gateway.store import VersionStore
 from awaremw.nodes import KindsFactory, kind_names
@@ -291,7 +292,7 @@ async def test_mqtt_and_zenoh_show_one_truth(
 def test_a_copy_never_takes_the_place_of_a_clients_waiting_definition() -> None:
     """In a burst the gateway hears its own older republications among the client's
     definitions: the inbox keeps the client's newest, whatever copy comes after it."""
-    inbox = Inbox(is_copy=lambda m: GatewayBridge.is_copy(m.payload))
+    inbox = Inbox(is_copy=lambda m: is_copy(m.payload))
     topic = "aware/def/group/1"
 
     def put(payload: bytes) -> None:
@@ -308,4 +309,4 @@ def test_a_copy_never_takes_the_place_of_a_clients_waiting_definition() -> None:
     put(copy(group(30), 7))  # and a newer copy replaces an older one
     m = inbox.pop()
     assert m is not None and json.loads(m.payload)["version"] == 7
-    assert not GatewayBridge.is_copy(b"\xff") and not GatewayBridge.is_copy(b'"version"')
+    assert not is_copy(b"\xff") and not is_copy(b'"version"')

@@ -80,7 +80,6 @@ REFUSAL_LOG_INTERVAL_S = 10.0  # at most one refusal log line per code in this s
 # would read as older on the radio's u32 circle (RFC 1982), and would let one
 # payload use up the store's count.
 MAX_VERSION_JUMP = (1 << 31) - 1
-MAX_COPY_BYTES = 65_536  # a larger payload is no copy of ours (it is refused in its turn)
 
 
 def clip(text: str, n: int) -> str:
@@ -584,19 +583,6 @@ class GatewayBridge:
             for item in self.store.items(include_deleted=False)
             if item.kind is not ItemKind.COMMAND
         }
-
-    @staticmethod
-    def is_copy(payload: bytes) -> bool:
-        """Whether a definition payload carries a version (a gateway's copy of it).
-        Pure and cheap (the inboxes call it on bursts); a payload that is not a JSON
-        object is no copy (it is refused in its turn)."""
-        if len(payload) > MAX_COPY_BYTES or b'"version"' not in payload:
-            return False
-        try:
-            doc = json.loads(payload)
-        except (ValueError, RecursionError):
-            return False
-        return isinstance(doc, dict) and "version" in doc
 
     def definition_payload(self, rel_topic: str) -> bytes | None:
         """What the transports should show on ``rel_topic``: its definition's payload

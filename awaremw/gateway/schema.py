@@ -70,6 +70,7 @@ MAX_VERSION = 0xFFFFFFFF
 # A definition's declared ``version`` (the store's count, not the radio's u32):
 # at most the largest integer every JSON reader (JavaScript too) holds exactly.
 MAX_DECLARED_VERSION = (1 << 53) - 1
+MAX_COPY_BYTES = 65_536  # a larger payload is no copy of ours (it is refused in its turn)
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 
@@ -250,6 +251,19 @@ _NOT_BRACKETS = re.compile(r"[^\[\]{}]+")
 def is_empty(payload: bytes, limits: Limits) -> bool:
     """An empty (or all-whitespace, within the size limit) payload: a deletion."""
     return len(payload) <= limits.max_payload_bytes and not payload.strip()
+
+
+def is_copy(payload: bytes) -> bool:
+    """Whether a definition payload carries a ``version``: a gateway's copy of a
+    definition (docs/gateway.md, One truth). Pure and cheap (the inboxes ask it in
+    bursts); a payload that is not a JSON object is no copy (refused in its turn)."""
+    if len(payload) > MAX_COPY_BYTES or b'"version"' not in payload:
+        return False
+    try:
+        doc = json.loads(payload)
+    except (ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and "version" in doc
 
 
 def json_depth(text: str) -> int:

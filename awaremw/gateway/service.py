@@ -45,7 +45,7 @@ from awaremw.gateway.mqtt import (
     MqttBridge,
     MqttSettings,
 )
-from awaremw.gateway.schema import Limits
+from awaremw.gateway.schema import Limits, is_copy
 from awaremw.gateway.store import VersionStore, wire_version
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.events import MoteEvent
@@ -274,7 +274,7 @@ class GatewayService:
     def _is_copy(m: Incoming) -> bool:
         """Whether a waiting definition is a copy with its version (pure: the HBN inbox
         calls it on Zenoh's threads)."""
-        return GatewayBridge.is_copy(m.payload)
+        return is_copy(m.payload)
 
     def _apply(self, actions: Iterable[Action], *, paced: bool = False) -> None:
         """Carry out the bridge's actions; ``paced``: injections of definitions
