@@ -58,7 +58,7 @@ import aiomqtt
 import zenoh
 
 from awaremw.cli.fleet import control_query
-from awaremw.gateway.schema import Limits, parse_channel
+from awaremw.gateway.schema import Limits, is_copy, parse_channel
 from awaremw.runtime.deployment import load
 from awaremw.runtime.partition import stripes
 from awaremw.runtime.zenoh_session import SessionSettings, close_quietly, open_session
@@ -288,9 +288,19 @@ async def mqtt_burst(seed: int, count: int, bound: float) -> dict[str, Any]:
         # What the client said last on each topic (one connection: in order). The
         # broker's retained copy is the gateway's to set (One truth), not the target.
         expected = {c: wire_of(c, p.encode()) for c, p in last.items()}
-        return await _verdict(
+        out = await _verdict(
             run, t0, t_last, count, expected, errors, collector, "mqtt", bound=bound
         )
+        # One truth: once converged, the broker retains the gateway's copy (with its
+        # version) of what the client said last on each topic.
+        retained = await _retained(run.port, "aware/def/channel/#", len(expected))
+        copies = {int(t.rsplit("/", 1)[1]): p for t, p in retained.items()}
+        out["retained_agrees"] = all(
+            c in copies and is_copy(copies[c]) and wire_of(c, copies[c]) == w
+            for c, w in expected.items()
+        )
+        out["ok"] = out["ok"] and out["retained_agrees"]
+        return out
 
 
 async def hbn_burst(seed: int, count: int, bound: float) -> dict[str, Any]:

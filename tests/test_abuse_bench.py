@@ -16,7 +16,9 @@ import pytest
 from mosquitto import require
 
 ROOT = Path(__file__).resolve().parent.parent
-pytestmark = [pytest.mark.slow, pytest.mark.zenoh, pytest.mark.mosquitto]
+# `alone`: their verdicts include wall-clock bounds (records within 30 s of a
+# restart...): CI runs them after the parallel tiers, one at a time (.ci/run).
+pytestmark = [pytest.mark.slow, pytest.mark.alone, pytest.mark.zenoh, pytest.mark.mosquitto]
 
 
 @pytest.mark.parametrize(
