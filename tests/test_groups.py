@@ -10,8 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE, Bounds
+from awaremw.protocol import groups as groups_module
+from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE, Bounds, rssi_attribute
 from awaremw.protocol.commands import Commands
+from awaremw.protocol.component import RssiSample
 from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.events import (
     ElectionCause,
@@ -1229,3 +1231,40 @@ def test_a_definition_wakes_a_parked_mote_without_a_new_phase() -> None:
         h.advance(12.6)
         h.g.define(2, other, h.now)
     assert parked.g.timers.get("check") == ticking.g.timers.get("check")
+
+
+NEAR_ROBOT = GroupTypeDef((Condition(rssi_attribute(7), Op.GT, -70.0),))
+
+
+@pytest.mark.pure_python
+def test_a_mote_that_never_heard_the_node_of_an_rssi_condition_parks_until_it_does(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """rssi:<node> cannot hold before the node is heard: a mote parks its checks of
+    such a type, and the node's first frame (heard_again) puts it back on the
+    schedule it left, to decide as a mote that never parked."""
+    parked, ticking = H(), H()
+
+    def until_the_robot(h: H) -> None:
+        h.g.define(2, NEAR_ROBOT, 0.0)
+        h.advance(40.0)
+        assert h.g.role(2) is Role.IDLE
+
+    with monkeypatch.context() as m:  # the ticking mote: no RSSI parking
+        m.setattr(groups_module, "unheard", lambda ctx, attr, now: False)
+        until_the_robot(ticking)
+    until_the_robot(parked)
+    assert ticking.g.stats.checks_parked == 0
+    assert parked.g.stats.checks_parked == 1  # parked at its first check, for good
+    first = parked.g.timers.get("check")
+    assert first is not None and first > 40.0 + parked.cfg.check_period
+    parked.g.heard_again(9, 40.0)  # another node: still parked
+    assert parked.g.timers.get("check") == first
+    for h in (parked, ticking):
+        h.ctx.rssi[7] = RssiSample(-60.0, 40.0)  # the robot's first frame, heard strongly
+        h.g.heard_again(7, 40.0)
+    assert parked.g.timers.get("check") == ticking.g.timers.get("check")
+    for h in (parked, ticking):
+        h.advance(45.0)
+        assert h.g.role(2) is not Role.IDLE
+    assert parked.events() == ticking.events()

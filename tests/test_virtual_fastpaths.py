@@ -14,7 +14,10 @@ import pytest
 from traces import aware_trace
 
 from awaremw.bench import aware_load
+from awaremw.experiments.scenario import load_scenario
+from awaremw.experiments.virtual import VirtualRun
 from awaremw.nodes import kinds
+from awaremw.protocol import groups
 from awaremw.protocol.core import IdleCheck
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.protocol.mote import AwareMote
@@ -193,3 +196,37 @@ def test_a_hello_network_runs_without_the_idle_check() -> None:
     net.run_until(5.0)
     assert sum(c.frames_rx for c in net.counters.values()) > 0
     assert Static  # the bench grid is static
+
+
+def _romeo4r_trace(duration: float) -> tuple[list[str], int]:
+    """Every core event of a seeded romeo4r run (its robot group type has an
+    rssi:<robot> condition), and how many membership checks were parked."""
+    run = VirtualRun(load_scenario("romeo4r"))
+    out: list[str] = []
+    tally = run.net.on_event
+    assert tally is not None
+
+    def hook(nid: int, ev: object, t: float) -> None:
+        out.append(f"{nid}|{t!r}|{ev!r}")
+        tally(nid, ev, t)
+
+    run.net.on_event = hook
+    run.run(duration)
+    for nid, c in sorted(run.net.counters.items()):
+        out.append(f"{nid}|{c!r}")
+    parked = sum(
+        c.groups.stats.checks_parked for c in run.cores.values() if isinstance(c, AwareMote)
+    )
+    return out, parked
+
+
+@pytest.mark.pure_python
+def test_parking_on_an_unheard_rssi_node_changes_no_event(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A mote that has not heard the robot parks its checks of the robot's type until it
+    hears it (issue 31); the run decides exactly what it decides when every mote checks."""
+    parked, n_parked = _romeo4r_trace(60.0)
+    assert any("GroupJoined" in line for line in parked)
+    monkeypatch.setattr(groups, "unheard", lambda ctx, attr, now: False)
+    ticking, n_ticking = _romeo4r_trace(60.0)
+    assert ticking == parked
+    assert n_parked > n_ticking

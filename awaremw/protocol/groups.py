@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import NamedTuple
 
+from awaremw.protocol.attributes import is_rssi
 from awaremw.protocol.collection import Collection
 from awaremw.protocol.component import Component, MoteContext
 from awaremw.protocol.events import (
@@ -44,6 +45,7 @@ from awaremw.protocol.events import (
 from awaremw.protocol.frames import (
     ANY_GROUP_TYPE,
     BROADCAST,
+    NODE_MASK,
     Condition,
     Frame,
     GroupReport,
@@ -95,6 +97,12 @@ class Membership:
     parent: int | None  # next hop towards the leader (None at the leader)
     hops: int  # distance to the leader in the group tree (0 at the leader)
     weight: int
+
+
+def unheard(ctx: MoteContext, attr: int, now: float) -> bool:
+    """Whether an ``rssi:<node>`` reading is missing now (the node never heard, or not
+    within the RSSI TTL): no condition on it holds until the node is heard again."""
+    return ctx.read(attr, now) is None
 
 
 @dataclass
@@ -277,6 +285,9 @@ class Groups(Component):
         # Parked (see _quiet_until): the time of the last membership check run;
         # the skipped checks were due at it + k * check_period. None: not parked.
         self._parked_at: float | None = None
+        # Parked: the nodes whose next frame can end it (an rssi:<node> condition
+        # that no reading can meet until that node is heard again).
+        self._awaiting: frozenset[int] = frozenset()
         # Called with ``now`` when this mote enters a group (as member or leader):
         # the channels start their epochs then (a mote in no group keeps no epoch timer).
         self.on_enter: Callable[[float], None] | None = None
@@ -512,6 +523,13 @@ class Groups(Component):
         period, say), so a parked mote checks again from its next regular check."""
         self._wake(now)
 
+    def heard_again(self, node: int, now: float) -> None:
+        """The mote hears ``node`` after a silence (its first frame, or the first after
+        the RSSI TTL): an ``rssi:<node>`` condition may hold again, so a mote parked
+        on it checks again from its next regular check."""
+        if self._parked_at is not None and node in self._awaiting:
+            self._wake(now)
+
     def on_frame(self, frame: Frame, rssi_dbm: float, now: float) -> None:
         self._wake(now)  # if parked: the frame may fill tables that the checks purge
         if isinstance(frame, LeaderBeacon):
@@ -640,15 +658,24 @@ class Groups(Component):
         whose application rules a condition of every type out until a time
         (:class:`~awaremw.protocol.attributes.Bounds`), makes the same decision,
         "not in", at every check until then: it parks its checks (most motes of a
-        large field, far from anything a group tracks). What could change that
-        wakes it: a group frame, a definition, a command to the application.
+        large field, far from anything a group tracks). An ``rssi:<node>``
+        condition is ruled out until ``node`` is heard again when it is not heard
+        now (never, or not within the RSSI TTL). What could change that wakes it:
+        a group frame, a definition, a command to the application, a frame from a
+        node it awaits (:meth:`heard_again`).
         """
         until = math.inf
+        awaiting: set[int] = set()
         for st in self._types.values():
             if st.role is not Role.IDLE or not st.remembers_nothing():
                 return now
             ruled_out = now
             for c in st.defn.conditions:
+                if is_rssi(c.attr):
+                    if unheard(self.ctx, c.attr, now):
+                        ruled_out = math.inf
+                        awaiting.add(c.attr & NODE_MASK)
+                    continue
                 b = self.ctx.read_bounds(c.attr, now)
                 if (
                     b is not None
@@ -657,6 +684,7 @@ class Groups(Component):
                 ):
                     ruled_out = b.until
             until = min(until, ruled_out)
+        self._awaiting = frozenset(awaiting)
         return until
 
     def _regular_check_after(self, t: float) -> float:

@@ -145,9 +145,11 @@ class AwareMote:
         s = self._rssi.get(src)
         if s is None:
             self._rssi[src] = RssiSample(rssi_dbm, now)
+            self.groups.heard_again(src, now)
         elif now - s.last_heard > self._rssi_ttl:
             s.dbm = rssi_dbm
             s.last_heard = now
+            self.groups.heard_again(src, now)
         else:
             a = self._rssi_alpha
             s.dbm = a * rssi_dbm + (1 - a) * s.dbm
