@@ -255,3 +255,32 @@ def test_json_logs_every_line_of_fleet_and_gateway(tmp_path: Path) -> None:
         assert "info" in levels and "warning" in levels, (name, levels)
     progress = [json.loads(ln) for ln in outputs["fleet"] if '"motes": ' in ln]
     assert progress and all(isinstance(p["motes"], int) for p in progress)
+
+
+def test_router_and_demo_serve_metrics_and_readiness(tmp_path: Path) -> None:
+    """``--metrics`` on the router (its own loop thread) and on the demo (the
+    gateway's figures and every fleet's, together)."""
+    ep = free_tcp_endpoint()
+    with (
+        process("router", "--listen", ep, "--metrics", "127.0.0.1:0") as router,
+        process("demo", "--plain", "--speed", "4", "--duration", "60", "--mqtt-port", "0",
+                "--summary", str(tmp_path / "summary.txt"), "--metrics", "127.0.0.1:0") as demo,
+    ):  # fmt: skip
+        router_url = router.wait_for(r"metrics on (http://\S+)/metrics", 60)[1]
+        demo_url = demo.wait_for(r"metrics: (http://\S+)/metrics", 60)[1]
+        assert get(f"{router_url}/readyz")[0] == 200
+        rs = samples(get(f"{router_url}/metrics")[1])
+        assert rs["awaremw_router_up"][0][1] == 1.0
+        assert {lb["mode"] for lb, _ in rs["awaremw_router_sessions"]} == {
+            "peer_or_client", "router"
+        }
+        until(lambda: get(f"{demo_url}/readyz")[0] == 200, 60, "demo never ready")
+        ds = samples(get(f"{demo_url}/metrics")[1])
+        assert ds["awaremw_motes_alive"][0][1] > 0
+        assert ds["awaremw_mqtt_connected"][0][1] == 1.0
+
+        def defined() -> float:  # the robot client's group and channel, once it has run
+            s = samples(get(f"{demo_url}/metrics")[1])
+            return sum(v for _, v in s.get("awaremw_definitions", []))
+
+        until(lambda: defined() >= 2, 60, "the demo's definitions never showed")

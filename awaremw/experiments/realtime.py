@@ -60,14 +60,23 @@ def _ops_endpoint(address: tuple[str, int]) -> OpsEndpoint:
 
 def _serve_run_metrics(ops: OpsEndpoint, svc: object, fleets: list[Any]) -> None:
     """The gateway's figures and those of every fleet of the run, merged."""
-    from awaremw.ops.metrics import FleetMetrics, GatewayMetrics, gateway_readiness
-    from awaremw.runtime.fleet.stats import merge_snapshots
+    from awaremw.ops.metrics import (
+        FleetMetrics,
+        GatewayMetrics,
+        all_ready,
+        fleet_readiness,
+        gateway_readiness,
+    )
+    from awaremw.runtime.fleet.stats import FleetSnapshot, merge_snapshots
+
+    def snapshot() -> FleetSnapshot:
+        return merge_snapshots(f.stats.snapshot(window=False) for f in fleets)
 
     ops.registry.register(GatewayMetrics(svc))
-    ops.registry.register(
-        FleetMetrics(lambda: merge_snapshots(f.stats.snapshot(window=False) for f in fleets))
+    ops.registry.register(FleetMetrics(snapshot))
+    ops.ready = lambda: all_ready(
+        lambda: gateway_readiness(svc), lambda: fleet_readiness(snapshot)
     )
-    ops.ready = lambda: gateway_readiness(svc)
 
 
 @dataclass

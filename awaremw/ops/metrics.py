@@ -238,6 +238,15 @@ class RouterMetrics(Collector):
         yield sessions
 
 
+def all_ready(*checks: Callable[[], Readiness]) -> Readiness:
+    """Ready when every check is (the first reason otherwise)."""
+    for check in checks:
+        r = check()
+        if not r.ready:
+            return r
+    return Readiness(True)
+
+
 def registry_of(*collectors: Collector) -> CollectorRegistry:
     """A registry of its own (not the process-wide default: tests run several)."""
     reg = CollectorRegistry(auto_describe=False)
