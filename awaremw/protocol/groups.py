@@ -124,6 +124,7 @@ class GroupStats:
     reports_refused: int = 0  # collection.submit said no
     types_refused: int = 0
     checks_parked: int = 0  # membership checks parked: nothing can change (_quiet_until)
+    leader_probes: int = 0  # settled leader asked after a partial it did not acknowledge
 
 
 # --------------------------------------------------------------------------- internals
@@ -464,10 +465,22 @@ class Groups(Component):
             if st.gap > self.ctx.config.beacon_period:
                 # A settled leader beacons rarely: our ACKs are most of the signs
                 # of life we get, and one partial lost to a collision is no death.
-                # Claim on the next failure unless an ACK or a beacon comes first.
+                # Ask it at once (a copy of its beacon, unicast: it acknowledges
+                # it like any frame, and takes it as a member's forward) rather
+                # than wait an epoch for the next partial; claim if that fails too.
+                self._probe(st)
                 return
         at = max(now, st.leader_ok + self._claim_after())
         self._schedule_claim(st, at)
+
+    def _probe(self, st: _TypeState) -> None:
+        self.stats.leader_probes += 1
+        self.send(
+            LeaderBeacon(
+                self.ctx.node_id, st.leader, st.gtype, st.gid, st.leader, st.weight, st.seq,
+                st.hops, parent=self._named_parent(st),
+            )
+        )  # fmt: skip
 
     def _schedule_claim(self, st: _TypeState, at: float) -> None:
         # A jitter of a few frame times: neighbours of the dead leader that detect
@@ -615,6 +628,11 @@ class Groups(Component):
             self._leave(st, now, LeaveReason.HANDOVER)
 
     def on_link_result(self, frame: Frame, acked: bool, now: float) -> None:
+        if isinstance(frame, LeaderBeacon):  # a probe of a settled leader (_suspect)
+            st = self._types.get(frame.group_type)
+            if st is not None and st.gid == frame.group_id:
+                (self.parent_acked if acked else self.parent_failed)(st.gtype, frame.dst, now)
+            return
         if not isinstance(frame, Handover):
             return
         st = self._types.get(frame.group_type)
