@@ -11,7 +11,7 @@ import math
 import random
 
 import pytest
-from traces import aware_trace
+from traces import aware_trace, record_events
 
 from awaremw.bench import aware_load
 from awaremw.experiments.scenario import load_scenario
@@ -202,15 +202,7 @@ def _romeo4r_trace(duration: float) -> tuple[list[str], int]:
     """Every core event of a seeded romeo4r run (its robot group type has an
     rssi:<robot> condition), and how many membership checks were parked."""
     run = VirtualRun(load_scenario("romeo4r"))
-    out: list[str] = []
-    tally = run.net.on_event
-    assert tally is not None
-
-    def hook(nid: int, ev: object, t: float) -> None:
-        out.append(f"{nid}|{t!r}|{ev!r}")
-        tally(nid, ev, t)
-
-    run.net.on_event = hook
+    out = record_events(run.net)
     run.run(duration)
     for nid, c in sorted(run.net.counters.items()):
         out.append(f"{nid}|{c!r}")
