@@ -284,3 +284,22 @@ def test_router_and_demo_serve_metrics_and_readiness(tmp_path: Path) -> None:
             return sum(v for _, v in s.get("awaremw_definitions", []))
 
         until(lambda: defined() >= 2, 60, "the demo's definitions never showed")
+
+
+def test_one_endpoint_for_a_fleets_worker_processes() -> None:
+    """``fleet --processes 2 --metrics``: the launcher merges its workers' figures
+    (sent with their progress snapshots) into one /metrics."""
+    ep = free_tcp_endpoint()
+    with process("fleet", "grid_small", "--processes", "2", "--listen", ep, "--plain",
+                 "--progress", "0.5", "--metrics", "127.0.0.1:0") as fleet:  # fmt: skip
+        url = fleet.wait_for(r"metrics on (http://\S+)/metrics", 60)[1]
+
+        def both_workers() -> bool:
+            s = samples(get(f"{url}/metrics")[1])
+            sent = sum(v for _, v in s.get("awaremw_frames_sent_total", []))
+            return s["awaremw_motes_alive"][0][1] == 26 and sent > 0
+
+        until(both_workers, 60, "the two workers' motes never showed together")
+        assert get(f"{url}/readyz")[0] == 200
+        s = samples(get(f"{url}/metrics")[1])
+        assert s["awaremw_timer_lag_seconds_count"][0][1] > 0
