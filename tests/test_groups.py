@@ -1268,3 +1268,36 @@ def test_a_mote_that_never_heard_the_node_of_an_rssi_condition_parks_until_it_do
         h.advance(45.0)
         assert h.g.role(2) is not Role.IDLE
     assert parked.events() == ticking.events()
+
+
+@pytest.mark.parametrize("acked", [True, False])
+def test_a_settled_member_probes_its_leader_after_one_unacknowledged_partial(
+    acked: bool,
+) -> None:
+    """In a settled group (beacons every two periods) one partial the leader did not
+    acknowledge is no death (a collision): the member asks the leader at once with a
+    unicast copy of its beacon; an ACK keeps the leader, a failed probe is the second
+    failure and the member claims -- within the epoch, not at its next partial."""
+    h = H()
+    p = h.cfg.beacon_period
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=17))
+    h.advance(2 * p)
+    h.hear(beacon(src=2, gid=500, leader=2, weight=40, seq=18))  # a settled pace: 2 periods
+    h.sent()
+    h.events()
+    h.advance(h.now + 1.3 * 1.25 * p)  # the leader's last sign of life is stale now
+    h.g.parent_failed(1, 2, h.now)
+    (probe,) = [f for f in h.sent() if isinstance(f, LeaderBeacon) and f.dst == 2]
+    assert (probe.group_id, probe.leader, probe.seq) == (500, 2, 18)
+    assert h.g.stats.leader_probes == 1
+    h.advance(h.now + 2 * h.cfg.forward_jitter + 0.01)
+    assert h.events(LeaderElected) == []  # one failure: no claim yet
+    h.link(probe, acked)
+    h.advance(h.now + 2 * h.cfg.forward_jitter + 0.01)
+    elected = h.events(LeaderElected)
+    if acked:
+        assert elected == [] and h.g.membership(1).leader == 2  # type: ignore[union-attr]
+    else:
+        (e,) = elected
+        assert (e.cause, e.group_id) == (ElectionCause.FAILOVER, 500)
