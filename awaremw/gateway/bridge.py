@@ -25,7 +25,7 @@ import json
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, assert_never
 
@@ -298,15 +298,10 @@ class GatewayBridge:
         if (early := self._precheck(source, size)) is not None:
             return early
         try:
-            self._parse_definition(rel_topic, payload, (), ())
+            parse_definition(rel_topic, payload, self.limits)
         except SchemaError as e:
             return e
         return None
-
-    def _parse_definition(
-        self, rel_topic: str, payload: bytes, groups: Collection[int], channels: Collection[int]
-    ) -> Definition:
-        return parse_definition(rel_topic, payload, self.limits, groups, channels)
 
     def _waiting(self, inj: Inject, source: str, payload: bytes) -> ErrorReport | None:
         """A warning when a channel names a group type nobody defined: the channel is
@@ -341,9 +336,10 @@ class GatewayBridge:
     def _apply(self, rel_topic: str, payload: bytes) -> Inject | None:
         parts = rel_topic.split("/")
         if parts[0] == "def":
-            d = self._parse_definition(
+            d = parse_definition(
                 rel_topic,
                 payload,
+                self.limits,
                 self.store.defined_ids(ItemKind.GROUP_TYPE),
                 self.store.defined_ids(ItemKind.CHANNEL),
             )
@@ -597,17 +593,14 @@ class GatewayBridge:
                 return None
         except SchemaError:
             return None
-        item = self.store.get(*key)
-        return b"" if item is None or item.deleted else json.dumps(_document(item)).encode()
+        return _payload(self.store.get(*key))
 
     def definition_payloads(self) -> dict[str, bytes]:
         """What both transports show of every definition the store has, by relative
         topic: the JSON document with its version (MQTT retains it, a Zenoh ``get``
         answers it), or ``b""`` for a deleted one (no retained message, no answer)."""
         return {
-            definition_topic(item.kind, item.item_id): (
-                b"" if item.deleted else json.dumps(_document(item)).encode()
-            )
+            definition_topic(item.kind, item.item_id): _payload(item)
             for item in self.store.items()
             if item.kind is not ItemKind.COMMAND
         }
@@ -623,6 +616,11 @@ def definition_topic(kind: ItemKind, item_id: int) -> str:
 
 def _document(item: StoredItem) -> dict[str, Any]:
     return {**(item.json or {}), "version": item.version}
+
+
+def _payload(item: StoredItem | None) -> bytes:
+    """A definition as both transports show it: its document, or b"" (deleted, or none)."""
+    return b"" if item is None or item.deleted else json.dumps(_document(item)).encode()
 
 
 def _inject(item: StoredItem) -> Inject:

@@ -377,9 +377,12 @@ class GatewayService:
 
     # ----------------------------------------------------------------- views
 
-    def state(self) -> dict[str, bytes]:
-        """What the Zenoh queryable answers: definitions, groups, status and stats."""
-        st = {rel: p for rel, p in self.bridge.definition_payloads().items() if p}
+    def state(self, definitions: Mapping[str, bytes] | None = None) -> dict[str, bytes]:
+        """What the Zenoh queryable answers: definitions (``definitions``: the bridge's
+        payloads when already taken), groups, status and stats."""
+        if definitions is None:
+            definitions = self.bridge.definition_payloads()
+        st = {rel: p for rel, p in definitions.items() if p}
         st.update(self.bridge.group_states())
         st[STATUS_TOPIC] = b"online"
         st[STATS_TOPIC] = json.dumps(self.stats()).encode()
@@ -411,11 +414,12 @@ class GatewayService:
         """The store, shown on both transports: the Zenoh queryable's snapshot, and
         each definition that changed retained on MQTT in the same bytes."""
         self._refresh_due = False
+        definitions = self.bridge.definition_payloads()  # one store read for both
         if self.hbn is not None:
-            self.hbn.set_state(self.state())
+            self.hbn.set_state(self.state(definitions))
         if self.mqtt is None:
             return
-        for rel, payload in self.bridge.definition_payloads().items():
+        for rel, payload in definitions.items():
             if self._mirrored.get(rel) != payload:
                 self._mirrored[rel] = payload
                 self.mqtt.publish(Publish(rel, payload, retain=True))
