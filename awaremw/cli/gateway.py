@@ -33,7 +33,6 @@ if TYPE_CHECKING:
     from awaremw.gateway.leftovers import Leftovers
     from awaremw.gateway.service import GatewayService
     from awaremw.gateway.state import DeploymentState
-    from awaremw.ops.endpoint import OpsEndpoint
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +228,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
     from awaremw.gateway.state import StateError
     from awaremw.gateway.store import StoreError
     from awaremw.nodes import KindsFactory, kind_names, validate
+    from awaremw.ops.metrics import show_gateway, starting_endpoint
     from awaremw.radio.zenoh_medium import DEFAULT_PREFIX
     from awaremw.runtime.deployment import DeploymentError, load
     from awaremw.runtime.fleet import Fleet, FleetSettings
@@ -260,7 +260,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         ops = None
         if args.metrics is not None:  # up first: /readyz says 503 until the gateway is
             try:
-                ops = await stack.enter_async_context(_ops_endpoint(args.metrics))
+                ops = await stack.enter_async_context(starting_endpoint(args.metrics))
             except OSError as e:
                 where = f"{args.metrics[0]}:{args.metrics[1]}"
                 return refuse("awaremw gateway", f"cannot serve metrics on {where}: {e}")
@@ -317,7 +317,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
         leftovers = await _leftovers(replace(mqtt, prefix=args.prefix), set(dep.ids))
         await stack.enter_async_context(svc)
         if ops is not None:
-            _serve_gateway_metrics(ops, svc, fleet)
+            show_gateway(ops, svc, lambda: fleet.stats.snapshot(window=False))
         _report_write_errors(svc, broker)
         if leftovers is not None:
             for rel in leftovers.foreign:  # led by a mote this network does not have
@@ -357,26 +357,6 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
 
 
 RETRY_WRITES_S = 5.0  # how often changes a full or read-only disk refused are written again
-
-
-def _ops_endpoint(address: tuple[str, int]) -> OpsEndpoint:
-    """The metrics endpoint, not ready (and no metrics) until the gateway is up."""
-    from awaremw.ops.endpoint import OpsEndpoint, Readiness, metrics_password
-    from awaremw.ops.metrics import registry_of
-
-    return OpsEndpoint(
-        *address, registry_of(), lambda: Readiness(False, "starting"), metrics_password()
-    )
-
-
-def _serve_gateway_metrics(ops: OpsEndpoint, svc: GatewayService, fleet: object) -> None:
-    from awaremw.ops.metrics import FleetMetrics, GatewayMetrics, gateway_readiness
-    from awaremw.runtime.fleet import Fleet
-
-    assert isinstance(fleet, Fleet)
-    ops.registry.register(GatewayMetrics(svc))
-    ops.registry.register(FleetMetrics(lambda: fleet.stats.snapshot(window=False)))
-    ops.ready = lambda: gateway_readiness(svc)
 
 
 def _open_state(dep: object, state_dir: str | None, fresh: bool) -> DeploymentState:

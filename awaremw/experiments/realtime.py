@@ -28,7 +28,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
 from awaremw.experiments.client import GroupSeen, Received, RobotClient, definition_payloads
 from awaremw.experiments.metrics import Recorder, RunResult
@@ -42,41 +41,7 @@ from awaremw.protocol.mote import AwareMote
 from awaremw.runtime.deployment import Deployment, NodeSpec
 from awaremw.runtime.zenoh_session import SessionSettings, free_tcp_endpoint
 
-if TYPE_CHECKING:
-    from awaremw.ops.endpoint import OpsEndpoint
-
 log = logging.getLogger(__name__)
-
-
-def _ops_endpoint(address: tuple[str, int]) -> OpsEndpoint:
-    """The run's metrics endpoint: not ready, and no figures, until the gateway is up."""
-    from awaremw.ops.endpoint import OpsEndpoint, Readiness, metrics_password
-    from awaremw.ops.metrics import registry_of
-
-    return OpsEndpoint(
-        *address, registry_of(), lambda: Readiness(False, "starting"), metrics_password()
-    )
-
-
-def _serve_run_metrics(ops: OpsEndpoint, svc: object, fleets: list[Any]) -> None:
-    """The gateway's figures and those of every fleet of the run, merged."""
-    from awaremw.ops.metrics import (
-        FleetMetrics,
-        GatewayMetrics,
-        all_ready,
-        fleet_readiness,
-        gateway_readiness,
-    )
-    from awaremw.runtime.fleet.stats import FleetSnapshot, merge_snapshots
-
-    def snapshot() -> FleetSnapshot:
-        return merge_snapshots(f.stats.snapshot(window=False) for f in fleets)
-
-    ops.registry.register(GatewayMetrics(svc))
-    ops.registry.register(FleetMetrics(snapshot))
-    ops.ready = lambda: all_ready(
-        lambda: gateway_readiness(svc), lambda: fleet_readiness(snapshot)
-    )
 
 
 @dataclass
@@ -241,7 +206,9 @@ class RealtimeRun:
     async def run(self, duration: float | None = None) -> RunResult:
         from awaremw.gateway.broker import EmbeddedBroker
         from awaremw.gateway.service import GatewaySettings, attach_to_fleet
+        from awaremw.ops.metrics import show_gateway, starting_endpoint
         from awaremw.runtime.fleet import Fleet, FleetSettings
+        from awaremw.runtime.fleet.stats import FleetSnapshot, merge_snapshots
 
         sc = self.sc
         d = sc.deployment
@@ -258,7 +225,7 @@ class RealtimeRun:
                                             prefix=self.prefix)  # fmt: skip
             ops = None
             if self.settings.metrics is not None:  # up first: not ready until the gateway is
-                ops = await stack.enter_async_context(_ops_endpoint(self.settings.metrics))
+                ops = await stack.enter_async_context(starting_endpoint(self.settings.metrics))
                 print(f"metrics: {ops.url}/metrics (/healthz, /readyz)", flush=True)
             endpoint = free_tcp_endpoint()
             if self.secrets is not None:
@@ -306,8 +273,12 @@ class RealtimeRun:
             gw_settings = GatewaySettings(prefix=self.prefix, retained_only=own)
             svc = attach_to_fleet(gw_fleet, settings=gw_settings, mqtt=gw_mqtt, hbn=True)
             await stack.enter_async_context(svc)
-            if ops is not None:
-                _serve_run_metrics(ops, svc, fleets)
+            if ops is not None:  # the gateway's figures and every fleet's, merged
+
+                def merged() -> FleetSnapshot:
+                    return merge_snapshots(f.stats.snapshot(window=False) for f in fleets)
+
+                show_gateway(ops, svc, merged, motes_ready=True)
             for f in fleets:
                 for n, r in f.runners.items():
                     app = app_of(r.core)

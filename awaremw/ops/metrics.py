@@ -21,7 +21,7 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector, CollectorRegistry
 
-from awaremw.ops.endpoint import Readiness
+from awaremw.ops.endpoint import OpsEndpoint, Readiness, metrics_password
 from awaremw.runtime.fleet.figures import LAG_BUCKETS_S
 from awaremw.runtime.fleet.stats import FleetSnapshot
 
@@ -236,6 +236,31 @@ class RouterMetrics(Collector):
         sessions.add_metric(["peer_or_client"], peers)
         sessions.add_metric(["router"], routers)
         yield sessions
+
+
+def starting_endpoint(address: tuple[str, int]) -> OpsEndpoint:
+    """An endpoint up before the gateway is: not ready ("starting") and no metrics,
+    until :func:`show_gateway` gives it both."""
+    return OpsEndpoint(
+        *address, registry_of(), lambda: Readiness(False, "starting"), metrics_password()
+    )
+
+
+def show_gateway(
+    ops: OpsEndpoint,
+    service: Any,
+    snapshot: Callable[[], FleetSnapshot],
+    *,
+    motes_ready: bool = False,
+) -> None:
+    """The gateway's figures and its motes' (``snapshot``) on ``ops``; ready with the
+    gateway, and with ``motes_ready`` once the motes run too (:func:`fleet_readiness`)."""
+    ops.registry.register(GatewayMetrics(service))
+    ops.registry.register(FleetMetrics(snapshot))
+    checks = [lambda: gateway_readiness(service)]
+    if motes_ready:
+        checks.append(lambda: fleet_readiness(snapshot))
+    ops.ready = lambda: all_ready(*checks)
 
 
 def all_ready(*checks: Callable[[], Readiness]) -> Readiness:
