@@ -107,12 +107,12 @@ def test_boot_pulls_then_attaches_to_the_root() -> None:
 
 def test_link_cost_from_rssi_is_cubic_between_good_and_floor() -> None:
     u = Unit(ctp_rssi_good=-90.0, ctp_rssi_floor=-95.0, ctp_rssi_max_etx=100)
-    n = u.c  # the mapping is a method of the component
-    costs = [n._rssi_cost(r) for r in (-80.0, -90.0, -91.0, -92.5, -94.0, -95.0, -99.0)]
+    n = u.c._routes  # the mapping is a method of the routes
+    costs = [n.rssi_cost(r) for r in (-80.0, -90.0, -91.0, -92.5, -94.0, -95.0, -99.0)]
     assert costs[0] == costs[1] == 10 and costs[-2] == costs[-1] == 100
     assert costs[1] < costs[2] < costs[3] < costs[4] < costs[5]
     assert costs[3] == 10 + round(90 * 0.5**3)
-    assert n._rssi_cost(None) == 100
+    assert n.rssi_cost(None) == 100
 
 
 def test_ack_failures_raise_the_link_cost() -> None:
@@ -457,7 +457,7 @@ def _fresh_choice(c: Collection) -> tuple[int | None, int]:
         assert n.link == link  # the cached costs are current
         path = NO_ROUTE if n.cost >= NO_ROUTE else min(n.cost + link, NO_ROUTE - 1)
         assert n.path == path
-        if n.cost >= NO_ROUTE or n.parent == me or n.last_heard < c._fresh_since:
+        if n.cost >= NO_ROUTE or n.parent == me or n.last_heard < c._routes._fresh_since:
             continue
         if path < NO_ROUTE and (best is None or (path, n.node) < best):
             best = (path, n.node)
@@ -488,7 +488,7 @@ def test_cached_parent_choice_matches_a_full_scan() -> None:
                 u.data(src, rnd.randrange(20, 30), rnd.randrange(100), 1, rnd.randrange(0, 90))
             if len(u.ctx.pending) == 1 and rnd.random() < 0.7:
                 u.result(rnd.random() < 0.3)
-            cached = u.c._best_cache
+            cached = u.c._routes._best_cache
             if cached is not None:
                 node, path = cached
                 assert (None if node is None else node.node, path) == _fresh_choice(u.c)
