@@ -80,7 +80,7 @@ def test_aware_workload_tracks_and_delivers(tmp_path: Path) -> None:
     assert out["build"] == ("mypyc" if compiled else "python")
     assert out["compiled_modules"] == len(compiled)
     if "awaremw.protocol.mote" not in compiled:
-        assert "mote.py:receive" in funcs and "collection.py:_deliver" in funcs
+        assert "mote.py:receive" in funcs and "ctp_forwarding.py:_deliver" in funcs
     assert "aware_load.py:on_event" in funcs  # the tally of the events (never compiled)
     # Same seed, same counters.
     again = run(100, 30.0, 3, workload="aware")
