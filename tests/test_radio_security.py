@@ -285,8 +285,7 @@ def test_inject_needs_a_valid_signature_and_pending_items_are_bounded() -> None:
     assert d.inject(ItemKind.CHANNEL, 1, 1, CHAN, 0.0, signer.sign(ItemKind.CHANNEL, 1, 1, CHAN))
     for iid in (5, 6, 7):  # unsigned items from a forger: only the 2 newest stay pending
         d.on_frame(DripItem(9, BROADCAST, ItemKind.CHANNEL, iid, 1, CHAN), -60.0, 0.0)
-    assert d._signed is not None
-    assert len(d._signed) == 2 and (ItemKind.CHANNEL, 5) not in d._signed
+    assert len(d._pending) == 2 and (ItemKind.CHANNEL, 5) not in d._pending
 
 
 # --------------------------------------------------------------------------- networks

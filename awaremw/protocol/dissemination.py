@@ -135,7 +135,7 @@ class Dissemination(Component):
         self.verifier: ItemVerifier | None = None if key is None else ItemVerifier(key)
         # Gateway motes only: signs what is injected (set by whoever holds the key).
         self.signer: ItemSigner | None = None
-        self._signed: PendingItems | None = (
+        self._pending: PendingItems | None = (
             None if self.verifier is None else PendingItems(self.verifier, cfg, self._summaries)
         )
         # Keys anchored in the network: another mote has sent us the version we
@@ -254,7 +254,7 @@ class Dissemination(Component):
 
     def on_timer(self, name: object, now: float) -> None:
         if name == SUMMARY_TIMER:
-            pending = self._signed is not None and len(self._signed) > 0
+            pending = self._pending is not None and len(self._pending) > 0
             self._summaries.on_summary_timer(now, pending)
         elif name == ANSWER_TIMER:
             self._summaries.on_answer_timer()
@@ -291,20 +291,20 @@ class Dissemination(Component):
             self._adopt(f, now, source=f.src)
             return
         if cur is None or newer(f.version, cur.version):
-            if self._signed is None:
+            if self._pending is None:
                 self._adopt(f, now, source=f.src)
             else:
-                self._verified(self._signed.hear_item(f, now), now)
+                self._verified(self._pending.hear_item(f, now), now)
         else:  # older (serial arithmetic): the sender is behind
             self._trickles.reset(key, now)
 
     def _on_sig(self, f: DripSig, now: float) -> None:
-        if self._signed is None:
+        if self._pending is None:
             return
         cur = self._table.get((f.kind, f.item_id))
         if cur is not None and not newer(f.version, cur.version):
             return  # a signature of what we hold (or older)
-        self._verified(self._signed.hear_sig(f, now), now)
+        self._verified(self._pending.hear_sig(f, now), now)
 
     def _verified(self, s: Signed | None, now: float) -> None:
         """A pending version complete (None: not yet): adopt it, or refuse it."""

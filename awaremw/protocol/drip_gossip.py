@@ -143,7 +143,7 @@ class Summaries:
         self._last_answer = float("-inf")
         # Summaries identical to the one we would send, heard since our digest last
         # changed or we last sent one: at drip_k of them ours is skipped (Trickle's
-        # suppression, applied to summaries; see _send).
+        # suppression, applied to summaries; see _send_summary).
         self._echoes = 0
         self._asks = False  # the summary timer is an ask (soon)
         self._wanted = 0  # the most items a neighbour's summary announced
