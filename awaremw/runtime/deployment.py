@@ -55,9 +55,9 @@ T = TypeVar("T")
 DEFAULT_RADIO = "cc2420"
 
 # The shapes of a deployment file (docs/deployments.md lists each key; a test
-# holds the two equal). A node or grid entry may add ENTRY_EXTRA_KEYS, kept in
-# ``extra`` for the node kind, and nothing else; a top-level key not named here
-# must be a table.
+# holds the two equal). A node or grid entry may add ENTRY_EXTRA_KEYS, checked
+# here into NodeSpec.middleware and NodeSpec.noise, and nothing else; a top-level
+# key not named here must be a table.
 _Point = tuple[Finite, Finite]
 _Name = Annotated[str, Meta(min_length=1)]
 _NonNeg = Annotated[float, Meta(ge=0, le=sys.float_info.max)]
@@ -119,7 +119,7 @@ TOP_KEYS = frozenset(_File.__struct_fields__) - set(RAW_TABLES)
 NODE_KEYS = frozenset(_Node.__struct_fields__)
 GRID_KEYS = frozenset(_Grid.__struct_fields__)
 # Keys a node or grid entry may add for its node kind (docs/deployments.md): its
-# middleware overrides and its sensors' noise (read by awaremw/nodes).
+# middleware overrides and its sensors' noise (checked by _Parser._tables).
 ENTRY_EXTRA_KEYS = frozenset({"middleware", "noise"})
 _PATH_ONLY = ("speed_mps", "start_s", "loop", "pause_s")
 # The settings a ``middleware`` table may override (protocol/config.py).
