@@ -48,12 +48,13 @@ def test_full_format(tmp_path: Path) -> None:
 name = "demo"
 tx_power_dbm = -5
 [world]
-ambient = 20
+ambient_temperature = 20
 [middleware]
 drip_k = 2
 [[groups]]
 type = 1
-[channels.1]
+[[channels]]
+id = 1
 attr = "temperature"
 [viewer]
 zoom = 2
@@ -91,11 +92,12 @@ battery_mj = 100
     assert d.name == "demo" and d.radio == "cc2420" and d.seed == 3 and d.path == p
     assert d.area == (100.0, 50.0) and d.tx_power_dbm == -5.0
     assert d.ids == (1, 2, 3, 4, 5, 6, 7, 100)
-    assert d.world == {"ambient": 20} and d.middleware == {"drip_k": 2}
-    assert d.groups == [{"type": 1}] and d.channels == {"1": {"attr": "temperature"}}
-    assert d.extra == {"viewer": {"zoom": 2}}
+    assert d.world.ambient_temperature == 20.0 and d.world_model().ambient_temperature == 20.0
+    assert d.middleware == {"drip_k": 2}
+    assert d.groups == ({"type": 1},) and d.channels == ({"id": 1, "attr": "temperature"},)
+    assert d.extra == {"viewer": {"zoom": 2}} and d.experiment == {}
     gw = d.node(7)
-    assert gw.extra == {"noise": {"temperature": 0.2}}
+    assert gw.noise == {"temperature": 0.2} and gw.middleware == {}
     assert gw.battery_mj == 500.0 and not gw.is_mobile
     assert isinstance(gw.mobility(), Static) and d.tx_power_of(gw) == -5.0
     robot = d.node(100)

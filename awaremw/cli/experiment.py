@@ -277,7 +277,7 @@ def _experiment_of(args: argparse.Namespace) -> str:
         ) from None
     if args.deployment is not None:
         raise ValueError(f"give the deployment once: {given} or --deployment {args.deployment}")
-    settings = load_scenario(path).deployment.extra.get("experiment", {})
+    settings = load_scenario(path).deployment.experiment
     name = settings.get("analysis")
     if name not in EXPERIMENTS:
         raise ValueError(

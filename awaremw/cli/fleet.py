@@ -165,11 +165,7 @@ def _load(arg: str, hello: bool) -> Any:
     from awaremw import nodes
     from awaremw.runtime.deployment import load
 
-    if hello:
-        return load(arg)
-    dep = load(arg, nodes.kind_names())
-    nodes.validate(dep)
-    return dep
+    return load(arg, None if hello else nodes.kind_names())
 
 
 def run_fleet(args: argparse.Namespace) -> int:

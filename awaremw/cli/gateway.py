@@ -227,7 +227,7 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
     from awaremw.gateway.service import GatewaySettings, attach_to_fleet, deployment_definitions
     from awaremw.gateway.state import StateError
     from awaremw.gateway.store import StoreError
-    from awaremw.nodes import KindsFactory, kind_names, validate
+    from awaremw.nodes import KindsFactory, kind_names
     from awaremw.ops.metrics import show_gateway, starting_endpoint
     from awaremw.radio.zenoh_medium import DEFAULT_PREFIX
     from awaremw.runtime.deployment import DeploymentError, load
@@ -235,7 +235,6 @@ async def _main(args: argparse.Namespace, mqtt: MqttSettings | None) -> int:
 
     try:
         dep = load(args.deployment, kind_names())
-        validate(dep)  # node entries and the world: a clear error now, not a traceback later
     except (DeploymentError, OSError) as e:
         return refuse("awaremw gateway", e)
     if not any(s.kind == "gateway" for s in dep.nodes):

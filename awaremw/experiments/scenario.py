@@ -1,13 +1,16 @@
 """A deployment as an experiment: its definitions, its ``[experiment]`` table,
 its world and its ground truth.
 
+The deployment file is read and checked once, by
+:mod:`awaremw.runtime.deployment`; a scenario only reads that value.
 ``[[groups]]`` and ``[[channels]]`` entries are the MQTT JSON payloads of
 ``aware/def/group/<type>`` and ``aware/def/channel/<id>`` plus the ``type`` /
-``id`` key of the topic; they are validated by the gateway's own schema
-(:mod:`awaremw.gateway.schema`), so a scenario defines exactly what a robot
-client would publish.
+``id`` key of the topic; the gateway's own schema (:mod:`awaremw.gateway.schema`)
+turns them into definitions, with the limits of the deployment's gateway mote,
+so a scenario defines exactly what a robot client would publish.
 
-The ``[experiment]`` table (all optional):
+The ``[experiment]`` table (all optional; its keys are checked when the file is
+read, ``EXPERIMENT_KEYS`` of :mod:`awaremw.runtime.deployment`):
 
 ``robot``, ``gateway``        node ids of the robot's and the gateway's motes
 ``tracking_group``, ``channel`` the group type and channel the metrics follow
@@ -25,8 +28,7 @@ The ``[experiment]`` table (all optional):
 from __future__ import annotations
 
 import json
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +41,7 @@ from awaremw.gateway.schema import (
     parse_channel,
     parse_group_type,
 )
-from awaremw.nodes import build_app, config_for, kind_names, validate, world_of
+from awaremw.nodes import build_app, config_for, kind_names
 from awaremw.protocol.frames import ChannelDef, GroupTypeDef
 from awaremw.runtime.deployment import Deployment, DeploymentError, load
 from awaremw.world.fields import World
@@ -153,14 +155,12 @@ class Scenario:
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Load and validate a deployment as a scenario (raises DeploymentError)."""
-    d = load(name_or_path, kind_names())
-    validate(d)
-    return scenario_of(d)
+    """Load a deployment as a scenario (raises DeploymentError)."""
+    return scenario_of(load(name_or_path, kind_names()))
 
 
 def scenario_of(d: Deployment) -> Scenario:
-    world = world_of(d)
+    """The scenario of a deployment: its definitions, through the gateway's schema."""
     gw = d.of_kind("gateway")
     cfg = config_for(gw[0], d) if gw else config_for(d.nodes[0], d)
     limits = Limits.from_config(cfg, known_nodes=d.ids)
@@ -169,12 +169,8 @@ def scenario_of(d: Deployment) -> Scenario:
     gjson: dict[int, Mapping[str, Any]] = {}
     cjson: dict[int, Mapping[str, Any]] = {}
     for kind, key, entries in (("groups", "type", d.groups), ("channels", "id", d.channels)):
-        for i, entry in enumerate(_entries(entries, kind, where)):
-            if key not in entry:
-                raise DeploymentError(f"{where}: {kind}[{i}]: missing key {key!r}")
+        for i, entry in enumerate(entries):
             ident = entry[key]
-            if isinstance(ident, bool) or not isinstance(ident, int):
-                raise DeploymentError(f"{where}: {kind}[{i}]: {key!r} must be an integer")
             body = {k: v for k, v in entry.items() if k != key}
             payload = json.dumps(body).encode()
             try:
@@ -187,59 +183,4 @@ def scenario_of(d: Deployment) -> Scenario:
             except SchemaError as e:
                 raise DeploymentError(f"{where}: {kind}[{i}] ({key} {ident}): {e}") from None
             defs.append(defn)
-    settings = d.extra.get("experiment", {})
-    if not isinstance(settings, Mapping):
-        raise DeploymentError(f"{where}: [experiment] must be a table")
-    _check_settings(settings, where)
-    return Scenario(d, world, tuple(defs), gjson, cjson, dict(settings))
-
-
-def _entries(raw: Any, kind: str, where: str) -> Sequence[Mapping[str, Any]]:
-    if raw is None:
-        return []
-    if isinstance(raw, Mapping):
-        raw = [raw]
-    if not isinstance(raw, list) or not all(isinstance(e, Mapping) for e in raw):
-        raise DeploymentError(f"{where}: {kind} must be an array of tables ([[{kind}]])")
-    return raw
-
-
-_SETTINGS: dict[str, str] = {
-    "robot": "int",
-    "gateway": "int",
-    "tracking_group": "int",
-    "channel": "int",
-    "define_at_s": "num",
-    "duration_s": "num",
-    "rssi_motes": "ints",
-    "snapshots_s": "nums",
-    "field": "nums4",
-    "two_fires_s": "nums2",
-    "merged_s": "nums2",
-    "split_s": "nums2",
-    "kill_at_s": "num",
-    "analysis": "name",
-}
-
-
-def _check_settings(s: Mapping[str, Any], where: str) -> None:
-    def num(v: Any) -> bool:
-        return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
-
-    for k, v in s.items():
-        kind = _SETTINGS.get(k)
-        if kind is None:
-            raise DeploymentError(
-                f"{where}: experiment.{k}: unknown key (known: {', '.join(_SETTINGS)})"
-            )
-        ok = {
-            "int": isinstance(v, int) and not isinstance(v, bool),
-            "num": num(v),
-            "ints": isinstance(v, list) and all(isinstance(x, int) for x in v),
-            "nums": isinstance(v, list) and all(num(x) for x in v),
-            "nums4": isinstance(v, list) and len(v) == 4 and all(num(x) for x in v),
-            "nums2": isinstance(v, list) and len(v) == 2 and all(num(x) for x in v),
-            "name": isinstance(v, str) and bool(v),
-        }[kind]
-        if not ok:
-            raise DeploymentError(f"{where}: experiment.{k}: expected {kind}, got {v!r}")
+    return Scenario(d, d.world_model(), tuple(defs), gjson, cjson, dict(d.experiment))

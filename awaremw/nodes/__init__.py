@@ -5,20 +5,20 @@ gateway) calls to turn a :class:`~awaremw.runtime.deployment.NodeSpec` into the
 mote it runs: the kind's application (sensors over the world, commands) inside
 an :class:`~awaremw.protocol.mote.AwareMote` configured by, from weakest to
 strongest, the radio preset (MTU), the kind (a robot beacons, a gateway is a
-collection root), the deployment's ``[middleware]`` table and the node entry's
-own ``middleware`` table; with a secured radio (:class:`RadioSecurity`) the
-MTU is the preset's payload MTU less the security overhead and the motes
-verify dissemination items with the gateway's public key.
+collection root), the deployment's ``[middleware]`` overrides and the node
+entry's own; with a secured radio (:class:`RadioSecurity`) the MTU is the
+preset's payload MTU less the security overhead and the motes verify
+dissemination items with the gateway's public key.
 
-Node entries may carry, besides the deployment keys, ``middleware = {...}``
-(config overrides) and ``noise = {temperature = 0.2, ...}`` (sensor noise
-sigma overrides); any other key is an error (a typo would otherwise be ignored).
+Nothing here reads a deployment file: :mod:`awaremw.runtime.deployment` has
+checked every table (the overrides against MiddlewareConfig, the sensors' noise
+overrides, the world), and the node kinds only read its typed value.
 """
 
 from __future__ import annotations
 
 import random
-from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 from awaremw.nodes.kinds import (
@@ -36,8 +36,7 @@ from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.signing import ItemSigner
 from awaremw.radio.security import RadioSecurity
 from awaremw.runtime.deployment import ENTRY_EXTRA_KEYS, Deployment, DeploymentError, NodeSpec
-from awaremw.world.fields import World, WorldError
-from awaremw.world.table import world_from_table
+from awaremw.world.fields import World
 
 __all__ = [
     "ALIASES",
@@ -52,7 +51,6 @@ __all__ = [
     "config_for",
     "kind_names",
     "mote_rng",
-    "validate",
     "world_of",
 ]
 
@@ -67,22 +65,12 @@ def kind_names() -> list[str]:
 
 
 def world_of(deployment: Deployment) -> World:
-    """The deployment's world (``[world]`` table, seeded by the deployment's seed)."""
-    try:
-        return world_from_table(deployment.world, deployment.seed)
-    except WorldError as e:
-        raise DeploymentError(f"{_file(deployment)}: {e}") from None
+    """The deployment's world (its ``[world]`` table, seeded by its seed)."""
+    return deployment.world_model()
 
 
 def _file(deployment: Deployment) -> str:
     return str(deployment.path) if deployment.path is not None else deployment.name
-
-
-def _table(spec: NodeSpec, key: str, deployment: Deployment) -> Mapping[str, Any]:
-    v = spec.extra.get(key, {})
-    if not isinstance(v, Mapping):
-        raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {key!r} must be a table")
-    return v
 
 
 def config_for(
@@ -96,14 +84,14 @@ def config_for(
     layers: dict[str, Any] = {"mtu": deployment.preset.mtu}
     layers.update(info.config)
     layers.update(deployment.middleware)
-    layers.update(_table(spec, "middleware", deployment))
+    layers.update(spec.middleware)
     if security is not None:
         layers["mtu"] = min(int(layers["mtu"]), security.payload_mtu(deployment.preset.mtu))
         layers["gateway_public_key"] = security.gateway_public_key
-    try:
-        return MiddlewareConfig().with_overrides(layers)
-    except (ValueError, TypeError) as e:
-        raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {e}") from None
+    return replace(_DEFAULT_CONFIG, **layers)
+
+
+_DEFAULT_CONFIG = MiddlewareConfig()
 
 
 def mote_rng(spec: NodeSpec, deployment: Deployment) -> random.Random:
@@ -117,14 +105,8 @@ def build_app(spec: NodeSpec, deployment: Deployment, world: World | None = None
         info = kind_info(spec.kind)
     except KeyError as e:
         raise DeploymentError(f"{_file(deployment)}: node {spec.id}: {e.args[0]}") from None
-    noise: dict[str, SensorNoise] = {}
-    for sensor, sigma in _table(spec, "noise", deployment).items():
-        if isinstance(sigma, bool) or not isinstance(sigma, int | float) or sigma < 0:
-            raise DeploymentError(
-                f"{_file(deployment)}: node {spec.id}: noise.{sensor} must be a number >= 0"
-            )
-        noise[str(sensor)] = SensorNoise(float(sigma))
-    w = world if world is not None else world_of(deployment)
+    noise = {sensor: SensorNoise(sigma) for sensor, sigma in spec.noise.items()}
+    w = world if world is not None else deployment.world_model()
     return info.app(spec.id, spec.mobility().position, w, noise=noise)
 
 
@@ -193,7 +175,7 @@ class KindsFactory:
 
     def __call__(self, spec: NodeSpec, deployment: Deployment) -> MoteCore:
         if self._world is None:
-            self._world = world_of(deployment)
+            self._world = deployment.world_model()
         if self._signing_key is not None and self._signer is None:
             from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
@@ -216,11 +198,3 @@ def app_of(core: MoteCore) -> NodeApp | None:
     if isinstance(core, AwareMote) and isinstance(core.ctx.app, NodeApp):
         return core.ctx.app
     return None
-
-
-def validate(deployment: Deployment) -> None:
-    """Check every node entry and the world table (raises :class:`DeploymentError`)."""
-    world = world_of(deployment)
-    for spec in deployment.nodes:
-        build_app(spec, deployment, world)
-        config_for(spec, deployment)

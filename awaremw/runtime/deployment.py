@@ -1,14 +1,23 @@
-"""Deployment files: TOML -> typed, validated, frozen specs.
+"""Deployment files: TOML -> one typed, validated, frozen :class:`Deployment`.
 
 A deployment says which motes stand where (or move how), with which radio,
-and which world, groups and channels a scenario starts with. The format is
-documented in ``docs/deployments.md``. Loading never half-works: any problem
-raises :class:`DeploymentError` whose message names the file, the entry
-(``nodes[3] (id 17)``, ``grid[0]``) and what is wrong.
+and which world, middleware settings, groups, channels and experiment settings
+a scenario starts with. The format is documented in ``docs/deployments.md``.
 
-The ``world``, ``groups``, ``channels`` and ``middleware`` tables are passed
-through raw (their owners validate them); unknown top-level *tables* are kept
-in ``Deployment.extra``; unknown top-level *values* are errors (typos).
+This module is the one place that reads a deployment file: every table is
+checked here, once, against its msgspec Struct (the ``[world]`` table's is
+:class:`~awaremw.world.table.WorldTable`; the middleware overrides are checked
+against :class:`~awaremw.protocol.config.MiddlewareConfig`'s annotations), and
+the runtime, the world, the node kinds and the experiments only read the value
+it returns. Loading never half-works: any problem raises
+:class:`DeploymentError` whose message names the file, the entry
+(``nodes[3] (id 17)``, ``grid[0]``, ``node 17``) and what is wrong.
+
+What is left to others: the node kinds' names (``known_kinds``, passed in by
+the layer that knows them), and the ``[[groups]]`` / ``[[channels]]``
+payloads, which the gateway's schema checks as it checks MQTT payloads (its
+limits follow the gateway mote's configuration). Unknown top-level *tables* are
+kept in ``Deployment.extra``; unknown top-level *values* are errors (typos).
 """
 
 from __future__ import annotations
@@ -18,13 +27,15 @@ import random
 import sys
 import tomllib
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path as FsPath
 from typing import Annotated, Any, TypeVar
 
+import msgspec
 from msgspec import Meta, Struct
 
+from awaremw.protocol.config import MiddlewareConfig
 from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.validation import Finite, Invalid, convert
 from awaremw.radio.environment import WHITE, RadioSettings, radio_model
@@ -34,7 +45,9 @@ from awaremw.radio.mac import COLLISION_MODES, MAC_KINDS
 from awaremw.radio.model import PRESETS, RadioModel, RadioPreset
 from awaremw.radio.noise import SHIPPED as SHIPPED_TRACES
 from awaremw.radio.noise import NoiseTraceError, load_trace
+from awaremw.world.fields import World, WorldError
 from awaremw.world.mobility import Mobility, Path, Static
+from awaremw.world.table import WorldTable, build_world
 
 Point = tuple[float, float]
 T = TypeVar("T")
@@ -42,9 +55,9 @@ T = TypeVar("T")
 DEFAULT_RADIO = "cc2420"
 
 # The shapes of a deployment file (docs/deployments.md lists each key; a test
-# holds the two equal). A node or grid entry may add ENTRY_EXTRA_KEYS, kept in
-# ``extra`` for the node kind, and nothing else; a top-level key not named here
-# must be a table.
+# holds the two equal). A node or grid entry may add ENTRY_EXTRA_KEYS, checked
+# here into NodeSpec.middleware and NodeSpec.noise, and nothing else; a top-level
+# key not named here must be a table.
 _Point = tuple[Finite, Finite]
 _Name = Annotated[str, Meta(min_length=1)]
 _NonNeg = Annotated[float, Meta(ge=0, le=sys.float_info.max)]
@@ -66,8 +79,8 @@ class _File(Struct):
     links: _Name | None = None  # a links file, or a shipped name (radio/links.py)
     nodes: list[dict[str, Any]] = []
     grid: list[dict[str, Any]] = []
-    world: dict[str, Any] = {}
-    middleware: dict[str, Any] = {}
+    world: WorldTable = msgspec.field(default_factory=WorldTable)
+    middleware: dict[str, Any] = {}  # checked per mote, with the mote's own (its errors name it)
     groups: _Raw = None
     channels: _Raw = None
 
@@ -99,14 +112,37 @@ class _Grid(_Mote):
     jitter_m: _NonNeg = 0.0
 
 
+# Tables whose keys are not the file's own: the world's, the middleware's, and
+# the gateway's payloads.
 RAW_TABLES = ("world", "groups", "channels", "middleware")
 TOP_KEYS = frozenset(_File.__struct_fields__) - set(RAW_TABLES)
 NODE_KEYS = frozenset(_Node.__struct_fields__)
 GRID_KEYS = frozenset(_Grid.__struct_fields__)
 # Keys a node or grid entry may add for its node kind (docs/deployments.md): its
-# middleware overrides and its sensors' noise (read by awaremw/nodes).
+# middleware overrides and its sensors' noise (checked by _Parser._tables).
 ENTRY_EXTRA_KEYS = frozenset({"middleware", "noise"})
 _PATH_ONLY = ("speed_mps", "start_s", "loop", "pause_s")
+# The settings a ``middleware`` table may override (protocol/config.py).
+MIDDLEWARE_SETTINGS = frozenset(f.name for f in fields(MiddlewareConfig))
+# [[groups]] / [[channels]] entries: the MQTT payload plus the key of its topic.
+DEFINITION_KEYS = {"groups": "type", "channels": "id"}
+# The [experiment] table (docs/experiments.md): each key and what it holds.
+EXPERIMENT_KEYS: dict[str, str] = {
+    "robot": "int",
+    "gateway": "int",
+    "tracking_group": "int",
+    "channel": "int",
+    "define_at_s": "num",
+    "duration_s": "num",
+    "rssi_motes": "ints",
+    "snapshots_s": "nums",
+    "field": "nums4",
+    "two_fires_s": "nums2",
+    "merged_s": "nums2",
+    "split_s": "nums2",
+    "kill_at_s": "num",
+    "analysis": "name",
+}
 
 
 class DeploymentError(ValueError):
@@ -120,8 +156,9 @@ class NodeSpec:
     ``position`` is where a static mote stands, or the first waypoint of a
     ``path`` (then it moves at ``speed_mps`` from ``start_s``, pausing
     ``pause_s`` at waypoints, looping if ``loop``). ``boot_s`` is when it is
-    switched on. ``tx_power_dbm`` None means the deployment's. ``extra`` holds
-    the entry's other keys, for the node kind (e.g. its config overrides).
+    switched on. ``tx_power_dbm`` None means the deployment's. ``middleware``
+    holds the entry's own :class:`~awaremw.protocol.config.MiddlewareConfig`
+    overrides (checked, converted), ``noise`` its sensors' noise sigma overrides.
     """
 
     id: int
@@ -135,7 +172,8 @@ class NodeSpec:
     tx_power_dbm: float | None = None
     battery_mj: float | None = None
     boot_s: float = 0.0
-    extra: Mapping[str, Any] = field(default_factory=dict)
+    middleware: Mapping[str, Any] = field(default_factory=dict)
+    noise: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def is_mobile(self) -> bool:
@@ -149,16 +187,28 @@ class NodeSpec:
 
 @dataclass(frozen=True)
 class Deployment:
+    """A deployment file, read and checked: what every other module reads.
+
+    ``world`` is the typed ``[world]`` table (:meth:`world_model` makes the
+    seeded :class:`World`, as :meth:`radio_model` makes the radio's);
+    ``middleware`` the ``[middleware]`` overrides (checked, converted);
+    ``groups`` / ``channels`` the ``[[groups]]`` / ``[[channels]]`` entries
+    (tables with an integer ``type`` / ``id``: the gateway's payloads);
+    ``experiment`` the ``[experiment]`` table (checked against
+    :data:`EXPERIMENT_KEYS`); ``extra`` the other top-level tables.
+    """
+
     name: str
     area: Point  # (width, height) in m; positions lie in [0, w] x [0, h]
     radio: str  # a key of radio.model.PRESETS
     seed: int
     tx_power_dbm: float
     nodes: tuple[NodeSpec, ...]  # sorted by id
-    world: Mapping[str, Any] = field(default_factory=dict)
-    groups: Any = None  # raw: table or array of tables, as written
-    channels: Any = None
+    world: WorldTable = field(default_factory=WorldTable)
+    groups: tuple[Mapping[str, Any], ...] = ()
+    channels: tuple[Mapping[str, Any], ...] = ()
     middleware: Mapping[str, Any] = field(default_factory=dict)
+    experiment: Mapping[str, Any] = field(default_factory=dict)
     description: str = ""
     extra: Mapping[str, Any] = field(default_factory=dict)  # other top-level tables
     path: FsPath | None = None
@@ -175,6 +225,11 @@ class Deployment:
 
     def radio_model(self, symmetric: bool = True) -> RadioModel:
         return radio_model(self.preset, self.seed, self.radio_settings, symmetric, self.link_file)
+
+    def world_model(self) -> World:
+        """The world the motes sense: the ``[world]`` table, seeded by the
+        deployment's seed unless the table names its own (checked when read)."""
+        return build_world(self.world, self.seed)
 
     @property
     def ids(self) -> tuple[int, ...]:
@@ -275,6 +330,8 @@ class _Parser:
         try:
             return convert(doc, type_)
         except Invalid as e:
+            if e.path.startswith("world."):  # the [world] table's own form (docs/world.md)
+                raise self._fail(where, f"{e.path}: {e.why}") from None
             raise self._fail(where, f"{e.path!r} {e.why}" if e.path else e.why) from None
 
     # ------------------------------------------------------------ checks
@@ -339,21 +396,27 @@ class _Parser:
         self.area, self.seed = f.area, f.seed
         settings, link_file = self._radio_settings(f)
 
-        specs: dict[int, tuple[NodeSpec, str]] = {}
+        specs: dict[int, tuple[NodeSpec, str, Mapping[str, Any]]] = {}
 
-        def put(spec: NodeSpec, where: str) -> None:
+        def put(spec: NodeSpec, where: str, entry: Mapping[str, Any]) -> None:
             if spec.id in specs:
                 raise self._fail(where, f"duplicate id {spec.id} (also {specs[spec.id][1]})")
-            specs[spec.id] = (spec, where.split(" (")[0])
+            specs[spec.id] = (spec, where.split(" (")[0], entry)
 
         for i, entry in enumerate(f.nodes):
             spec, where = self._node(i, entry)
-            put(spec, where)
+            put(spec, where, entry)
         for i, entry in enumerate(f.grid):
             for spec, where in self._grid(i, entry):
-                put(spec, where)
+                put(spec, where, entry)
         if not specs:
             raise self._fail("", "no nodes (add [[nodes]] or [[grid]] entries)")
+        link_file = self._check_links(link_file, specs)
+        try:
+            build_world(f.world, f.seed)  # keyframes completed, sources in order
+        except WorldError as e:
+            raise self._fail("", str(e)) from None
+        nodes, middleware = self._tables(specs, f.middleware)
 
         return Deployment(
             name=f.name or (self.path.stem if self.path is not None else "deployment"),
@@ -361,19 +424,115 @@ class _Parser:
             radio=f.radio,
             seed=f.seed,
             tx_power_dbm=tx_power,
-            nodes=tuple(s for _, (s, _) in sorted(specs.items())),
+            nodes=nodes,
             world=f.world,
-            groups=f.groups,
-            channels=f.channels,
-            middleware=f.middleware,
+            groups=self._definitions("groups", f.groups),
+            channels=self._definitions("channels", f.channels),
+            middleware=middleware,
+            experiment=self._experiment(extra.pop("experiment", {})),
             description=f.description,
             extra=extra,
             path=self.path,
             mac=f.mac,
             collisions=f.collisions,
             radio_settings=settings,
-            link_file=self._check_links(link_file, specs),
+            link_file=link_file,
         )
+
+    # ------------------------------------------------------------ the motes' own tables
+
+    def _tables(
+        self, specs: Mapping[int, tuple[NodeSpec, str, Mapping[str, Any]]], common: Any
+    ) -> tuple[tuple[NodeSpec, ...], dict[str, Any]]:
+        """The motes, sorted by id, with their entry's ``noise`` and ``middleware``
+        tables checked, and the deployment's ``[middleware]`` (``common``): an
+        error names the first mote, by id, that the bad table reaches."""
+        checked: dict[int, tuple[dict[str, float], dict[str, Any]]] = {}  # by entry
+        out: list[NodeSpec] = []
+        overrides: dict[str, Any] = {}
+        for node_id in sorted(specs):
+            spec, _, entry = specs[node_id]
+            tables = checked.get(id(entry))
+            if tables is None:
+                where = f"node {node_id}"
+                noise = self._noise(where, entry.get("noise", {}))
+                if not checked:
+                    overrides = self._middleware(where, common)
+                tables = noise, self._middleware(where, entry.get("middleware", {}))
+                checked[id(entry)] = tables
+            if tables[0] or tables[1]:
+                spec = replace(spec, noise=tables[0], middleware=tables[1])
+            out.append(spec)
+        return tuple(out), overrides
+
+    def _noise(self, where: str, table: Any) -> dict[str, float]:
+        if not isinstance(table, Mapping):
+            raise self._fail(where, "'noise' must be a table")
+        noise: dict[str, float] = {}
+        for sensor, sigma in table.items():
+            if isinstance(sigma, bool) or not isinstance(sigma, int | float) or sigma < 0:
+                raise self._fail(where, f"noise.{sensor} must be a number >= 0")
+            noise[str(sensor)] = float(sigma)
+        return noise
+
+    def _middleware(self, where: str, table: Any) -> dict[str, Any]:
+        """A ``middleware`` table's overrides, checked against MiddlewareConfig's
+        annotations (strictly, as :meth:`MiddlewareConfig.with_overrides` does)."""
+        if not isinstance(table, Mapping):
+            raise self._fail(where, "'middleware' must be a table")
+        unknown = sorted(set(table) - MIDDLEWARE_SETTINGS)
+        if unknown:
+            raise self._fail(where, f"unknown middleware settings: {', '.join(unknown)}")
+        try:
+            config = convert(dict(table), MiddlewareConfig)
+        except Invalid as e:
+            raise self._fail(where, f"middleware setting {e.path!r}: {e.why}") from None
+        return {k: getattr(config, k) for k in table}
+
+    # ------------------------------------------------------------ definitions, experiment
+
+    def _definitions(self, kind: str, raw: Any) -> tuple[Mapping[str, Any], ...]:
+        """``[[groups]]`` / ``[[channels]]`` entries (one table is one entry), each
+        with its integer ``type`` / ``id``; their payloads are the gateway's to check."""
+        if raw is None:
+            return ()
+        if isinstance(raw, Mapping):
+            raw = [raw]
+        if not isinstance(raw, list) or not all(isinstance(e, Mapping) for e in raw):
+            raise self._fail("", f"{kind} must be an array of tables ([[{kind}]])")
+        key = DEFINITION_KEYS[kind]
+        for i, entry in enumerate(raw):
+            if key not in entry:
+                raise self._fail(f"{kind}[{i}]", f"missing key {key!r}")
+            ident = entry[key]
+            if isinstance(ident, bool) or not isinstance(ident, int):
+                raise self._fail(f"{kind}[{i}]", f"{key!r} must be an integer")
+        return tuple(raw)
+
+    def _experiment(self, table: Mapping[str, Any]) -> dict[str, Any]:
+        def num(v: Any) -> bool:
+            return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+
+        for k, v in table.items():
+            kind = EXPERIMENT_KEYS.get(k)
+            if kind is None:
+                raise self._fail(
+                    "", f"experiment.{k}: unknown key (known: {', '.join(EXPERIMENT_KEYS)})"
+                )
+            ok = {
+                "int": isinstance(v, int) and not isinstance(v, bool),
+                "num": num(v),
+                "ints": isinstance(v, list) and all(isinstance(x, int) for x in v),
+                "nums": isinstance(v, list) and all(num(x) for x in v),
+                "nums4": isinstance(v, list) and len(v) == 4 and all(num(x) for x in v),
+                "nums2": isinstance(v, list) and len(v) == 2 and all(num(x) for x in v),
+                "name": isinstance(v, str) and bool(v),
+            }[kind]
+            if not ok:
+                raise self._fail("", f"experiment.{k}: expected {kind}, got {v!r}")
+        return dict(table)
+
+    # ------------------------------------------------------------ the radio's files
 
     def _relative(self, value: str) -> FsPath:
         p = FsPath(value).expanduser()
@@ -408,11 +567,11 @@ class _Parser:
         return settings, link_file
 
     def _check_links(
-        self, link_file: LinkFile | None, specs: Mapping[int, tuple[NodeSpec, str]]
+        self, link_file: LinkFile | None, specs: Mapping[int, tuple[NodeSpec, str, Any]]
     ) -> LinkFile | None:
         if link_file is None:
             return None
-        for spec, where in specs.values():
+        for spec, where, _ in specs.values():
             if spec.path is not None:
                 raise self._fail(
                     where, "moves (path), but a links file fixes every link: give it a position"
@@ -467,7 +626,6 @@ class _Parser:
             tx_power_dbm=n.tx_power_dbm,
             battery_mj=n.battery_mj,
             boot_s=n.boot_s,
-            extra={k: v for k, v in t.items() if k not in NODE_KEYS},
         )
         return spec, where
 
@@ -482,7 +640,6 @@ class _Parser:
         self._check_id(where, g.first_id)
         self._check_id(where, last)
         self._check_mote(where, g)
-        extra = {k: v for k, v in t.items() if k not in GRID_KEYS}
         # Jitter from the deployment's seed and the grid's index: the same
         # positions in every process that loads the file.
         rng = random.Random(self.seed * 1_000_003 + i)
@@ -505,7 +662,6 @@ class _Parser:
                     tx_power_dbm=g.tx_power_dbm,
                     battery_mj=g.battery_mj,
                     boot_s=g.boot_s,
-                    extra=extra,
                 )
                 out.append((spec, f"{where}: id {node_id}"))
         return out
