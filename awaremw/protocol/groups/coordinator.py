@@ -42,6 +42,9 @@ class Groups(Component):
         self.collection = collection
         self.stats = GroupStats()
         self._types: dict[int, Standing] = {}
+        # Called with ``now`` when this mote enters a group (as member or leader):
+        # the channels start their epochs then (a mote in no group keeps no epoch timer).
+        self.on_enter: Callable[[float], None] | None = None
         kit = Kit(ctx, self.timers, self.stats, self.send)
         conditions = Conditions(kit)
         lineage = Lineage(kit)
@@ -54,18 +57,8 @@ class Groups(Component):
         parts = Parts(conditions, lineage, pace, tree, flood, election, liveness, handovers)
         self._conditions, self._pace, self._tree, self._flood = conditions, pace, tree, flood
         self._election, self._liveness, self._handovers = election, liveness, handovers
-        self._roles = Roles(kit, parts)
+        self._roles = Roles(kit, parts, self._entered)
         self._merge = Merge(kit, self._roles, (pace, tree, flood, election, liveness, handovers))
-
-    @property
-    def on_enter(self) -> Callable[[float], None] | None:
-        """Called with ``now`` when this mote enters a group (as member or leader):
-        the channels start their epochs then (a mote in no group keeps no epoch timer)."""
-        return self._roles.on_enter
-
-    @on_enter.setter
-    def on_enter(self, hook: Callable[[float], None] | None) -> None:
-        self._roles.on_enter = hook
 
     # ----------------------------------------------------------------- public API
 
@@ -100,13 +93,14 @@ class Groups(Component):
         if s is None or s.role not in (Role.MEMBER, Role.LEADER):
             return None
         leader = s.role is Role.LEADER
+        parent, hops = self._tree.route(group_type)
         return Membership(
             group_type=s.gtype,
             group_id=s.gid,
             leader=self.ctx.node_id if leader else s.leader,
             is_leader=leader,
-            parent=None if leader else self._tree.parent(group_type),
-            hops=0 if leader else self._tree.hops(group_type),
+            parent=None if leader else parent,
+            hops=0 if leader else hops,
             weight=s.weight,
         )
 
@@ -236,6 +230,10 @@ class Groups(Component):
             self._election.on_confirm(s, now, self._roles)
         elif tick == Tick.HANDOVER and role is Role.HANDING_OVER:
             self._handovers.on_timer(s, now, self._roles)
+
+    def _entered(self, now: float) -> None:
+        if self.on_enter is not None:
+            self.on_enter(now)
 
     def _check_all(self, now: float) -> None:
         """The membership checks of every type, the purge of their tables, and the

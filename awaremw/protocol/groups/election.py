@@ -68,7 +68,7 @@ class Election:
         elif f.seq == h.seq and (f.hops, -rssi) < (h.hops, -h.rssi):
             h.hops, h.src, h.t, h.rssi = f.hops, f.src, now, rssi
 
-    def best_nearby(self, gtype: int, now: float) -> tuple[int, Heard] | None:
+    def _best_nearby(self, gtype: int, now: float) -> tuple[int, Heard] | None:
         """The heaviest group heard within the leader timeout, if any."""
         ttl = self._kit.timeout()
         nearby = self._at[gtype].nearby
@@ -82,8 +82,12 @@ class Election:
         """A group whose leader is lost: not one to join."""
         self._at[gtype].nearby.pop(gid, None)
 
-    def wait(self, s: Standing, now: float, cause: ElectionCause) -> None:
-        """No group heard: wait a random backoff before creating one."""
+    def join_or_wait(self, s: Standing, now: float, cause: ElectionCause, moves: Moves) -> None:
+        """Join the heaviest group heard, else wait a random backoff to create one."""
+        best = self._best_nearby(s.gtype, now)
+        if best is not None:
+            moves.join_heard(s, best[0], best[1], now)
+            return
         s.move_to(Role.WAITING)
         self._at[s.gtype].cause = cause
         # After a split every member of the leaderless part gives up on the same
@@ -109,7 +113,7 @@ class Election:
 
     def on_create(self, s: Standing, now: float, moves: Moves) -> None:
         """The backoff ended: join a group heard meanwhile, else create one."""
-        best = self.best_nearby(s.gtype, now)
+        best = self._best_nearby(s.gtype, now)
         if best is not None:
             moves.join_heard(s, best[0], best[1], now)
         else:

@@ -97,7 +97,7 @@ class Flood:
                 s.leader,
                 s.weight,
                 s.seq,
-                0 if s.role is Role.LEADER else self._tree.hops(s.gtype),
+                0 if s.role is Role.LEADER else self._tree.route(s.gtype)[1],
                 parent=self.named_parent(s.gtype),
             )
         )
@@ -110,7 +110,7 @@ class Flood:
         """The parent our forward names: only one we depend on (the only member we
         heard this seq from), which then keeps forwarding for us. A member that
         heard others too ties no parent down (docs/protocol-groups.md)."""
-        p = self._tree.parent(gtype)
+        p, _hops = self._tree.route(gtype)
         if p is None or any(src != p for src, _ in self._at[gtype].copies):
             return BROADCAST
         return p
@@ -144,6 +144,5 @@ class Flood:
         k = self._kit.ctx.config.beacon_forward_cover
         if k <= 0 or fw.must_forward or self._tree.has_child(s.gtype, now):
             return False
-        hops = self._tree.hops(s.gtype)
-        parent = self._tree.parent(s.gtype)
+        parent, hops = self._tree.route(s.gtype)
         return sum(1 for src, h in fw.copies if h >= hops and src != parent) >= k

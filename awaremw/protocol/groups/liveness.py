@@ -158,7 +158,7 @@ class Liveness:
         kit.send(
             LeaderBeacon(
                 kit.ctx.node_id, s.leader, s.gtype, s.gid, s.leader, s.weight, s.seq,
-                self._tree.hops(s.gtype), parent=self._flood.named_parent(s.gtype),
+                self._tree.route(s.gtype)[1], parent=self._flood.named_parent(s.gtype),
             )
         )  # fmt: skip
 

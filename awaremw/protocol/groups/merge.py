@@ -101,13 +101,14 @@ class Merge:
             self._liveness.new_seq(s, f, now)
             self._pace.observe(g, f.leader == s.leader, (f.seq - s.seq) & 0xFFFF, now)
             s.follow(f.seq, f.leader, f.weight)
-            self._tree.take_parent(g, f.src, hops, lr)
+            self._tree.choose_parent(g, f.src, hops, lr, first=True, forwarded=True)
             self._liveness.arm(g, now)
             self._flood.announce(s, now, must=False)
-        elif f.seq == s.seq and f.src != self._tree.parent(g):
-            # ... a later copy may replace it (GroupTree.later_copy).
+        elif f.seq == s.seq and f.src != self._tree.route(g)[0]:
+            # ... a later copy may replace it (GroupTree.choose_parent).
             self._flood.copy_heard(g, f.src, f.hops)
-            self._tree.later_copy(g, f.src, hops, lr, self._flood.forwarded(g))
+            forwarded = self._flood.forwarded(g)
+            self._tree.choose_parent(g, f.src, hops, lr, first=False, forwarded=forwarded)
 
     def _yield(self, s: Standing, f: LeaderBeacon, rssi: float, now: float) -> None:
         old = s.gid

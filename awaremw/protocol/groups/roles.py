@@ -68,12 +68,10 @@ class Parts:
 class Roles:
     """Role changes and the membership check (implements :class:`~.kit.Moves`)."""
 
-    def __init__(self, kit: Kit, parts: Parts) -> None:
+    def __init__(self, kit: Kit, parts: Parts, entered: Callable[[float], None]) -> None:
         self._kit = kit
         self._p = parts
-        # Called with ``now`` when this mote enters a group (as member or leader):
-        # the channels start their epochs then (a mote in no group keeps no epoch timer).
-        self.on_enter: Callable[[float], None] | None = None
+        self._entered = entered  # this mote entered a group (the coordinator's on_enter)
 
     def add(self, gtype: int) -> None:
         """A new group type: every part's share of it."""
@@ -129,11 +127,7 @@ class Roles:
         )
 
     def join_or_wait(self, s: Standing, now: float, cause: ElectionCause) -> None:
-        best = self._p.election.best_nearby(s.gtype, now)
-        if best is not None:
-            self.join_heard(s, best[0], best[1], now)
-        else:
-            self._p.election.wait(s, now, cause)
+        self._p.election.join_or_wait(s, now, cause, self)
 
     def join_heard(self, s: Standing, gid: int, h: Heard, now: float) -> None:
         """Join a group remembered from an earlier beacon, and announce it: forward
@@ -173,8 +167,7 @@ class Roles:
         p.handovers.seed(g, known)
         p.liveness.clear(g)
         self._kit.ctx.emit(LeaderElected(me, g, gid, weight, cause, now))
-        if self.on_enter is not None:
-            self.on_enter(now)
+        self._entered(now)
         p.pace.beacon(s, now)
 
     def leave(self, s: Standing, now: float, reason: LeaveReason, into: int = 0) -> None:
@@ -207,5 +200,4 @@ class Roles:
         p.pace.follow(g, heard_at)
         p.liveness.start_member(s, h.src, heard_at)  # after follow: the timeout in its gap
         self._kit.ctx.emit(GroupJoined(self._kit.ctx.node_id, g, gid, h.leader, now))
-        if self.on_enter is not None:
-            self.on_enter(now)
+        self._entered(now)

@@ -42,11 +42,10 @@ class GroupTree:
     def drop(self, gtype: int) -> None:
         del self._at[gtype]
 
-    def parent(self, gtype: int) -> int | None:
-        return self._at[gtype].parent
-
-    def hops(self, gtype: int) -> int:
-        return self._at[gtype].hops
+    def route(self, gtype: int) -> tuple[int | None, int]:
+        """(parent, hops): the next hop towards the leader and our distance to it."""
+        b = self._at[gtype]
+        return b.parent, b.hops
 
     def has_child(self, gtype: int, now: float) -> bool:
         """A child named us or sent us a partial lately: we are a parent."""
@@ -107,17 +106,18 @@ class GroupTree:
         """``src`` forwarded our group's beacon."""
         self._at[gtype].upstream[src] = up
 
-    def take_parent(self, gtype: int, src: int, hops: int, rssi: float) -> None:
-        """The first copy of a new seq sets the parent."""
+    def choose_parent(
+        self, gtype: int, src: int, hops: int, rssi: float, first: bool, forwarded: bool
+    ) -> None:
+        """A copy of the current seq from ``src`` (``hops``: ours through it). The
+        first copy of a new seq sets the parent; a later one replaces it if better
+        by the link key, and, once our hop count is on the air (``forwarded``),
+        only if it keeps it or shrinks it (loop freedom)."""
         b = self._at[gtype]
-        b.hops = hops
-        b.parent, b.parent_rssi = src, rssi
-
-    def later_copy(self, gtype: int, src: int, hops: int, rssi: float, forwarded: bool) -> None:
-        """Another copy of the current seq: it replaces the parent if better by the
-        link key, and, once our hop count is on the air (``forwarded``), only if it
-        keeps it or shrinks it (loop freedom)."""
-        b = self._at[gtype]
+        if first:
+            b.hops = hops
+            b.parent, b.parent_rssi = src, rssi
+            return
         new = self._link_key(b, src, hops, rssi)
         cur = self._link_key(b, b.parent or 0, b.hops, b.parent_rssi)
         if new < cur and (not forwarded or hops <= b.hops):
