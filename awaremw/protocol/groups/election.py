@@ -6,7 +6,7 @@ forwarded) ``TENTATIVE_BEACONS`` times over ``tentative_periods`` beacon periods
 and takes it unless an established group answers or a heavier would-be group is
 heard, so contention ends before any mote holds the losing id; a mote between
 two would-be groups relays the higher one's announcement once
-(docs/protocol-groups.md, "Creation and tentative ids").
+(docs/protocol-groups.md, "Vicinity, creation, group ids" and "Tentative ids").
 """
 
 from __future__ import annotations

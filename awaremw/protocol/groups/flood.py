@@ -5,7 +5,7 @@ A leaf (no child named us or sent us a partial lately) that heard
 ``beacon_forward_cover`` copies of the current seq from members at least as
 far out as it is skips its forward (counter-based flooding). Parents always
 forward, so that the tree and its hop counts stay put and a child that hears no
-other member keeps its group (docs/protocol-groups.md, "Beacon forwarding").
+other member keeps its group (docs/protocol-groups.md, "Quiet beacons").
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ A part that merged into a heavier group keeps its former id for
 loses the merged group's leader soon), it goes on under that id. A group created
 after losing a leader names the lost id (``split_from``) in its reports, and a
 part that split off and met its former group again (a flapping bridge) keeps
-that id too (docs/protocol-groups.md, "Merge and split").
+that id too (docs/protocol-groups.md, "Leader death").
 """
 
 from __future__ import annotations

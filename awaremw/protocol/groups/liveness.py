@@ -1,6 +1,6 @@
 """Liveness: a member's evidence that its leader lives, its suspicion, the
 claim of a lost leader's group (failover with the same id) and, later, the
-split (docs/protocol-groups.md, "Failover" and "Split").
+split (docs/protocol-groups.md, "Leader death").
 
 Evidence of life: a new seq, a beacon heard from the leader itself, or an
 acknowledged unicast to it. A partial the leader did not acknowledge after the

@@ -5,7 +5,7 @@ leader yields: the merge), a lighter one (rebut), another leader of our id
 
 Order of groups: ``(weight, group id)`` (the paper: weight, then the higher
 id); of beacons of one id: ``(seq, weight, leader)`` (docs/protocol-groups.md,
-"Merge and split").
+"Beacons and the heaviest group").
 """
 
 from __future__ import annotations

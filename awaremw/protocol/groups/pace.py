@@ -5,7 +5,7 @@ nothing changed since the last beacon) it doubles its interval, up to
 ``beacon_settled_factor`` periods, and anything that unsettles the group brings
 it back to the base period. A member measures the interval between its leader's
 beacons (``gap``): its timeouts count in gaps seen, not periods
-(docs/protocol-groups.md, "Beacon pace").
+(docs/protocol-groups.md, "Quiet beacons" and "Reports").
 """
 
 from __future__ import annotations
