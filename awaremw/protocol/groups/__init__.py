@@ -38,7 +38,6 @@ The package, in layers (a module imports only those above it in this list):
 ``coordinator``  Groups: the Component; routes frames, link results and timers
 """
 
-from awaremw.protocol.groups.conditions import unheard
 from awaremw.protocol.groups.coordinator import Groups
 from awaremw.protocol.groups.values import (
     ELECTION_BACKOFF_FACTOR,
@@ -69,5 +68,4 @@ __all__ = [
     "condition_may_hold",
     "heavier",
     "seq_newer",
-    "unheard",
 ]
