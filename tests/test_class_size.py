@@ -2,7 +2,9 @@
 source with ``ast``: no class in ``awaremw/`` has more than 15 public methods or
 8 constructor arguments, except the records listed there as classes that hold
 data (``PENDING`` names classes allowed over the line while work on them is in
-progress: none today)."""
+progress: none today). In ``awaremw/protocol/`` (issue 31) no class has more
+than 25 methods, private ones included, or 400 lines, and no module more than
+600 lines (frames.py, the wire format, stays whole)."""
 
 from __future__ import annotations
 
@@ -18,11 +20,11 @@ MAX_CTOR_ARGS = 8
 # Records (dataclasses holding data, not actors): see docs/architecture.md.
 HOLD_DATA = {
     "protocol.config.MiddlewareConfig",
-    "protocol.groups._TypeState",
+    "protocol.groups.pace._PaceState",
     "protocol.channels.ChannelStats",
     "protocol.ctp_routes.CollectionStats",
     "protocol.ctp_routes.Neighbour",
-    "protocol.groups.GroupStats",
+    "protocol.groups.values.GroupStats",
     "protocol.frames.DataRecord",
     "radio.model.RadioPreset",
     "radio.counters.MoteCounters",
@@ -103,3 +105,46 @@ def test_the_fleet_is_thin() -> None:
     assert s["runtime.fleet.local.Fleet"][0] <= MAX_PUBLIC_METHODS
     assert s["runtime.fleet.local.Fleet"][1] <= 6
     assert s["runtime.fleet.launcher.FleetLauncher"][1] <= 4
+
+
+# --------------------------------------------------------------------------- protocol/ (issue 31)
+
+PROTOCOL = ROOT / "protocol"
+MAX_PROTOCOL_METHODS = 25  # every def in the class body, private ones included
+MAX_PROTOCOL_CLASS_LINES = 400
+MAX_PROTOCOL_MODULE_LINES = 600
+WHOLE_MODULES = {"protocol.frames"}  # every frame of the wire format in one place
+
+
+def protocol_sizes() -> tuple[dict[str, tuple[int, int]], dict[str, int]]:
+    """``layer.module.Class`` -> (methods, lines) for every class in protocol/, and
+    ``layer.module`` -> lines for every module there."""
+    classes: dict[str, tuple[int, int]] = {}
+    lines: dict[str, int] = {}
+    for path in sorted(PROTOCOL.rglob("*.py")):
+        mod = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        text = path.read_text(encoding="utf-8")
+        lines[mod] = len(text.splitlines())
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ClassDef):
+                defs = [
+                    f for f in node.body if isinstance(f, ast.FunctionDef | ast.AsyncFunctionDef)
+                ]
+                assert node.end_lineno is not None
+                classes[f"{mod}.{node.name}"] = (len(defs), node.end_lineno - node.lineno + 1)
+    return classes, lines
+
+
+def _over(size: tuple[int, int]) -> bool:
+    return size[0] > MAX_PROTOCOL_METHODS or size[1] > MAX_PROTOCOL_CLASS_LINES
+
+
+def test_no_protocol_class_over_25_methods_or_400_lines() -> None:
+    classes, lines = protocol_sizes()
+    assert "protocol.groups.coordinator.Groups" in classes  # the package was read
+    too_big = {n: size for n, size in classes.items() if _over(size)}
+    assert too_big == {}, "split these into parts composed by a thin owner (as Groups is)"
+    too_long = {
+        m: n for m, n in lines.items() if n > MAX_PROTOCOL_MODULE_LINES and m not in WHOLE_MODULES
+    }
+    assert too_long == {}, "split these modules (a package of parts, as protocol/groups/)"

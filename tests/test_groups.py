@@ -10,7 +10,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from awaremw.protocol import groups as groups_module
 from awaremw.protocol.attributes import HUMIDITY, TEMPERATURE, Bounds, rssi_attribute
 from awaremw.protocol.commands import Commands
 from awaremw.protocol.component import RssiSample
@@ -49,6 +48,7 @@ from awaremw.protocol.groups import (
     heavier,
     seq_newer,
 )
+from awaremw.protocol.groups import conditions as conditions_module
 from awaremw.protocol.mote import MoteContext
 
 T = TEMPERATURE
@@ -1251,7 +1251,7 @@ def test_a_mote_that_never_heard_the_node_of_an_rssi_condition_parks_until_it_do
         assert h.g.role(2) is Role.IDLE
 
     with monkeypatch.context() as m:  # the ticking mote: no RSSI parking
-        m.setattr(groups_module, "unheard", lambda ctx, attr, now: False)
+        m.setattr(conditions_module, "unheard", lambda ctx, attr, now: False)
         until_the_robot(ticking)
     until_the_robot(parked)
     assert ticking.g.stats.checks_parked == 0

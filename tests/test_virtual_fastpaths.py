@@ -17,9 +17,9 @@ from awaremw.bench import aware_load
 from awaremw.experiments.scenario import load_scenario
 from awaremw.experiments.virtual import VirtualRun
 from awaremw.nodes import kinds
-from awaremw.protocol import groups
 from awaremw.protocol.core import IdleCheck
 from awaremw.protocol.frames import BROADCAST, Hello, encode
+from awaremw.protocol.groups import conditions
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio import reception
 from awaremw.radio.mac import Air, _mw
@@ -218,7 +218,8 @@ def test_parking_on_an_unheard_rssi_node_changes_no_event(monkeypatch: pytest.Mo
     hears it (issue 31); the run decides exactly what it decides when every mote checks."""
     parked, n_parked = _romeo4r_trace(60.0)
     assert any("GroupJoined" in line for line in parked)
-    monkeypatch.setattr(groups, "unheard", lambda ctx, attr, now: False)
+    # Patched where the parking (Conditions) looks it up.
+    monkeypatch.setattr(conditions, "unheard", lambda ctx, attr, now: False)
     ticking, n_ticking = _romeo4r_trace(60.0)
     assert ticking == parked
     assert n_parked > n_ticking

@@ -90,7 +90,7 @@ class DataDropped:
     reason: str
 
 
-# Groups (protocol/groups.py)
+# Groups (protocol/groups/)
 class LeaveReason(Enum):
     CONDITION = "condition"  # stopped meeting the conditions
     SWITCHED = "switched"  # moved to a heavier group of the same type
