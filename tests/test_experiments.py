@@ -437,3 +437,18 @@ def test_a_settled_group_gets_a_leader_again_within_about_an_epoch(
     m = run_seed("failover", seed, tmp_path)
     assert m["id_kept"] and m["failover_epochs"] is not None
     assert m["failover_epochs"] <= 1.2, m["failover_epochs"]
+
+
+@pytest.mark.parametrize("seed", [9, 17, 19])
+def test_a_group_that_follows_the_robot_keeps_one_id(seed: int, tmp_path: Path) -> None:
+    """Issue 31: in romeo4r seeds 9 and 19 the leader kept the group until it
+    failed the relaxed condition, by then cut off from the members ahead of the
+    robot, which elected a second id; a leader in the hysteresis band now hands
+    over early. Seed 17 is where that exposed a new leader yielding to its
+    predecessor's last beacons (the same id, a larger node), leaving the group
+    leaderless: those copies are no contender."""
+    from awaremw.experiments.seeds import run_seed
+
+    m = run_seed("romeo4r", seed, tmp_path)
+    assert m["distinct_group_ids"] == 1, m["distinct_group_ids"]
+    assert m["membership_f1"] >= 0.94

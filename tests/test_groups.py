@@ -855,6 +855,93 @@ def test_any_member_heard_forwarding_is_a_candidate_good_links_first() -> None:
     assert isinstance(ho2, Handover) and ho2.dst == 21
 
 
+WARM = GroupTypeDef((Condition(T, Op.GT, 50.0),), hysteresis=2.0)
+
+
+def _warm_leader_with_children(h: H, children: list[int]) -> LeaderBeacon:
+    h.g.define(1, WARM, h.now)
+    h.advance(h.now + h.cfg.create_backoff + 0.001)
+    (b,) = h.sent()
+    assert isinstance(b, LeaderBeacon)
+    for c in children:
+        h.hear(beacon(src=c, gid=b.group_id, leader=10, seq=b.seq, hops=1))
+    h.events()
+    return b
+
+
+def test_a_leader_in_the_hysteresis_band_hands_over_while_it_still_qualifies() -> None:
+    """Issue 31 (romeo4r, seed 9): a leader that keeps its group until it fails
+    the relaxed condition is left behind by a moving group, cut off from the
+    members ahead, which then elect a new id. Out of the strict condition it is
+    at the group's edge: it hands over to a member heard lately."""
+    h = H()
+    b = _warm_leader_with_children(h, [21])
+    h.temp = 49.0  # > 50 - 2: still a member's value, no longer a newcomer's
+    h.advance(h.now + h.cfg.check_period)
+    (ho,) = h.sent()
+    assert isinstance(ho, Handover) and (ho.dst, ho.group_id) == (21, b.group_id)
+    assert h.g.role(1) is Role.HANDING_OVER
+    h.link(ho, acked=True)
+    h.advance(h.now + h.cfg.handover_grace)
+    (e,) = h.events(HandoverSent)
+    assert e.to == 21 and h.g.role(1) is Role.IDLE
+    assert all(r.status is GroupStatus.ALIVE for r in h.reports())
+
+
+def test_an_early_handover_nobody_takes_leaves_the_leader_leading() -> None:
+    h = H()
+    b = _warm_leader_with_children(h, [21])
+    h.temp = 49.0
+    h.advance(h.now + h.cfg.check_period)
+    (ho,) = h.sent()
+    h.link(ho, acked=True)
+    h.hear(Handover(21, 10, 1, b.group_id, ho.weight, ho.seq))  # refused
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader  # still qualifies: leads on
+    assert all(r.status is GroupStatus.ALIVE for r in h.reports())
+    h.advance(h.now + h.cfg.beacon_period)
+    beacons = [f for f in h.sent() if isinstance(f, LeaderBeacon)]
+    assert beacons and beacons[0].group_id == b.group_id and beacons[0].seq > b.seq
+    # Without the hysteresis band (fails the relaxed condition too) it hands over
+    # to a stale member as well, and the group is gone if none takes it.
+    h.temp = 20.0
+    h.advance(h.now + h.cfg.check_period)
+    (last,) = [f for f in h.sent() if isinstance(f, Handover)]
+    h.link(last, acked=False)
+    assert h.g.role(1) is Role.IDLE and h.reports()[-1].status is GroupStatus.GONE
+
+
+def test_a_leader_in_the_band_with_no_member_heard_lately_leads_on() -> None:
+    h = H()
+    _warm_leader_with_children(h, [21])
+    h.advance(h.now + 3 * h.cfg.beacon_period)  # 21 not heard since: stale
+    h.sent()
+    h.temp = 49.0
+    h.advance(h.now + h.cfg.check_period)
+    assert not [f for f in h.sent() if isinstance(f, Handover)]
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader
+
+
+def test_a_new_leader_by_handover_does_not_yield_to_its_predecessors_last_beacons() -> None:
+    """Issue 31 (romeo4r, seed 17): a member forwarding the old leader's last beacon
+    reached the new leader after the handover; the old leader's id (the larger node)
+    won the tie of weights and the new leader yielded, leaving the group leaderless."""
+    h = H()
+    h.g.define(1, HOT, 0.0)
+    h.hear(beacon(src=12, gid=500, leader=12, weight=40, seq=17, hops=0))
+    h.hear(Handover(12, 10, 1, 500, 40, 17))
+    (e,) = h.events(LeaderElected)
+    assert e.cause is ElectionCause.HANDOVER
+    h.sent()
+    h.hear(beacon(src=5, gid=500, leader=12, weight=40, seq=17, hops=1))  # forwarded late
+    m = h.g.membership(1)
+    assert m is not None and m.is_leader and h.events(LeaderYielded) == []
+    # A claimant of our id that is not our predecessor still wins the tie.
+    h.hear(beacon(src=13, gid=500, leader=13, weight=40, seq=18, hops=0))
+    assert h.g.role(1) is Role.MEMBER and len(h.events(LeaderYielded)) == 1
+
+
 def test_leader_without_known_member_reports_gone() -> None:
     h = H()
     h.lead()

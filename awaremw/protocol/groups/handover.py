@@ -29,6 +29,9 @@ class _Succession:
     candidates: list[int] = field(default_factory=list)  # yet to ask, best first
     handover_to: int | None = None
     handed: tuple[int, int] | None = None  # (group id, seq) of our last Handover
+    early: bool = False  # handing over while still qualifying (relaxed): may stay
+    early_after: float = -math.inf  # no early handover before (one found no taker)
+    predecessor: int = 0  # leader by handover: the node that handed us the group
 
 
 class Handovers:
@@ -49,7 +52,15 @@ class Handovers:
 
     def seed(self, gtype: int, known: dict[int, Child]) -> None:
         """The member neighbours known when the mote enters a group."""
-        self._at[gtype].children = known
+        h = self._at[gtype]
+        h.children = known
+        h.predecessor = 0
+
+    def from_predecessor(self, gtype: int, leader: int, seq: int, our_seq: int) -> bool:
+        """A beacon of our id from the leader that handed us the group, not newer
+        than ours: a copy of its last beacons still on the way, not a claimant."""
+        h = self._at[gtype]
+        return h.predecessor != 0 and leader == h.predecessor and not seq_newer(seq, our_seq)
 
     def clear(self, gtype: int) -> None:
         """The mote left its group."""
@@ -70,9 +81,14 @@ class Handovers:
         count = 0 if old is None else old[1]
         children[src] = (now, count, self._kit.link_rssi(src, rssi))
 
-    def start(self, s: Standing, now: float, moves: Moves) -> None:
-        """The leader stopped qualifying: hand the group over."""
+    def start(self, s: Standing, now: float, moves: Moves, early: bool = False) -> None:
+        """The leader stopped qualifying: hand the group over. ``early``: it still
+        qualifies with the hysteresis but no longer without (it is at the group's
+        edge, leaving it): hand over to a member heard lately, stay if none takes
+        the group (docs/protocol-groups.md, "Handover")."""
         h = self._at[s.gtype]
+        if early and now < h.early_after:
+            return
         fresh_for = 1.5 * self._kit.ctx.config.beacon_period
         ttl = self._kit.timeout()
         floor = self._kit.ctx.config.group_link_rssi_floor
@@ -84,7 +100,10 @@ class Handovers:
             ),
             reverse=True,
         )
-        h.candidates = [n for *_, n in ranked]
+        h.candidates = [n for fresh, *_, n in ranked if fresh or not early]
+        if not h.candidates and early:
+            return
+        h.early = early
         self._kit.timers.cancel((Tick.BEACON, s.gtype))
         s.move_to(Role.HANDING_OVER)
         self._next_candidate(s, now, moves)
@@ -115,6 +134,7 @@ class Handovers:
         weight = max(f.weight, s.weight) if member else f.weight
         self._kit.stats.handovers_accepted += 1
         moves.become_leader(s, f.group_id, weight, seq, now, ElectionCause.HANDOVER)
+        self._at[s.gtype].predecessor = f.src
 
     def on_link_result(
         self, s: Standing, f: Handover, acked: bool, now: float, moves: Moves
@@ -153,6 +173,14 @@ class Handovers:
     def _next_candidate(self, s: Standing, now: float, moves: Moves) -> None:
         self._kit.timers.cancel((Tick.HANDOVER, s.gtype))
         h = self._at[s.gtype]
+        if not h.candidates and h.early:
+            # Nobody took it, and we still qualify (relaxed): lead on, and try
+            # again a beacon period later.
+            h.early, h.handover_to = False, None
+            h.early_after = now + self._kit.ctx.config.beacon_period
+            s.move_to(Role.LEADER)
+            self._pace.resume(s.gtype, now)
+            return
         if not h.candidates:
             # Nobody to hand over to: the group is gone; members will elect a new one.
             self._pace.report(s, now, GroupStatus.GONE)

@@ -59,6 +59,10 @@ class Merge:
             else:
                 self._flood.rebut(s, now)
         elif role is Role.LEADER:
+            if f.group_id == s.gid and self._handovers.from_predecessor(
+                s.gtype, f.leader, f.seq, s.seq
+            ):
+                return  # our predecessor's last beacons, forwarded: not a contender
             if f.group_id == s.gid:
                 # Another leader with our id: a failover claim, an id clash or a
                 # duplicated handover. The larger (weight, leader node) keeps it;

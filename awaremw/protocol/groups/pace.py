@@ -130,6 +130,12 @@ class Pace:
         if due is not None and due > p.last_beacon + base:
             timers.set(name, p.last_beacon + base)
 
+    def resume(self, gtype: int, now: float) -> None:
+        """A leader back from an early handover that nobody took: its next beacon
+        when it was due (at once if that passed)."""
+        p = self._at[gtype]
+        self._kit.timers.set((Tick.BEACON, gtype), max(now, p.last_beacon + self.gap(gtype)))
+
     def beacon(self, s: Standing, now: float) -> None:
         kit = self._kit
         p = self._at[s.gtype]

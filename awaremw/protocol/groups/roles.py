@@ -101,6 +101,17 @@ class Roles:
             self.leave(s, now, LeaveReason.CONDITION)
         elif role is Role.LEADER and not q:
             p.handovers.start(s, now, self)
+        elif (
+            role is Role.LEADER
+            and s.defn.hysteresis > 0
+            and not p.conditions.qualifies(s.defn, False, now)
+        ):
+            # In the hysteresis band: the leader is at the group's edge, leaving
+            # it. It hands over now, while members around it still qualify and
+            # hear it: a group that moves (a robot, a spreading fire) otherwise
+            # leaves its leader behind, cut off from the members ahead, and they
+            # elect a new id (the split rule).
+            p.handovers.start(s, now, self, early=True)
 
     def purge(self, s: Standing, now: float) -> None:
         """Forget the groups and neighbours not heard for a leader timeout."""
