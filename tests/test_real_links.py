@@ -222,13 +222,12 @@ def test_a_tossim_topology_runs_as_given_with_each_receivers_noise_line(tmp_path
         got = measured.get(pair, 0.0)
         if margin >= 20.0:
             assert got >= 0.9, (pair, margin, got)
-        # At -5 dB a +-4 dB noise range still lets 6-7 % through: the preset's
-        # 802.15.4 O-QPSK curve delivers half of the frames at -1.6 dB SNR
-        # (docs/radio.md, "Links files"); from -6 dB on, at most 5 %.
-        if margin <= -6.0:
+        # A frame holds against the noise at its start and at its end, as TOSSIM
+        # checks it (docs/radio.md, "Links files"): taken at its end only, a
+        # +-4 dB range let 6-7 % through at -5 dB (the 802.15.4 O-QPSK curve
+        # delivers half of the frames at -1.6 dB SNR).
+        if margin <= -5.0:
             assert got <= 0.05, (pair, margin, got)
-        elif margin <= -5.0:
-            assert got <= 0.1, (pair, margin, got)
     # The same gain is heard at one receiver and lost at the other: its noise line.
     assert measured[(1, 20)] >= 0.9  # -59 dBm over a -84 dBm floor
     assert measured.get((8, 20), 0.0) == 0.0

@@ -83,6 +83,10 @@ class RadioEnvironment:
         return None if self.noise is None else self.noise.at
 
     @property
+    def noise_spans_frames(self) -> bool:
+        return isinstance(self.noise, LineNoise)
+
+    @property
     def tx_offset(self) -> Callable[[int], float] | None:
         return None if self.hardware is None else self.hardware.tx_offset
 

@@ -149,6 +149,9 @@ class Reception(Generic[R]):
         prr_bits = self.model.prr_bits
         memo = self.model.prr_memo
         nz = self.model.noise_at  # None: the preset's constant floor
+        # RadioModel.frame_noise inlined: with noise drawn afresh at each instant
+        # the louder of the frame's start and end counts.
+        t0 = t - bits / self.preset.bitrate_bps if self.model.noise_spans else None
         noise_mw: float | None = None
         normal = NORMAL
         mask = M64
@@ -171,6 +174,8 @@ class Reception(Generic[R]):
                 continue
             if nz is not None:
                 noise = nz(r.node_id, t)
+                if t0 is not None:
+                    noise = max(nz(r.node_id, t0), noise)
             snr = rssi - noise
             if snr < one:
                 z ^= z >> 31
@@ -287,8 +292,7 @@ class Reception(Generic[R]):
         at ``t``); lost -> ``dropped_loss``; destroyed by the ``others`` ->
         ``collisions``; received -> ``frames_rx``, ``bytes_rx``, and the packet's
         RSSI is returned."""
-        nz = self.model.noise_at
-        noise = None if nz is None else nz(r.node_id, t)
+        noise = self.model.frame_noise(r.node_id, t, bits)
         ok, rssi = self.model.decide(link_h, mean, bits, key, noise)
         if not ok:
             rc.dropped_loss += 1
