@@ -141,6 +141,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     bits = 8 * (REFERENCE_BYTES + preset.phy_overhead_bytes)
     max_fade = preset.fading_sigma_db * Z_MAX
     sens = preset.sensitivity_dbm
+    no = model.noise_over
     ids = sorted(pos)
     n = args.beacons
     measured: dict[tuple[int, int], list[bool]] = {}
@@ -164,7 +165,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             out = []
             for k in range(n):
                 t_end = start + k * interval + airtime
-                noise = model.frame_noise(r, t_end, bits)
+                noise = None if no is None else no(r, t_end - airtime, t_end)
                 ok, _ = model.decide(lh, mean, bits, packet_key(k & 0xFFFF), noise)
                 out.append(ok)
             measured[(s, r)] = out

@@ -83,8 +83,8 @@ class RadioEnvironment:
         return None if self.noise is None else self.noise.at
 
     @property
-    def noise_spans_frames(self) -> bool:
-        return isinstance(self.noise, LineNoise)
+    def noise_over(self) -> Callable[[int, float, float], float] | None:
+        return None if self.noise is None else self.noise.over
 
     @property
     def tx_offset(self) -> Callable[[int], float] | None:

@@ -290,9 +290,9 @@ class Realism(Protocol):
         ...
 
     @property
-    def noise_spans_frames(self) -> bool:
-        """The noise is drawn afresh at each instant (TOSSIM's noise lines): a
-        frame must hold against it at its start and at its end."""
+    def noise_over(self) -> Callable[[int, float, float], float] | None:
+        """The noise a frame on the air from ``t0`` to ``t1`` is received against
+        at a mote (``noise_over(node, t0, t1)``); None: the preset's floor."""
         ...
 
     @property
@@ -373,7 +373,7 @@ class RadioModel:
         "_tx_sigma",
         "env",
         "noise_at",
-        "noise_spans",
+        "noise_over",
         "one_snr_db",
         "preset",
         "prr_memo",
@@ -394,14 +394,14 @@ class RadioModel:
         self.env = env
         # The noise at a receiver at an instant (dBm); None: preset.noise_floor_dbm.
         self.noise_at: Callable[[int, float], float] | None = None
-        # Receptions take the noise at the frame's start and end (frame_noise).
-        self.noise_spans = False
+        # The noise a frame is received against, from its start to its end.
+        self.noise_over: Callable[[int, float, float], float] | None = None
         self._tx_offset = None if env is None else env.tx_offset
         self._tx_sigma = 0.0 if env is None else env.tx_sigma_db
         self._links = None if env is None else env.gains
         if env is not None:
             self.noise_at = env.noise_at
-            self.noise_spans = env.noise_spans_frames
+            self.noise_over = env.noise_over
         self._bn_over_r = preset.noise_bandwidth_hz / preset.bitrate_bps
         # Bounds (entries; each cache is cleared when full, its values are pure
         # functions, so clearing only costs recomputation):
@@ -562,21 +562,6 @@ class RadioModel:
         """PRR of a frame of ``frame_len`` bytes (ours; PHY overhead is added)."""
         return self.prr_bits(rssi_dbm, 8 * (frame_len + self.preset.phy_overhead_bytes))
 
-    def frame_noise(self, node: int, t: float, bits: int) -> float | None:
-        """The noise a frame of ``bits`` ending at ``t`` is received against at
-        ``node`` (None: the preset's floor). Noise drawn afresh at each instant
-        (``noise_spans``: TOSSIM's noise lines) is taken at the frame's start and
-        at its end and the louder one counts: the frame must hold against both,
-        as TOSSIM checks a reception when the frame begins and when it ends.
-        Trace noise (CPM) is one reading per millisecond with the readings before
-        it as its state: the reading at the end stands for the frame."""
-        nz = self.noise_at
-        if nz is None:
-            return None
-        if not self.noise_spans:
-            return nz(node, t)
-        return max(nz(node, t - bits / self.preset.bitrate_bps), nz(node, t))
-
     def decide(
         self,
         link_h: int,
@@ -642,9 +627,12 @@ class RadioModel:
         t: float,
     ) -> tuple[bool, float]:
         mean = self.mean_rssi(src, dst, distance, tx_power)
+        no = self.noise_over
+        t0 = t - bits / self.preset.bitrate_bps
         ok, rssi = self.decide(
-            self.fading_link_hash(src, dst), mean, bits, packet_key, self.frame_noise(dst, t, bits)
-        )
+            self.fading_link_hash(src, dst), mean, bits, packet_key,
+            None if no is None else no(dst, t0, t),
+        )  # fmt: skip
         if distance > self.max_range_m(tx_power):
             return False, rssi
         return ok, rssi

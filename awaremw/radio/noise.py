@@ -72,6 +72,10 @@ class NoiseSource(Protocol):
         """The noise (dBm) at mote ``node``'s receiver at emulated time ``t`` (s)."""
         ...
 
+    def over(self, node: int, t0: float, t1: float) -> float:
+        """The noise a frame on the air from ``t0`` to ``t1`` is received against."""
+        ...
+
     def level(self, node: int) -> float:
         """The noise ``node`` hears most of the time (dBm): its floor, for the
         benchmarks and for turning a delivery probability into a gain."""
@@ -304,6 +308,9 @@ class WhiteNoise:
         hw = self.hw
         return self.floor_dbm if hw is None else self.floor_dbm + hw.noise_offset(node)
 
+    def over(self, node: int, t0: float, t1: float) -> float:
+        return self.at(node, t1)
+
     def level(self, node: int) -> float:
         return self.at(node, 0.0)
 
@@ -329,6 +336,11 @@ class LineNoise:
             return mean
         h = packet_hash(link_hash(self._seed, DOMAIN_NOISE, node, 0), int(t * 1e6) & M64)
         return mean + rng * (2.0 * (h & 0xFFFFFFFF) / 4294967296.0 - 1.0)
+
+    def over(self, node: int, t0: float, t1: float) -> float:
+        """The louder of the draws at the frame's start and at its end: TOSSIM
+        checks a reception when the frame begins and again when it ends."""
+        return max(self.at(node, t0), self.at(node, t1))
 
     def level(self, node: int) -> float:
         return self.per_node.get(node, self.default)[0]
@@ -421,6 +433,11 @@ class TraceNoise:
         ms = int(t * 1000.0)
         c = self._chain(node, ms)
         return self._read(c, ms) + c.off
+
+    def over(self, node: int, t0: float, t1: float) -> float:
+        """The reading at the frame's end: the chain is one reading per ms with
+        the readings before it as its state, asked in time order."""
+        return self.at(node, t1)
 
     def level(self, node: int) -> float:
         return self.trace.mode + self._offset(node)

@@ -148,10 +148,8 @@ class Reception(Generic[R]):
         sf = self.sigma_f
         prr_bits = self.model.prr_bits
         memo = self.model.prr_memo
-        nz = self.model.noise_at  # None: the preset's constant floor
-        # RadioModel.frame_noise inlined: with noise drawn afresh at each instant
-        # the louder of the frame's start and end counts.
-        t0 = t - bits / self.preset.bitrate_bps if self.model.noise_spans else None
+        nz = self.model.noise_over  # None: the preset's constant floor
+        t0 = t - bits / self.preset.bitrate_bps  # the frame's start
         noise_mw: float | None = None
         normal = NORMAL
         mask = M64
@@ -173,9 +171,7 @@ class Reception(Generic[R]):
                         tap.reception(now, src, r.node_id, rssi, "path_loss")
                 continue
             if nz is not None:
-                noise = nz(r.node_id, t)
-                if t0 is not None:
-                    noise = max(nz(r.node_id, t0), noise)
+                noise = nz(r.node_id, t0, t)
             snr = rssi - noise
             if snr < one:
                 z ^= z >> 31
@@ -292,7 +288,8 @@ class Reception(Generic[R]):
         at ``t``); lost -> ``dropped_loss``; destroyed by the ``others`` ->
         ``collisions``; received -> ``frames_rx``, ``bytes_rx``, and the packet's
         RSSI is returned."""
-        noise = self.model.frame_noise(r.node_id, t, bits)
+        no = self.model.noise_over
+        noise = None if no is None else no(r.node_id, t - bits / self.preset.bitrate_bps, t)
         ok, rssi = self.model.decide(link_h, mean, bits, key, noise)
         if not ok:
             rc.dropped_loss += 1
