@@ -13,9 +13,9 @@ from awaremw.protocol.attributes import (
     attribute_name,
 )
 from awaremw.protocol.config import MiddlewareConfig
-from awaremw.protocol.core import Rejoin, Transmission
+from awaremw.protocol.core import Transmission
 from awaremw.protocol.events import MalformedFrame
-from awaremw.protocol.frames import BROADCAST, CtpBeacon, DripSummary, Hello, decode, encode
+from awaremw.protocol.frames import BROADCAST, Hello, decode, encode
 from awaremw.protocol.mote import AwareMote
 from awaremw.protocol.timers import TimerSet
 
@@ -67,31 +67,6 @@ def test_hello_beacon_period() -> None:
         sent += [t for t in m.drain() if isinstance(decode(t.frame), Hello)]
     assert 9 <= len(sent) <= 11
     assert all(t.dest == BROADCAST for t in sent)
-
-
-def _kinds_until(m: AwareMote, end: float) -> list[type]:
-    """The frame types ``m`` sends from its timers until ``end``."""
-    out: list[type] = []
-    while (d := m.next_deadline()) is not None and d <= end:
-        m.handle_timer(d)
-        out += [type(decode(t.frame)) for t in m.drain()]
-    return out
-
-
-def test_a_core_that_rejoined_its_peers_time_announces_itself_again() -> None:
-    """A process started under running peers refuses their frames until its clock
-    joins them, and they refuse its boot summary and beacon as late: after the
-    join the core says them again (protocol/core.py, Rejoin), not a Trickle
-    interval later (the abuse benchmark's restart-fleet waited 33 s for records)."""
-    m = AwareMote(4, rng=random.Random(3))
-    assert isinstance(m, Rejoin)
-    m.start(0.0)
-    first = _kinds_until(m, 30.0)
-    assert DripSummary in first and CtpBeacon in first  # the boot announcements
-    assert DripSummary not in _kinds_until(m, 60.0)  # nothing more to say by then
-    m.rejoined(60.0)
-    again = _kinds_until(m, 61.0)
-    assert DripSummary in again and CtpBeacon in again
 
 
 def test_timerset_fires_in_time_order() -> None:

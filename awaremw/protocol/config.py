@@ -57,6 +57,10 @@ class MiddlewareConfig:
     ctp_holddown: float = 2.0  # s without route (poisoned) before accepting a costlier parent
     ctp_dup_cache: int = 32  # (origin, seqno, thl) entries remembered by a forwarder
     ctp_root_window: int = 32  # per-origin seqnos remembered by a root for delivery
+    # s; a copy of a packet is a duplicate only this long after the first: later,
+    # the same (origin, seqno) is a new packet of an origin that rebooted (its
+    # seqnos start again at 1), not a retransmission whose ACK was lost.
+    ctp_dup_ttl: float = 10.0
 
     # Groups
     check_period: float = 1.0  # membership check

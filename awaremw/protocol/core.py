@@ -86,14 +86,3 @@ class IdleCheck(Protocol):
     """
 
     def idle(self) -> bool: ...
-
-
-@runtime_checkable
-class Rejoin(Protocol):
-    """Optional: the driver's clock moved forward onto its peers' time (a process
-    started under running peers, docs/robustness.md). Everything the core said
-    until then went out on another time base and its peers refused it, so it
-    announces itself again as after a boot (the boot summary and beacon of its
-    dissemination and collection); its state is kept."""
-
-    def rejoined(self, now: float) -> None: ...

@@ -54,8 +54,10 @@ class Forwarder:
         self._queue: deque[_Packet] = deque()
         self._in_flight: CtpData | None = None
         self._seqno = 0
-        self._dups: OrderedDict[tuple[int, int], int] = OrderedDict()  # -> THL heard
-        self._root_seen: dict[int, deque[int]] = {}
+        # (origin, seqno) -> (THL heard, when): copies within ctp_dup_ttl are duplicates.
+        self._dups: OrderedDict[tuple[int, int], tuple[int, float]] = OrderedDict()
+        # Root: origin -> seqno -> when delivered (the last ctp_root_window seqnos).
+        self._root_seen: dict[int, OrderedDict[int, float]] = {}
 
     def __len__(self) -> int:
         return len(self._queue)
@@ -88,7 +90,8 @@ class Forwarder:
             self._stats.inconsistencies += 1
             self._beacons.reset(now)
         key = (d.origin, d.seqno)
-        heard = self._dups.get(key)
+        entry = self._dups.get(key)
+        heard = None if entry is None or now - entry[1] > self._ctx.config.ctp_dup_ttl else entry[0]
         if heard is None:
             heard = next((p.rx_thl for p in self._queue if (p.origin, p.seqno) == key), None)
         if heard == d.thl:
@@ -107,7 +110,7 @@ class Forwarder:
             # records, 4,363 forwards); one copy per forwarder is enough.
             self._stats.duplicates += 1
             return
-        self._dups[key] = d.thl
+        self._dups[key] = (d.thl, now)
         self._dups.move_to_end(key)
         if len(self._dups) > self._ctx.config.ctp_dup_cache:
             self._dups.popitem(last=False)
@@ -159,13 +162,18 @@ class Forwarder:
         self._send(frame)
 
     def _deliver(self, origin: int, seqno: int, payload: Payload, thl: int, now: float) -> None:
+        cfg = self._ctx.config
         seen = self._root_seen.get(origin)
         if seen is None:
-            seen = self._root_seen[origin] = deque(maxlen=self._ctx.config.ctp_root_window)
-        if seqno in seen:
+            seen = self._root_seen[origin] = OrderedDict()
+        at = seen.get(seqno)
+        if at is not None and now - at <= cfg.ctp_dup_ttl:
             self._stats.duplicates += 1
             return
-        seen.append(seqno)
+        seen[seqno] = now
+        seen.move_to_end(seqno)
+        if len(seen) > cfg.ctp_root_window:
+            seen.popitem(last=False)
         self._stats.delivered += 1
         self._ctx.emit(Delivered(origin, payload, thl, now))
 

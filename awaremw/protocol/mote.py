@@ -131,13 +131,6 @@ class AwareMote:
         for c in self._components:
             c.start(now)
 
-    def rejoined(self, now: float) -> None:
-        """:class:`~awaremw.protocol.core.Rejoin`: the boot announcements again
-        (a summary of the items held, a collection beacon), state kept."""
-        if self.started:
-            self.dissemination.start(now)
-            self.collection.start(now)
-
     def receive(self, frame: bytes, rssi_dbm: float, now: float) -> None:
         try:
             f = decode_shared(frame)

@@ -26,7 +26,7 @@ import math
 from array import array
 from collections.abc import Callable
 
-from awaremw.protocol.core import MoteCore, Rejoin, Transmission
+from awaremw.protocol.core import MoteCore, Transmission
 from awaremw.protocol.events import EventHook, MalformedFrame, MoteDown, MoteEvent, MoteUp
 from awaremw.radio.counters import MoteCounters
 from awaremw.radio.faults import FaultLog
@@ -231,8 +231,7 @@ class MoteRunner:
     def rearm(self) -> None:
         """Arm the timer again after the clock was re-anchored (its loop instant
         was computed on the old origin); a mote waiting to boot waits for its boot
-        time on the new origin, a running one announces itself again
-        (:class:`~awaremw.protocol.core.Rejoin`)."""
+        time on the new origin."""
         if self.stopped:
             return
         if not self.alive:
@@ -245,15 +244,7 @@ class MoteRunner:
             self._handle.cancel()
             self._handle = None
         self._armed = None
-        now = self.clock.now()
-        if isinstance(self.core, Rejoin):
-            # What it announced so far went out on the old origin: its peers
-            # refused it as late. Say it again (protocol/core.py, Rejoin).
-            try:
-                self.core.rejoined(now)
-            except Exception as e:
-                self._fault("rejoined", e)
-        self._after_guarded(now)
+        self._after_guarded(self.clock.now())
 
     # ------------------------------------------------------------------ last guards
 
