@@ -132,9 +132,9 @@ class H:
     def reports(self) -> list[GroupReport]:
         return [p for p in self.coll.submitted if isinstance(p, GroupReport)]
 
-    def lead(self) -> LeaderBeacon:
-        """Define HOT and let this mote create a group; returns its first beacon."""
-        self.g.define(1, HOT, self.now)
+    def lead(self, defn: GroupTypeDef = HOT) -> LeaderBeacon:
+        """Define ``defn`` and let this mote create a group; returns its first beacon."""
+        self.g.define(1, defn, self.now)
         self.advance(self.now + self.cfg.create_backoff + 0.001)
         (b,) = self.sent()
         assert isinstance(b, LeaderBeacon)
@@ -791,8 +791,8 @@ def test_new_group_after_leader_loss_never_reuses_the_dead_id() -> None:
 # --------------------------------------------------------------------------- handover
 
 
-def _leader_with_children(h: H, children: list[int]) -> LeaderBeacon:
-    b = h.lead()
+def _leader_with_children(h: H, children: list[int], defn: GroupTypeDef = HOT) -> LeaderBeacon:
+    b = h.lead(defn)
     for c in children:
         h.hear(beacon(src=c, gid=b.group_id, leader=10, seq=b.seq, hops=1))
     h.events()
@@ -858,24 +858,13 @@ def test_any_member_heard_forwarding_is_a_candidate_good_links_first() -> None:
 WARM = GroupTypeDef((Condition(T, Op.GT, 50.0),), hysteresis=2.0)
 
 
-def _warm_leader_with_children(h: H, children: list[int]) -> LeaderBeacon:
-    h.g.define(1, WARM, h.now)
-    h.advance(h.now + h.cfg.create_backoff + 0.001)
-    (b,) = h.sent()
-    assert isinstance(b, LeaderBeacon)
-    for c in children:
-        h.hear(beacon(src=c, gid=b.group_id, leader=10, seq=b.seq, hops=1))
-    h.events()
-    return b
-
-
 def test_a_leader_in_the_hysteresis_band_hands_over_while_it_still_qualifies() -> None:
     """Issue 31 (romeo4r, seed 9): a leader that keeps its group until it fails
     the relaxed condition is left behind by a moving group, cut off from the
     members ahead, which then elect a new id. Out of the strict condition it is
     at the group's edge: it hands over to a member heard lately."""
     h = H()
-    b = _warm_leader_with_children(h, [21])
+    b = _leader_with_children(h, [21], WARM)
     h.temp = 49.0  # > 50 - 2: still a member's value, no longer a newcomer's
     h.advance(h.now + h.cfg.check_period)
     (ho,) = h.sent()
@@ -890,7 +879,7 @@ def test_a_leader_in_the_hysteresis_band_hands_over_while_it_still_qualifies() -
 
 def test_an_early_handover_nobody_takes_leaves_the_leader_leading() -> None:
     h = H()
-    b = _warm_leader_with_children(h, [21])
+    b = _leader_with_children(h, [21], WARM)
     h.temp = 49.0
     h.advance(h.now + h.cfg.check_period)
     (ho,) = h.sent()
@@ -913,7 +902,7 @@ def test_an_early_handover_nobody_takes_leaves_the_leader_leading() -> None:
 
 def test_a_leader_in_the_band_with_no_member_heard_lately_leads_on() -> None:
     h = H()
-    _warm_leader_with_children(h, [21])
+    _leader_with_children(h, [21], WARM)
     h.advance(h.now + 3 * h.cfg.beacon_period)  # 21 not heard since: stale
     h.sent()
     h.temp = 49.0

@@ -38,19 +38,9 @@ def record_events(net: VirtualNetwork) -> list[str]:
 def experiment_trace(name: str, seed: int) -> list[str]:
     """Every core event of a seeded virtual run of experiment ``name`` (its
     shipped deployment, its own ``prepare``), then every mote's radio counters."""
-    import dataclasses
-    import importlib
+    from awaremw.experiments.seeds import seeded_run
 
-    from awaremw.experiments.scenario import load_scenario, scenario_of
-    from awaremw.experiments.seeds import EXPERIMENTS
-    from awaremw.experiments.virtual import VirtualRun
-
-    deployment, module = EXPERIMENTS[name]
-    sc = load_scenario(deployment)
-    run = VirtualRun(scenario_of(dataclasses.replace(sc.deployment, seed=seed)))
-    prepare = getattr(importlib.import_module(module), "prepare", None)
-    if prepare is not None:
-        prepare(run)
+    run = seeded_run(name, seed)
     out = record_events(run.net)
     run.run(None)
     for nid, c in sorted(run.net.counters.items()):

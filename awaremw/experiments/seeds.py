@@ -24,11 +24,14 @@ from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from awaremw.experiments import EXPERIMENTS, analysis, write_metrics
 from awaremw.radio.environment import RadioSettings
 from awaremw.runtime.deployment import Deployment
+
+if TYPE_CHECKING:
+    from awaremw.experiments.virtual import VirtualRun
 
 MAX_SEEDS = 1000
 
@@ -74,22 +77,35 @@ def run_seed(
 ) -> dict[str, Any]:
     """One virtual run of experiment ``name`` with the deployment's seed set to ``seed``
     (and its ``mac`` / ``collisions`` keys replaced by ``medium``'s, if given)."""
+    run = seeded_run(name, seed, deployment, medium)
+    result = run.run(duration)
+    metrics = analysis(name)(result, out)
+    metrics["seed"] = seed
+    metrics["mac"] = run.scenario.deployment.mac
+    metrics["collisions"] = run.scenario.deployment.collisions
+    write_metrics(out, metrics)
+    return metrics
+
+
+def seeded_run(
+    name: str,
+    seed: int,
+    deployment: str | None = None,
+    medium: Mapping[str, str] | None = None,
+) -> VirtualRun:
+    """The virtual run of experiment ``name`` that :func:`run_seed` runs: its
+    deployment (or ``deployment``) with ``seed`` and ``medium``'s keys, prepared
+    by the experiment's own ``prepare`` if it has one; not started."""
     from awaremw.experiments.scenario import load_scenario, scenario_of
     from awaremw.experiments.virtual import VirtualRun
 
     sc = load_scenario(deployment or EXPERIMENTS[name][0])
-    sc = scenario_of(with_medium(dataclasses.replace(sc.deployment, seed=seed), medium))
-    run = VirtualRun(sc)
+    d = with_medium(dataclasses.replace(sc.deployment, seed=seed), medium)
+    run = VirtualRun(scenario_of(d))
     prepare = getattr(importlib.import_module(EXPERIMENTS[name][1]), "prepare", None)
     if prepare is not None:
         prepare(run)
-    result = run.run(duration)
-    metrics = analysis(name)(result, out)
-    metrics["seed"] = seed
-    metrics["mac"] = sc.deployment.mac
-    metrics["collisions"] = sc.deployment.collisions
-    write_metrics(out, metrics)
-    return metrics
+    return run
 
 
 def with_medium(d: Deployment, medium: Mapping[str, str] | None) -> Deployment:

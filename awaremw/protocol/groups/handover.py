@@ -31,7 +31,7 @@ class _Succession:
     handed: tuple[int, int] | None = None  # (group id, seq) of our last Handover
     early: bool = False  # handing over while still qualifying (relaxed): may stay
     early_after: float = -math.inf  # no early handover before (one found no taker)
-    predecessor: int = 0  # leader by handover: the node that handed us the group
+    predecessor: int | None = None  # leader by handover: the node that handed us the group
 
 
 class Handovers:
@@ -54,13 +54,13 @@ class Handovers:
         """The member neighbours known when the mote enters a group."""
         h = self._at[gtype]
         h.children = known
-        h.predecessor = 0
+        h.predecessor = None
 
     def from_predecessor(self, gtype: int, leader: int, seq: int, our_seq: int) -> bool:
         """A beacon of our id from the leader that handed us the group, not newer
         than ours: a copy of its last beacons still on the way, not a claimant."""
         h = self._at[gtype]
-        return h.predecessor != 0 and leader == h.predecessor and not seq_newer(seq, our_seq)
+        return leader == h.predecessor and not seq_newer(seq, our_seq)
 
     def clear(self, gtype: int) -> None:
         """The mote left its group."""
@@ -134,7 +134,7 @@ class Handovers:
         weight = max(f.weight, s.weight) if member else f.weight
         self._kit.stats.handovers_accepted += 1
         moves.become_leader(s, f.group_id, weight, seq, now, ElectionCause.HANDOVER)
-        self._at[s.gtype].predecessor = f.src
+        self._at[s.gtype].predecessor = f.src  # after: becoming leader seeds the succession
 
     def on_link_result(
         self, s: Standing, f: Handover, acked: bool, now: float, moves: Moves
