@@ -353,6 +353,56 @@ def test_eviction_after_consecutive_failures_and_drop_after_retries() -> None:
     assert u.c.queue_length == 0
 
 
+def test_an_evicted_parent_is_replaced_by_a_feasible_neighbour_without_poison() -> None:
+    """Bursty links: a noise burst at the parent loses a few unicasts in a row,
+    yet the neighbourhood still has routes. A neighbour advertising less than
+    our lowest cost since we took the route (not one of our descendants) takes
+    over at once: no NO_ROUTE beacon, so our children keep their routes."""
+    u = Unit(ctp_evict_after_failures=2)
+    u.beacon(1, 10, 0)
+    u.beacon(2, 15, 0)  # within the switch threshold of 1: not chosen yet
+    assert u.c.parent == 1 and u.c.cost == 20
+    u.now = 1.0
+    u.c.submit(rec(1), u.now)
+    u.sent()
+    u.result(False)
+    u.advance(1.3)
+    u.result(False)  # second failure in a row: 1 evicted
+    assert 1 not in u.c.neighbours
+    assert u.c.parent == 2 and u.c.stats.switches_on_eviction == 1
+    assert all(b.cost < NO_ROUTE for b in u.sent() if isinstance(b, CtpBeacon))
+
+
+def test_an_evicted_parent_with_only_costlier_neighbours_poisons() -> None:
+    """A neighbour advertising our own cost or more may be our descendant: after
+    the eviction the route is lost and poisoned, as before."""
+    u = Unit(ctp_evict_after_failures=2)
+    u.beacon(1, 10, 0)
+    u.beacon(3, 20, 0)  # our cost through 1 is 20: 3 may route through us
+    u.now = 1.0
+    u.c.submit(rec(1), u.now)
+    u.result(False)
+    u.advance(1.3)
+    u.result(False)
+    assert u.c.parent is None and u.c.stats.switches_on_eviction == 0
+
+
+def test_a_neighbour_not_heard_lately_does_not_replace_an_evicted_parent() -> None:
+    """A neighbour silent for ctp_switch_fresh may have died with the parent."""
+    u = Unit(ctp_evict_after_failures=2, ctp_switch_fresh=30.0, ctp_parent_switch_threshold=5)
+    u.beacon(2, 8, 0)
+    u.now = 0.5
+    u.beacon(1, 0, 0)  # better by the threshold: 1 becomes the parent (cost 10)
+    assert u.c.parent == 1 and u.c.cost == 10
+    u.now = 40.0
+    u.beacon(1, 0, 0)
+    u.c.submit(rec(1), u.now)
+    u.result(False)
+    u.advance(41.3)
+    u.result(False)  # 2 advertises 8 < 10, but was last heard 41 s ago
+    assert u.c.parent is None and u.c.stats.switches_on_eviction == 0
+
+
 def test_root_delivers_once_per_origin_seqno() -> None:
     u = Unit(0, is_root=True)
     u.data(7, 9, 1, 2, 20)

@@ -64,6 +64,7 @@ class CollectionStats:
     loops: int = 0  # a packet came back to us: route poisoned
     parent_changes: int = 0
     evictions: int = 0
+    switches_on_eviction: int = 0  # evicted parent replaced without losing the route
     beacons: int = 0
     data_tx: int = 0  # unicast attempts handed to the link layer
 
@@ -111,6 +112,10 @@ class Routes:
         self._parent: int | None = None
         self._cost = 0 if cfg.is_root else NO_ROUTE
         self._lost_cost: int | None = None  # cost before the route was lost
+        # The lowest cost we held since we took a route (a feasible distance, as
+        # in DUAL): our descendants advertise more, so a neighbour advertising
+        # less cannot be one of them.
+        self._feasible = self._cost
         self._lost_parent: int | None = None  # not taken back during the hold-down
         # Neighbours must have been heard since our last route loss to be chosen:
         # older entries may be dead motes (a dead mote never says so).
@@ -315,6 +320,8 @@ class Routes:
                 # network wander with fading): CTP resets only on a loop, a lost
                 # route or a pull, and the data path reports the costs that matter.
                 self._cost = cur
+                if cur < self._feasible:
+                    self._feasible = cur
             return
         if best is None:
             return
@@ -327,6 +334,7 @@ class Routes:
         old = self._parent
         self._parent = n.node
         self._cost = path
+        self._feasible = path if old is None else min(self._feasible, path)
         self._lost_cost = self._lost_parent = None
         self._holddown_until = float("-inf")
         self._timers.cancel(HOLDDOWN_TIMER)
@@ -349,7 +357,7 @@ class Routes:
         self._fresh_since = now
         self._best_cache = None
         self._parent = None
-        self._cost = NO_ROUTE
+        self._cost = self._feasible = NO_ROUTE
         self._holddown_until = now + self._ctx.config.ctp_holddown
         self._timers.set(HOLDDOWN_TIMER, self._holddown_until)
         self._stats.parent_changes += 1
@@ -360,8 +368,20 @@ class Routes:
         self._stats.evictions += 1
         del self._neighbours[node]
         self._best_cache = None
-        if node == self._parent:
+        if node != self._parent:
+            return
+        # The parent failed us, not necessarily the others: on bursty links a
+        # noise burst at one end loses a few unicasts in a row. A neighbour
+        # heard lately that advertises a cost below our feasible distance is
+        # not one of our descendants: switch to it, as CTP does, without the
+        # poison wave (every child's route lost, pulls, beacons at tau_l).
+        fresh = now - self._ctx.config.ctp_switch_fresh
+        alt, path = self._best(self._feasible, node, max(fresh, self._fresh_since))
+        if alt is None:
             self.lose_parent(now)
+            return
+        self._stats.switches_on_eviction += 1
+        self._set_parent(alt, path, now)
 
 
 def _path_via(n: Neighbour) -> int:
