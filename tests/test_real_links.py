@@ -246,6 +246,37 @@ def test_the_intel_lab_links_deliver_what_was_measured() -> None:
     assert len(f.probabilities) == 2969 - 53  # the self pairs (" 1 1 0.0") are ignored
 
 
+def test_good_parts_join_motes_over_links_good_both_ways_only() -> None:
+    delivery = {
+        (1, 2): 0.9, (2, 1): 0.8,  # good both ways
+        (2, 3): 0.95, (3, 2): 0.5,  # good one way only: no link
+        (3, 4): 0.7, (4, 3): 0.75,
+        (4, 5): 0.69, (5, 4): 1.0,
+    }  # fmt: skip
+    good, sizes = bench_links.good_parts([1, 2, 3, 4, 5], delivery)
+    assert good == {1: {2}, 2: {1}, 3: {4}, 4: {3}, 5: set()}
+    assert sorted(sizes) == [1, 2, 2]
+
+
+def _links_of(deployment: str, noise: str | None, hw: bool | None, seed: int) -> dict:
+    a = argparse.Namespace(deployment=deployment, links=None, beacons=200, interval=0.02,
+                           radio="cc2420", seed=seed, noise=noise, hardware_variance=hw,
+                           plot=None)  # fmt: skip
+    return bench_links.run(a)
+
+
+def test_under_meyer_heavy_romeo4r_falls_apart_and_romeo4r_noisy_holds() -> None:
+    """romeo4r's -20 dBm field under meyer-heavy: no network to speak of (what
+    romeo4r_noisy is for, docs/radio.md); at 0 dBm every mote is in one part."""
+    white = _links_of("romeo4r", None, None, 2)
+    assert white["largest_good_part"] == white["motes"] and white["isolated_motes"] == 0
+    noisy = _links_of("romeo4r", "meyer-heavy", True, 2)
+    assert noisy["good_neighbours"] < 1.0 and noisy["largest_good_part"] <= 3
+    sized = _links_of("romeo4r_noisy", None, None, 2)
+    assert sized["settings"] == "noise meyer-heavy, hardware variance"
+    assert sized["largest_good_part"] == sized["motes"] and sized["good_neighbours"] > 8
+
+
 def test_binomial_interval_is_exact_at_the_edges() -> None:
     lo, hi = bench_links.binomial_interval(1000, 0.5)
     assert (lo, hi) == (459, 541)

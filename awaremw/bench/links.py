@@ -22,7 +22,13 @@ delivering 10 % to 90 %: ``beta = 1 - mean_n C(n) / PRR`` where ``C(n)`` is the
 delivery of a beacon after ``n`` consecutive losses, ``n`` = 1 to 20 with 20
 samples or more; 0 for independent losses, towards 1 for bursty links, after
 Srinivasan et al., SenSys 2008), ``transitional_m`` (the distances where
-links deliver 10 % to 90 %, with positions), ``settings``, ``wall_seconds``.
+links deliver 10 % to 90 %, with positions), ``good_neighbours`` (the mean
+number of motes a mote reaches *both ways* with at least
+:data:`GOOD_DELIVERY` of the frames), ``largest_good_part`` (the most motes
+that such links connect, directly or over several hops: when it is much
+less than ``motes``, no protocol can hold a network together over these
+links), ``isolated_motes`` (motes with no such link), ``settings``,
+``wall_seconds``.
 ``--plot PATH`` draws measured against given, delivery against distance and
 the two directions of every pair.
 """
@@ -46,6 +52,7 @@ ASYMMETRY = 0.2
 BETA_BAND = (0.1, 0.9)
 BETA_MAX_RUN = 20
 BETA_MIN_SAMPLES = 20
+GOOD_DELIVERY = 0.7  # a link a protocol can rely on, both ways (see good_parts)
 
 
 def binomial_interval(n: int, p: float, tail: float = CI_TAIL) -> tuple[int, int]:
@@ -93,6 +100,32 @@ def beta_factor(outcomes: list[bool]) -> float | None:
     if not c:
         return None
     return 1.0 - (sum(c) / len(c)) / prr
+
+
+def good_parts(
+    ids: list[int], delivery: dict[tuple[int, int], float]
+) -> tuple[dict[int, set[int]], list[int]]:
+    """The links delivering at least :data:`GOOD_DELIVERY` both ways (mote ->
+    its such neighbours), and the sizes of the parts they connect."""
+    good: dict[int, set[int]] = {i: set() for i in ids}
+    for (a, b), d in delivery.items():
+        both = d >= GOOD_DELIVERY and delivery.get((b, a), 0.0) >= GOOD_DELIVERY
+        if both and a in good and b in good:
+            good[a].add(b)
+    sizes = []
+    seen: set[int] = set()
+    for i in ids:
+        if i in seen:
+            continue
+        part, todo = {i}, [i]
+        while todo:
+            for j in good[todo.pop()]:
+                if j not in part:
+                    part.add(j)
+                    todo.append(j)
+        seen |= part
+        sizes.append(len(part))
+    return good, sizes
 
 
 def _setup(args: argparse.Namespace) -> tuple[Any, dict[int, tuple[float, float] | None],
@@ -236,6 +269,11 @@ def _report(
         "beta_median": None if not betas else round(statistics.median(betas), 4),
         "beta_links": len(betas),
     }  # fmt: skip
+    good, parts = good_parts(ids, delivery)
+    links = sum(len(v) for v in good.values())
+    result["good_neighbours"] = round(links / len(ids), 2) if ids else 0.0
+    result["largest_good_part"] = max(parts, default=0)
+    result["isolated_motes"] = sum(1 for i in ids if not good[i])
     trans = [
         math.dist(pa, pb)
         for (a, b), d in delivery.items()
