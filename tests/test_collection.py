@@ -387,6 +387,31 @@ def test_an_evicted_parent_with_only_costlier_neighbours_poisons() -> None:
     assert u.c.parent is None and u.c.stats.switches_on_eviction == 0
 
 
+def test_a_parent_without_route_is_replaced_by_a_feasible_neighbour_without_poison() -> None:
+    """The parent advertises NO_ROUTE: a neighbour below our feasible distance
+    that does not route through that parent takes over, and we never advertise
+    NO_ROUTE ourselves (our subtree keeps its routes)."""
+    u = Unit()
+    u.beacon(1, 10, 0)
+    u.beacon(2, 15, 0)  # within the switch threshold of 1: not chosen yet
+    assert u.c.parent == 1 and u.c.cost == 20
+    u.sent()
+    u.now = 1.0
+    u.beacon(1, NO_ROUTE, BROADCAST)
+    assert u.c.parent == 2 and u.c.stats.switches_on_poison == 1
+    u.advance(3.0)
+    assert all(b.cost < NO_ROUTE for b in u.sent() if isinstance(b, CtpBeacon))
+
+
+def test_a_parent_without_route_poisons_us_if_every_neighbour_routes_through_it() -> None:
+    u = Unit()
+    u.beacon(1, 10, 0)
+    u.beacon(2, 15, 1)  # routes through our parent: lost with it
+    u.now = 1.0
+    u.beacon(1, NO_ROUTE, BROADCAST)
+    assert u.c.parent is None and u.c.stats.switches_on_poison == 0
+
+
 def test_a_neighbour_not_heard_lately_does_not_replace_an_evicted_parent() -> None:
     """A neighbour silent for ctp_switch_fresh may have died with the parent."""
     u = Unit(ctp_evict_after_failures=2, ctp_switch_fresh=30.0, ctp_parent_switch_threshold=5)
