@@ -376,12 +376,8 @@ class Routes:
         a round of beacons at tau_l; under meyer-heavy these cascades were 277
         of the 394 route losses on the 1,000-mote grid (seed 1). Otherwise we
         poison too."""
-        alt, path = self._replacement(parent, now, routeless=True)
-        if alt is None:
-            self.lose_parent(now)
-            return
-        self._stats.switches_on_poison += 1
-        self._set_parent(alt, path, now)
+        if self._replace_parent(parent, now, routeless=True):
+            self._stats.switches_on_poison += 1
 
     def _evict(self, node: int, now: float) -> None:
         self._stats.evictions += 1
@@ -394,24 +390,24 @@ class Routes:
         # heard lately that advertises a cost below our feasible distance is
         # not one of our descendants: switch to it, as CTP does, without the
         # poison wave (every child's route lost, pulls, beacons at tau_l).
-        alt, path = self._replacement(node, now, routeless=False)
-        if alt is None:
-            self.lose_parent(now)
-            return
-        self._stats.switches_on_eviction += 1
-        self._set_parent(alt, path, now)
+        if self._replace_parent(node, now, routeless=False):
+            self._stats.switches_on_eviction += 1
 
-    def _replacement(
-        self, parent: int, now: float, routeless: bool
-    ) -> tuple[Neighbour | None, int]:
-        """The best neighbour other than ``parent``, heard within
+    def _replace_parent(self, parent: int, now: float, routeless: bool) -> bool:
+        """Switch to the best neighbour other than ``parent``, heard within
         ``ctp_switch_fresh`` (and since our last route loss), advertising a
-        cost below our feasible distance: not one of our descendants. When
-        the parent has no route (``routeless``), not one routing through it
-        either (an evicted parent may serve its other children well)."""
+        cost below our feasible distance (not one of our descendants) and,
+        when the parent has no route (``routeless``), not routing through it
+        (an evicted parent may serve its other children well). Without one,
+        poison. True if switched."""
         fresh = now - self._ctx.config.ctp_switch_fresh
         not_via = parent if routeless else None
-        return self._best(self._feasible, parent, max(fresh, self._fresh_since), not_via)
+        alt, path = self._best(self._feasible, parent, max(fresh, self._fresh_since), not_via)
+        if alt is None:
+            self.lose_parent(now)
+            return False
+        self._set_parent(alt, path, now)
+        return True
 
 
 def _path_via(n: Neighbour) -> int:
