@@ -45,7 +45,7 @@ class MiddlewareConfig:
     ctp_max_thl: int = 32
     ctp_parent_switch_threshold: int = 15  # ETX x 10 improvement needed to switch parent
     ctp_evict_after_failures: int = 2  # failed unicasts (after retries) before dropping a parent
-    ctp_switch_fresh: float = 30.0  # s: a neighbour heard within it may replace an evicted parent
+    ctp_switch_fresh: float = 30.0  # s: a neighbour heard within it may replace a lost parent
     ctp_neighbours: int = 16  # routing table size (the parent is never the one replaced)
     ctp_rssi_good: float = -90.0  # dBm at or above which a link costs ETX 1 (CC2420: sens. + 5)
     ctp_rssi_floor: float = -95.0  # dBm at or below which a link costs ctp_rssi_max_etx (sens.)
