@@ -233,11 +233,17 @@ def test_a_tossim_topology_runs_as_given_with_each_receivers_noise_line(tmp_path
     assert measured.get((8, 20), 0.0) == 0.0
 
 
-def test_the_intel_lab_links_deliver_what_was_measured() -> None:
-    a = argparse.Namespace(deployment="intel_lab", links=None, beacons=1000, interval=0.02,
-                           radio="cc2420", seed=None, noise=None, hardware_variance=None,
+def _links_of(
+    deployment: str, noise: str | None, hw: bool | None, seed: int | None, beacons: int = 200
+) -> dict:
+    a = argparse.Namespace(deployment=deployment, links=None, beacons=beacons, interval=0.02,
+                           radio="cc2420", seed=seed, noise=noise, hardware_variance=hw,
                            plot=None)  # fmt: skip
-    r = bench_links.run(a)
+    return bench_links.run(a)
+
+
+def test_the_intel_lab_links_deliver_what_was_measured() -> None:
+    r = _links_of("intel_lab", None, None, None, beacons=1000)
     assert r["within_ci_links"] >= 2000  # every measured pair of the 54 motes with p > 0
     assert r["within_ci"] >= 0.95
     assert r["asymmetric"] is not None and r["beta_median"] is not None
@@ -256,13 +262,6 @@ def test_good_parts_join_motes_over_links_good_both_ways_only() -> None:
     good, sizes = bench_links.good_parts([1, 2, 3, 4, 5], delivery)
     assert good == {1: {2}, 2: {1}, 3: {4}, 4: {3}, 5: set()}
     assert sorted(sizes) == [1, 2, 2]
-
-
-def _links_of(deployment: str, noise: str | None, hw: bool | None, seed: int) -> dict:
-    a = argparse.Namespace(deployment=deployment, links=None, beacons=200, interval=0.02,
-                           radio="cc2420", seed=seed, noise=noise, hardware_variance=hw,
-                           plot=None)  # fmt: skip
-    return bench_links.run(a)
 
 
 def test_under_meyer_heavy_romeo4r_falls_apart_and_romeo4r_noisy_holds() -> None:

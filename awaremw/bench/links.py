@@ -42,6 +42,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from awaremw.experiments.truth import components
 from awaremw.radio.environment import RadioSettings, environment_of, radio_model
 from awaremw.radio.links import REFERENCE_BYTES, LinkFile, load_links
 from awaremw.radio.model import PRESETS, Z_MAX, packet_key
@@ -112,20 +113,7 @@ def good_parts(
         both = d >= GOOD_DELIVERY and delivery.get((b, a), 0.0) >= GOOD_DELIVERY
         if both and a in good and b in good:
             good[a].add(b)
-    sizes = []
-    seen: set[int] = set()
-    for i in ids:
-        if i in seen:
-            continue
-        part, todo = {i}, [i]
-        while todo:
-            for j in good[todo.pop()]:
-                if j not in part:
-                    part.add(j)
-                    todo.append(j)
-        seen |= part
-        sizes.append(len(part))
-    return good, sizes
+    return good, [len(c) for c in components(ids, lambda a, b: b in good[a])]
 
 
 def _setup(args: argparse.Namespace) -> tuple[Any, dict[int, tuple[float, float] | None],
