@@ -87,6 +87,26 @@ def test_a_chain_asked_seldom_says_what_it_says_when_asked_every_millisecond() -
         ms += rnd.randint(1, HORIZON_MS)
 
 
+def test_the_receptions_fast_path_draws_what_the_general_one_draws() -> None:
+    # TraceNoise.over inlines the forward question (the reception hot path): on
+    # a twin source asked the same questions through at(), the same readings,
+    # whatever the order (forward within and past the horizon, the same
+    # instant again, slightly in the past, far in the past, a first question).
+    trace = load_trace("meyer-heavy")
+    hw = HardwareVariance(3)
+    fast, general = TraceNoise(trace, 9, -98.0, hw), TraceNoise(trace, 9, -98.0, hw)
+    rnd = random.Random(4)
+    t = {m: 0.0 for m in range(5)}
+    kinds = set()
+    for _ in range(20_000):
+        m = rnd.randrange(5)
+        step = rnd.choice((0.0, 0.0004, 0.003, 0.02, 0.031, 0.2, -0.002, -5.0))
+        t[m] = max(0.0, t[m] + step)
+        kinds.add(step)
+        assert fast.over(m, t[m] - 0.001, t[m]) == general.at(m, t[m])
+    assert len(kinds) == 8
+
+
 def test_noise_is_a_function_of_seed_mote_and_instant() -> None:
     trace = load_trace("meyer-heavy")
     a = [TraceNoise(trace, 1, -98.0).at(3, t / 100) for t in range(500)]
