@@ -13,6 +13,7 @@ from awaremw.protocol.core import Transmission
 from awaremw.protocol.events import MoteDown, PingResult
 from awaremw.protocol.frames import BROADCAST, Hello, encode
 from awaremw.protocol.hello import HelloMote
+from awaremw.radio.environment import RadioSettings
 from awaremw.radio.model import CC2420, RadioModel, cell_of, packet_key
 from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Path, Static
@@ -445,6 +446,64 @@ def test_control_and_networks_are_refused_where_they_mean_nothing() -> None:
         (["--sizes", "100,250", "--control"], "a multiple of the smallest"),
         (["--sizes", "100,200", "--networks", "2"], "for one run"),
         (["--networks", "0"], "at least 1"),
+    ):
+        with pytest.raises(ValueError, match=words):
+            run(parser.parse_args(argv))
+
+
+def test_a_wider_spacing_spreads_the_grid_and_thins_the_neighbourhoods() -> None:
+    from awaremw.bench.virtual import run
+
+    near, far = run(49, 5.0, 2, spacing=8.0), run(49, 5.0, 2, spacing=16.0)
+    assert (near["spacing_m"], far["spacing_m"]) == (8.0, 16.0)
+    assert near["mean_neighbours"] > far["mean_neighbours"] > 0
+    assert far["dropped_distance"] > near["dropped_distance"]
+
+
+def test_against_white_runs_the_same_command_on_both_radios_in_fresh_processes() -> None:
+    import json
+    import subprocess
+    import sys
+
+    from awaremw.bench.virtual import run
+
+    argv = [sys.executable, "-m", "awaremw", "bench", "virtual", "--json", "--motes", "36",
+            "--duration", "4", "--seed", "2", "--spacing", "10", "--noise", "meyer-heavy",
+            "--hardware-variance", "--against-white", "--repeats", "2"]  # fmt: skip
+    out = json.loads(subprocess.run(argv, capture_output=True, text=True, check=True).stdout)
+    assert out["repeats"] == 2 and out["spacing_m"] == 10.0
+    assert out["radio_settings"] == "noise meyer-heavy, hardware variance"
+    assert [len(v) for v in out["cpu_seconds"].values()] == [2, 2]
+    # Each side is the run bench virtual makes alone with that radio (frames are a
+    # seed's own), and the ratios are of those figures.
+    alone = {
+        "realistic": run(36, 4.0, 2, spacing=10.0, radio=RadioSettings("meyer-heavy", True)),
+        "white": run(36, 4.0, 2, spacing=10.0),
+    }
+    assert out["frames_tx"] == {k: r["frames_tx"] for k, r in alone.items()}
+    assert out["deliveries"] == {k: r["deliveries"] for k, r in alone.items()}
+    assert out["deliveries"]["realistic"] < out["deliveries"]["white"]  # the noise loses frames
+    assert out["frames_ratio"] == round(
+        alone["realistic"]["frames_tx"] / alone["white"]["frames_tx"], 3
+    )
+    med = out["cpu_seconds_median"]
+    assert out["cpu_ratio"] == round(med["realistic"] / med["white"], 3)
+
+
+def test_against_white_and_spacing_are_refused_where_they_mean_nothing() -> None:
+    import argparse
+
+    from awaremw.bench.virtual import add_arguments, run
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    parser.add_argument("--json", action="store_true")
+    for argv, words in (
+        (["--against-white"], "give --noise TRACE and/or --hardware-variance"),
+        (["--against-white", "--hardware-variance", "--sizes", "10,20"], "one run per radio"),
+        (["--against-white", "--hardware-variance", "--repeats", "0"], "at least 1"),
+        (["--spacing", "0"], "above 0"),
+        (["--spacing", "nan"], "above 0"),
     ):
         with pytest.raises(ValueError, match=words):
             run(parser.parse_args(argv))

@@ -391,9 +391,12 @@ def build(
     collisions: str = "sinr",
     sinks: int | None = None,
     radio: RadioSettings | None = None,
+    spacing: float = SPACING_M,
 ) -> AwareLoad:
     """The network, every core from the fleet's :class:`KindsFactory`."""
-    d = deployment(motes, seed, duration, mac=mac, collisions=collisions, sinks=sinks, radio=radio)
+    d = deployment(
+        motes, seed, duration, spacing, mac=mac, collisions=collisions, sinks=sinks, radio=radio
+    )
     factory = KindsFactory()
     net = VirtualNetwork(d.radio_model(), d.seed, mac=d.mac, collisions=d.collisions)
     load = AwareLoad(net, d)

@@ -46,6 +46,18 @@ networks of the smallest (``control``), ``cpu_per_mote_ratio_vs_control``
 (the largest size's cost over the control's: what the large network's own
 tables and queues add) and ``control_ratio`` (the control's over the
 smallest size's: what the memory the motes span adds, the CPU's caches).
+
+``--spacing M``: the grid's spacing (default 12 m; ``spacing_m``).
+``--against-white`` with a realistic radio (``--noise TRACE``,
+``--hardware-variance``): that run and the same run on today's radio,
+``--repeats N`` times each (default 3), interleaved, every run in a fresh
+process (:func:`run_against_white`). Keys ``cpu_seconds`` (every run's, per
+radio: ``realistic`` and ``white``), ``cpu_seconds_median``, ``cpu_ratio``
+(realistic over white, of the medians), ``frames_tx``, ``frames_ratio``,
+``deliveries``, ``cpu_per_frame_us`` (the emulator's cost of a frame under
+each radio, apart from how many frames the middleware sends), with
+``--workload aware`` also ``records_delivered``, ``records_produced`` and
+``record_delivery`` per radio.
 """
 
 from __future__ import annotations
@@ -57,6 +69,7 @@ import math
 import os
 import random
 import resource
+import statistics
 import subprocess
 import sys
 import time
@@ -164,10 +177,14 @@ def run(
     collisions: str = "sinr",
     sinks: int | None = None,
     radio: RadioSettings | None = None,
+    spacing: float = SPACING_M,
 ) -> dict[str, Any]:
     """Run the benchmark. Also accepts the parsed CLI arguments (bench registry)."""
     if isinstance(motes, argparse.Namespace):
         ns = motes
+        check_spacing(ns.spacing)
+        if ns.against_white:
+            return run_against_white(ns)
         if ns.sizes and ns.networks != 1:
             raise ValueError("--networks is for one run; with --sizes, --control runs networks")
         if ns.control and not ns.sizes:
@@ -177,25 +194,25 @@ def run(
         motes, duration, seed = int(ns.motes), float(ns.duration), int(ns.seed)
         workload, profile = str(ns.workload), ns.profile
         mac, collisions, sinks = str(ns.mac), str(ns.collisions), ns.sinks
-        radio = radio_of(ns)
+        radio, spacing = radio_of(ns), float(ns.spacing)
         if ns.networks < 1:
             raise ValueError(f"--networks {ns.networks}: at least 1")
         if ns.networks > 1:
             return run_networks(
                 motes, ns.networks, duration, seed, workload, mac, collisions, sinks, profile,
-                radio,
+                radio, spacing,
             )  # fmt: skip
     check_run(workload, motes)
     rss0 = resident_kb()
     load = (
-        aware_load.build(motes, seed, duration, mac, collisions, sinks, radio)
+        aware_load.build(motes, seed, duration, mac, collisions, sinks, radio, spacing)
         if workload == "aware"
         else None
     )
     net = (
         load.net
         if load is not None
-        else build(motes, seed, mac=mac, collisions=collisions, settings=radio)
+        else build(motes, seed, spacing=spacing, mac=mac, collisions=collisions, settings=radio)
     )
     with settled_gc() as collect:
         t0 = time.perf_counter()
@@ -235,7 +252,7 @@ def run(
         "radio_settings": (radio or RadioSettings()).describe(),
         "preset": net.preset.name,
         "seed": seed,
-        "spacing_m": SPACING_M,
+        "spacing_m": spacing,
         "workload": workload,
         **build_facts(),
     }
@@ -255,6 +272,7 @@ def run_networks(
     sinks: int | None = None,
     profile: str | None = None,
     radio: RadioSettings | None = None,
+    spacing: float = SPACING_M,
 ) -> dict[str, Any]:
     """``--networks K``: K independent networks of ``motes`` each (seeds ``seed``
     on), run in one process in turns of :data:`INTERLEAVE_S` emulated seconds.
@@ -271,11 +289,14 @@ def run_networks(
     for k in range(networks):
         if workload == "aware":
             loads.append(
-                aware_load.build(motes, seed + k, duration, mac, collisions, sinks, radio)
+                aware_load.build(motes, seed + k, duration, mac, collisions, sinks, radio, spacing)
             )
             nets.append(loads[-1].net)
         else:
-            nets.append(build(motes, seed + k, mac=mac, collisions=collisions, settings=radio))
+            net = build(
+                motes, seed + k, spacing=spacing, mac=mac, collisions=collisions, settings=radio
+            )
+            nets.append(net)
     steps = [load.run_until for load in loads] if loads else [net.run_until for net in nets]
     turn = 0
 
@@ -312,6 +333,12 @@ def run_networks(
         known = [r for r in ratios if r is not None]
         out["record_delivery_min"] = min(known) if known else None
     return out
+
+
+def check_spacing(spacing: float) -> None:
+    """One line for a grid spacing no grid has."""
+    if not (math.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"--spacing {spacing}: a grid spacing in metres, above 0")
 
 
 def check_run(workload: str, motes: int) -> None:
@@ -403,14 +430,75 @@ def run_sizes(ns: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
-def _child(ns: argparse.Namespace, motes: int, extra: list[str]) -> dict[str, Any]:
-    """One run of ``ns`` at ``motes`` in a fresh interpreter (its memory its own)."""
+def run_against_white(ns: argparse.Namespace) -> dict[str, Any]:
+    """``--against-white``: the run ``ns`` asks for (a realistic radio) and the
+    same run on today's radio (white noise, no hardware variance), ``--repeats``
+    times each, interleaved, every run in a fresh interpreter: what the
+    realistic radio costs, as a ratio measured in one invocation on one
+    machine's load (docs/radio.md, "What it costs")."""
+    asked = radio_of(ns)
+    if asked.textbook:
+        raise ValueError(
+            "--against-white compares a realistic radio with today's: "
+            "give --noise TRACE and/or --hardware-variance"
+        )
+    if ns.sizes or ns.networks != 1 or ns.profile:
+        raise ValueError(
+            "--against-white is one run per radio: no --sizes, --networks or --profile"
+        )
+    if ns.repeats < 1:
+        raise ValueError(f"--repeats {ns.repeats}: at least 1")
+    white = RadioSettings()
+    runs: dict[str, list[dict[str, Any]]] = {"realistic": [], "white": []}
+    for i in range(ns.repeats):
+        for name, radio in (("realistic", asked), ("white", white)):
+            if not ns.json:
+                print(f"bench virtual: {name} radio, run {i + 1} of {ns.repeats} ...",
+                      file=sys.stderr, flush=True)  # fmt: skip
+            runs[name].append(_child(ns, int(ns.motes), [], radio))
+    cpu = {k: statistics.median(r["cpu_seconds"] for r in v) for k, v in runs.items()}
+    frames = {k: v[0]["frames_tx"] for k, v in runs.items()}  # a seed's frames are its own
+    out: dict[str, Any] = {
+        "motes": int(ns.motes),
+        "sim_seconds": float(ns.duration),
+        "seed": int(ns.seed),
+        "workload": str(ns.workload),
+        "spacing_m": float(ns.spacing),
+        "radio_settings": asked.describe(),
+        "repeats": int(ns.repeats),
+        "cpu_seconds": {k: [r["cpu_seconds"] for r in v] for k, v in runs.items()},
+        "cpu_seconds_median": cpu,
+        "cpu_ratio": round(cpu["realistic"] / cpu["white"], 3) if cpu["white"] > 0 else None,
+        "frames_tx": frames,
+        "frames_ratio": (
+            round(frames["realistic"] / frames["white"], 3) if frames["white"] else None
+        ),
+        # Microseconds of CPU per frame put on the air: the emulator's cost of a
+        # frame under each radio, apart from how many frames the middleware sends.
+        "deliveries": {k: v[0]["deliveries"] for k, v in runs.items()},
+        "cpu_per_frame_us": {
+            k: round(1e6 * cpu[k] / frames[k], 1) if frames[k] else None for k in runs
+        },
+        **build_facts(),
+    }
+    if ns.workload == "aware":
+        for key in ("records_delivered", "records_produced", "record_delivery"):
+            out[key] = {k: v[0][key] for k, v in runs.items()}
+    return out
+
+
+def _child(
+    ns: argparse.Namespace, motes: int, extra: list[str], radio: RadioSettings | None = None
+) -> dict[str, Any]:
+    """One run of ``ns`` at ``motes`` in a fresh interpreter (its memory its own);
+    ``radio``: another radio than ``ns`` asks for."""
+    r = radio_of(ns) if radio is None else radio
     argv = [
         sys.executable, "-m", "awaremw", "bench", "virtual", "--json",
         "--motes", str(motes), "--duration", str(ns.duration), "--seed", str(ns.seed),
         "--workload", str(ns.workload), "--mac", str(ns.mac),
-        "--collisions", str(ns.collisions), "--noise", str(ns.noise),
-        *(["--hardware-variance"] if ns.hardware_variance else []), *extra,
+        "--collisions", str(ns.collisions), "--spacing", str(ns.spacing), "--noise", r.noise,
+        *(["--hardware-variance"] if r.hardware_variance else []), *extra,
     ]  # fmt: skip
     done = subprocess.run(argv, capture_output=True, text=True, check=False)
     if done.returncode != 0:
@@ -499,4 +587,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--control",
         action="store_true",
         help="with --sizes: also run the largest size as networks of the smallest (--networks)",
+    )
+    parser.add_argument(
+        "--spacing",
+        type=float,
+        default=SPACING_M,
+        metavar="M",
+        help=f"grid spacing in metres (default {SPACING_M:g}: about ten neighbours each "
+        "on today's radio)",
+    )
+    parser.add_argument(
+        "--against-white",
+        action="store_true",
+        help="also run the same command on today's radio (white noise, no hardware "
+        "variance), interleaved, each run in a fresh process; report the cost ratio",
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=3,
+        metavar="N",
+        help="with --against-white: runs of each radio (CPU medians reported)",
     )
