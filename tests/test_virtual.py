@@ -433,7 +433,7 @@ def test_sizes_with_control_compare_one_large_network_with_small_ones_in_turns()
     )
 
 
-def test_control_and_networks_are_refused_where_they_mean_nothing() -> None:
+def test_options_are_refused_where_they_mean_nothing() -> None:
     import argparse
 
     from awaremw.bench.virtual import add_arguments, run
@@ -446,6 +446,11 @@ def test_control_and_networks_are_refused_where_they_mean_nothing() -> None:
         (["--sizes", "100,250", "--control"], "a multiple of the smallest"),
         (["--sizes", "100,200", "--networks", "2"], "for one run"),
         (["--networks", "0"], "at least 1"),
+        (["--against-white"], "give --noise TRACE and/or --hardware-variance"),
+        (["--against-white", "--hardware-variance", "--sizes", "10,20"], "one run per radio"),
+        (["--against-white", "--hardware-variance", "--repeats", "0"], "at least 1"),
+        (["--spacing", "0"], "above 0"),
+        (["--spacing", "nan"], "above 0"),
     ):
         with pytest.raises(ValueError, match=words):
             run(parser.parse_args(argv))
@@ -488,22 +493,3 @@ def test_against_white_runs_the_same_command_on_both_radios_in_fresh_processes()
     )
     med = out["cpu_seconds_median"]
     assert out["cpu_ratio"] == round(med["realistic"] / med["white"], 3)
-
-
-def test_against_white_and_spacing_are_refused_where_they_mean_nothing() -> None:
-    import argparse
-
-    from awaremw.bench.virtual import add_arguments, run
-
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
-    parser.add_argument("--json", action="store_true")
-    for argv, words in (
-        (["--against-white"], "give --noise TRACE and/or --hardware-variance"),
-        (["--against-white", "--hardware-variance", "--sizes", "10,20"], "one run per radio"),
-        (["--against-white", "--hardware-variance", "--repeats", "0"], "at least 1"),
-        (["--spacing", "0"], "above 0"),
-        (["--spacing", "nan"], "above 0"),
-    ):
-        with pytest.raises(ValueError, match=words):
-            run(parser.parse_args(argv))
