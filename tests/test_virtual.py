@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import pathlib
 import random
 
 import pytest
@@ -385,6 +386,7 @@ def test_bench_smoke() -> None:
 
     out = run(36, 5.0, 2)
     assert out["motes"] == 36 and out["sim_seconds"] == 5.0
+    assert out["frames_by_kind"] == {"hello": out["frames_tx"]}
     assert out["frames_tx"] >= 36 * 4 and out["deliveries"] > out["frames_tx"]
     assert out["speedup"] > 0 and 3 <= out["mean_neighbours"] <= 14
     assert out == {
@@ -465,16 +467,20 @@ def test_a_wider_spacing_spreads_the_grid_and_thins_the_neighbourhoods() -> None
     assert far["dropped_distance"] > near["dropped_distance"]
 
 
-def test_against_white_runs_the_same_command_on_both_radios_in_fresh_processes() -> None:
+def test_against_white_runs_the_same_command_on_both_radios_in_fresh_processes(
+    tmp_path: pathlib.Path,
+) -> None:
     import json
     import subprocess
     import sys
 
     from awaremw.bench.virtual import run
 
+    plot = tmp_path / "kinds.png"
     argv = [sys.executable, "-m", "awaremw", "bench", "virtual", "--json", "--motes", "36",
             "--duration", "4", "--seed", "2", "--spacing", "10", "--noise", "meyer-heavy",
-            "--hardware-variance", "--against-white", "--repeats", "2"]  # fmt: skip
+            "--hardware-variance", "--against-white", "--repeats", "2",
+            "--plot", str(plot)]  # fmt: skip
     out = json.loads(subprocess.run(argv, capture_output=True, text=True, check=True).stdout)
     assert out["repeats"] == 2 and out["spacing_m"] == 10.0
     assert out["radio_settings"] == "noise meyer-heavy, hardware variance"
@@ -493,3 +499,15 @@ def test_against_white_runs_the_same_command_on_both_radios_in_fresh_processes()
     )
     med = out["cpu_seconds_median"]
     assert out["cpu_ratio"] == round(med["realistic"] / med["white"], 3)
+    assert out["frames_by_kind"] == {"hello": {k: r["frames_tx"] for k, r in alone.items()}}
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out["plot"] == str(plot)
+
+
+def test_frames_by_kind_count_every_frame_of_the_whole_middleware() -> None:
+    from awaremw.bench.virtual import run
+
+    out = run(64, 12.0, 1, "aware")
+    kinds = out["frames_by_kind"]
+    assert sum(kinds.values()) == out["frames_tx"]
+    assert {"ctp_beacon", "drip_item", "drip_summary"} <= set(kinds)
+    assert all(n > 0 for n in kinds.values())

@@ -13,11 +13,13 @@ counters (``tests/test_virtual.py`` checks it on a smaller grid).
 JSON keys: ``motes``, ``sim_seconds``, ``wall_seconds``, ``speedup``
 (simulated / wall seconds), ``cpu_seconds`` (this process's CPU time: on a
 shared machine, ``sim_seconds / cpu_seconds`` is the speed-up it would have
-alone), ``frames_tx``, ``deliveries`` (frames received by
-a core), ``mean_neighbours`` (table size at the end), ``dropped_loss``,
-``dropped_distance``, ``collisions``, ``cca_busy``, ``mac_drops`` (totals of
-the counters), ``mac`` and ``collisions_model`` (``--mac csma|aloha``,
-``--collisions sinr|none``), ``preset``, ``seed``, ``spacing_m``, ``workload``. With
+alone), ``frames_tx``, ``frames_by_kind`` (``frames_tx`` by frame
+kind, as the metrics name them: ``ctp_beacon``, ``drip_item``, ...),
+``deliveries`` (frames received by a core), ``mean_neighbours`` (table size
+at the end), ``dropped_loss``, ``dropped_distance``, ``collisions``,
+``cca_busy``, ``mac_drops`` (totals of the counters), ``mac`` and
+``collisions_model`` (``--mac csma|aloha``, ``--collisions sinr|none``),
+``preset``, ``seed``, ``spacing_m``, ``workload``. With
 ``--workload aware`` also ``records_produced``, ``records_delivered``,
 ``record_delivery`` (delivered / produced, records produced in the last 10 s
 left out; null when none was produced before that), ``first_record_s``
@@ -55,9 +57,11 @@ process (:func:`run_against_white`). Keys ``cpu_seconds`` (every run's, per
 radio: ``realistic`` and ``white``), ``cpu_seconds_median``, ``cpu_ratio``
 (realistic over white, of the medians), ``frames_tx``, ``frames_ratio``,
 ``deliveries``, ``cpu_per_frame_us`` (the emulator's cost of a frame under
-each radio, apart from how many frames the middleware sends), with
-``--workload aware`` also ``records_delivered``, ``records_produced`` and
-``record_delivery`` per radio.
+each radio, apart from how many frames the middleware sends),
+``frames_by_kind`` (kind -> frames under each radio, the largest excess
+first), with ``--workload aware`` also ``records_delivered``,
+``records_produced`` and ``record_delivery`` per radio. ``--plot FILE``
+draws ``frames_by_kind`` (PNG).
 """
 
 from __future__ import annotations
@@ -80,10 +84,12 @@ from typing import Any
 from awaremw.bench import aware_load
 from awaremw.bench.medium import add_medium_arguments, add_radio_arguments, radio_of
 from awaremw.bench.profiling import build_facts, profiled
+from awaremw.protocol.core import Transmission
 from awaremw.protocol.frames import MAX_NODE_ID
 from awaremw.protocol.hello import HelloMote
 from awaremw.protocol.mote import AwareMote
 from awaremw.radio.environment import RadioSettings, radio_model
+from awaremw.radio.frame_counts import frame_kind
 from awaremw.radio.model import preset
 from awaremw.radio.virtual_medium import VirtualNetwork
 from awaremw.world.mobility import Static
@@ -214,6 +220,7 @@ def run(
         if load is not None
         else build(motes, seed, spacing=spacing, mac=mac, collisions=collisions, settings=radio)
     )
+    by_kind = count_kinds(net)
     with settled_gc() as collect:
         t0 = time.perf_counter()
         c0 = time.process_time()
@@ -240,6 +247,7 @@ def run(
         "cpu_per_mote_s_us": round(1e6 * cpu / (motes * duration), 3),
         "rss_per_mote_kb": round((rss1 - rss0) / motes, 2),
         "frames_tx": frames_tx,
+        "frames_by_kind": dict(sorted(by_kind.items())),
         "deliveries": deliveries,
         "mean_neighbours": round(sum(tables) / max(1, len(tables)), 2),
         "dropped_loss": sum(c.dropped_loss for c in counters.values()),
@@ -259,6 +267,20 @@ def run(
     if load is not None:
         out.update(load.results(duration))
     return out
+
+
+def count_kinds(net: VirtualNetwork) -> dict[str, int]:
+    """Frames put on the air by kind (``ctp_data``, ``drip_item``, ... as the
+    metrics name them), retries included: a dict the run fills through the
+    network's transmit hook (a dict lookup per frame, well under 1 % of a run)."""
+    kinds: dict[str, int] = {}
+
+    def on_transmit(nid: int, tx: Transmission, t: float) -> None:
+        k = frame_kind(tx.frame)
+        kinds[k] = kinds.get(k, 0) + 1
+
+    net.on_transmit = on_transmit
+    return kinds
 
 
 def run_networks(
@@ -458,6 +480,13 @@ def run_against_white(ns: argparse.Namespace) -> dict[str, Any]:
             runs[name].append(_child(ns, int(ns.motes), [], radio))
     cpu = {k: statistics.median(r["cpu_seconds"] for r in v) for k, v in runs.items()}
     frames = {k: v[0]["frames_tx"] for k, v in runs.items()}  # a seed's frames are its own
+    real, white_kinds = runs["realistic"][0]["frames_by_kind"], runs["white"][0]["frames_by_kind"]
+    # Where the realistic radio's extra frames go: the largest excess first.
+    by_kind = {
+        k: {"realistic": real.get(k, 0), "white": white_kinds.get(k, 0)}
+        for k in sorted(set(real) | set(white_kinds),
+                        key=lambda k: (white_kinds.get(k, 0) - real.get(k, 0), k))
+    }  # fmt: skip
     out: dict[str, Any] = {
         "motes": int(ns.motes),
         "sim_seconds": float(ns.duration),
@@ -473,6 +502,7 @@ def run_against_white(ns: argparse.Namespace) -> dict[str, Any]:
         "frames_ratio": (
             round(frames["realistic"] / frames["white"], 3) if frames["white"] else None
         ),
+        "frames_by_kind": by_kind,
         # Microseconds of CPU per frame put on the air: the emulator's cost of a
         # frame under each radio, apart from how many frames the middleware sends.
         "deliveries": {k: v[0]["deliveries"] for k, v in runs.items()},
@@ -484,6 +514,9 @@ def run_against_white(ns: argparse.Namespace) -> dict[str, Any]:
     if ns.workload == "aware":
         for key in ("records_delivered", "records_produced", "record_delivery"):
             out[key] = {k: v[0][key] for k, v in runs.items()}
+    if ns.plot:
+        plot_kinds(out, ns.plot)
+        out["plot"] = str(ns.plot)
     return out
 
 
@@ -545,6 +578,32 @@ def plot_sizes(
     fig.savefig(path)
 
 
+def plot_kinds(out: dict[str, Any], path: str) -> None:
+    """``--against-white --plot FILE``: the frames of each kind under both radios
+    (bars, the largest excess on top), titled with the CPU and frame ratios."""
+    from matplotlib.figure import Figure  # no pyplot: no global state, no display
+
+    kinds = list(out["frames_by_kind"])[::-1]  # barh draws the first at the bottom
+    real = [out["frames_by_kind"][k]["realistic"] for k in kinds]
+    white = [out["frames_by_kind"][k]["white"] for k in kinds]
+    fig = Figure(figsize=(6.4, 0.45 * len(kinds) + 1.6), dpi=120)
+    ax = fig.subplots()
+    y = range(len(kinds))
+    ax.barh([i + 0.2 for i in y], white, height=0.4, color="tab:blue", label="today's radio")
+    ax.barh([i - 0.2 for i in y], real, height=0.4, color="tab:red",
+            label=out["radio_settings"])  # fmt: skip
+    ax.set_yticks(list(y), kinds)
+    ax.set_xlabel(f"frames on the air in {out['sim_seconds']:g} s (retries included)")
+    ax.legend(loc="lower right", fontsize="small")
+    ax.set_title(
+        f"{out['workload']}, {out['motes']:,} motes, {out['spacing_m']:g} m: "
+        f"CPU x{out['cpu_ratio']}, frames x{out['frames_ratio']}",
+        fontsize="medium",
+    )
+    fig.tight_layout()
+    fig.savefig(path)
+
+
 def add_workload_arguments(parser: argparse.ArgumentParser) -> None:
     """The workload options bench virtual and bench scale share (and --mac, --collisions)."""
     parser.add_argument(
@@ -575,7 +634,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N,N,...",
         help="run at each of these sizes (fresh process each) and compare the cost per mote",
     )
-    parser.add_argument("--plot", metavar="FILE", help="with --sizes: draw the cost curve (PNG)")
+    parser.add_argument(
+        "--plot",
+        metavar="FILE",
+        help="with --sizes: draw the cost curve; with --against-white: the frames of each "
+        "kind under both radios (PNG)",
+    )
     parser.add_argument(
         "--networks",
         type=int,
