@@ -24,6 +24,7 @@ KEYS = {
     "cpu_seconds",
     "speedup",
     "frames_tx",
+    "frames_by_kind",
     "deliveries",
     "mean_neighbours",
     "dropped_loss",
