@@ -60,6 +60,7 @@ COMPILED = [
     "awaremw/radio/mac.py",
     "awaremw/radio/model.py",
     "awaremw/radio/neighbourhood.py",
+    "awaremw/radio/noise.py",
     "awaremw/radio/reception.py",
     "awaremw/radio/virtual_medium.py",
     "awaremw/world/fields.py",
