@@ -141,6 +141,8 @@ class Media:
                  **kw: Any) -> None:  # fmt: skip
         self.clock = EmulatedClock(SPEED)
         self.media = [ZenohMedium(s, model, self.clock, prefix=prefix, **kw) for s in sessions]
+        access: MacSettings = kw.get("access", MacSettings())
+        self.guard = access.guard_s * SPEED  # emulated seconds
         self.got: set[Reception] = set()
         self.sinks: dict[int, Sink] = {}
         self.radios: dict[int, Radio] = {}
@@ -163,11 +165,18 @@ class Media:
 
     async def settle(self, t_end: float) -> None:
         """Wait until the script is played and every radio is idle, then for the
-        last decisions (end + guard: 0.5 ms emulated at most here)."""
+        last decisions: every medium has decided every frame it holds, and twice
+        the guard (2 ms emulated at least) has passed since the last frame ended
+        (by then every envelope reached every process, or it is late and decided
+        at once). Waiting one guard exactly raced the last decision on a loaded
+        machine: a collision across processes found nothing received (CI,
+        compiled build)."""
         rs = self.radios.values()
         await wait_for(lambda: self.clock.now() > t_end and not any(r.busy or r.queue for r in rs))
-        t = self.clock.now() + 0.002
-        await wait_for(lambda: self.clock.now() > t)
+        t = self.clock.now() + max(0.002, 2 * self.guard)
+        await wait_for(
+            lambda: self.clock.now() > t and not any(m.pending_decisions for m in self.media)
+        )
 
     def counters(self) -> dict[int, tuple[int, ...]]:
         out: dict[int, MoteCounters] = {}

@@ -421,6 +421,12 @@ class ZenohMedium:
         self._nb.flush_all()
         return self._counters
 
+    @property
+    def pending_decisions(self) -> int:
+        """Frames on the air here whose receptions are still to be decided (their
+        end + the guard not reached yet): 0 once every frame heard is decided."""
+        return len(self._decisions)
+
     def positions(self) -> dict[int, tuple[float, float]]:
         return {nid: r.position() for nid, r in self.radios.items()}
 
