@@ -503,9 +503,9 @@ def run_against_white(ns: argparse.Namespace) -> dict[str, Any]:
             round(frames["realistic"] / frames["white"], 3) if frames["white"] else None
         ),
         "frames_by_kind": by_kind,
+        "deliveries": {k: v[0]["deliveries"] for k, v in runs.items()},
         # Microseconds of CPU per frame put on the air: the emulator's cost of a
         # frame under each radio, apart from how many frames the middleware sends.
-        "deliveries": {k: v[0]["deliveries"] for k, v in runs.items()},
         "cpu_per_frame_us": {
             k: round(1e6 * cpu[k] / frames[k], 1) if frames[k] else None for k in runs
         },
