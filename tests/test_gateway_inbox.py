@@ -19,7 +19,7 @@ import pytest
 import zenoh
 from mosquitto import Collector, Mosquitto, mosquitto_fixture  # noqa: F401
 
-from awaremw.gateway.events import ErrorReport, Inject
+from awaremw.gateway.events import ErrorReport, Inject, Publish
 from awaremw.gateway.hbn import HbnApi
 from awaremw.gateway.inbox import OVERFLOW, Inbox, Incoming, overflow_report
 from awaremw.gateway.mqtt import MqttBridge, MqttSettings
@@ -340,6 +340,40 @@ async def test_a_bad_definition_superseded_at_once_is_still_refused_with_its_cod
     assert codes.count("period_out_of_range") >= n
     assert svc.mqtt.inbox.stats.coalesced > 0, svc.mqtt.inbox.stats  # some were superseded
     assert svc.bridge.stats.refused_by_code["period_out_of_range"] == n
+
+
+@pytest.mark.mosquitto
+async def test_the_gateways_own_clearing_heard_back_is_not_a_clients_deletion(
+    mosquitto: Mosquitto,
+) -> None:
+    """The gateway clears a refused definition off the broker (an empty retained
+    message, when nothing is defined there) and hears that clearing back live: it is
+    its own echo. Taken for a client's deletion, it replaced or deleted the
+    definition a client sent meanwhile (the burst test above lost its last
+    definition so, on a loaded machine). A client's deletion after it is the
+    client's."""
+    rel, bad = "def/channel/1", json.dumps({"attr": "temperature", "period_s": 0}).encode()
+    good = json.dumps({"attr": "temperature", "period_s": 2}).encode()
+    got: list[tuple[str, bytes, bool]] = []
+
+    def gateway(rel: str, payload: bytes, retained: bool, topic: str) -> None:
+        got.append((rel, payload, retained))
+        if payload == bad:  # refused, with nothing defined there: cleared
+            bridge.publish(Publish(rel, b"", retain=True))
+
+    bridge = MqttBridge(MqttSettings.from_url(mosquitto.url("gateway")), gateway)
+    async with running(bridge), aiomqtt.Client(
+        "127.0.0.1", mosquitto.port, username="operator", password="operator-pw"
+    ) as op:  # fmt: skip
+        await asyncio.wait_for(bridge.subscribed.wait(), 10)
+        await op.publish(f"aware/{rel}", bad, qos=1, retain=True)
+        await until(lambda: bridge.stats.echoes or (rel, b"", False) in got, 10)
+        await op.publish(f"aware/{rel}", good, qos=1, retain=True)
+        await until(lambda: len(got) >= 2, 10)
+        await op.publish(f"aware/{rel}", b"", qos=1, retain=True)  # the client deletes it
+        await until(lambda: len(got) >= 3, 10)
+    assert got == [(rel, bad, False), (rel, good, False), (rel, b"", False)]
+    assert bridge.stats.echoes == 1
 
 
 async def test_a_burst_goes_on_the_radio_as_its_newest_version_paced() -> None:
