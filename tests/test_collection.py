@@ -330,7 +330,10 @@ def test_data_from_own_parent_or_own_packet_back_poisons() -> None:
 
 
 def test_eviction_after_consecutive_failures_and_drop_after_retries() -> None:
-    u = Unit(ctp_evict_after_failures=2, ctp_max_retries=3, ctp_retry_delay=0.2)
+    u = Unit(
+        ctp_evict_after_failures=2, ctp_poison_after_failures=2, ctp_max_retries=3,
+        ctp_retry_delay=0.2,
+    )  # fmt: skip
     u.beacon(1, 10, 0)
     u.beacon(2, 30, 0)
     assert u.c.parent == 1
@@ -373,18 +376,50 @@ def test_an_evicted_parent_is_replaced_by_a_feasible_neighbour_without_poison() 
     assert all(b.cost < NO_ROUTE for b in u.sent() if isinstance(b, CtpBeacon))
 
 
-def test_an_evicted_parent_with_only_costlier_neighbours_poisons() -> None:
-    """A neighbour advertising our own cost or more may be our descendant: after
-    the eviction the route is lost and poisoned, as before."""
-    u = Unit(ctp_evict_after_failures=2)
+def test_a_failing_parent_with_only_costlier_neighbours_is_kept_until_it_must_poison() -> None:
+    """With only our children around, giving the parent up means poisoning:
+    every mote below us loses its route, pulls, and beacons at tau_l. Under
+    bursty noise a few unicasts lost in a row are mostly a burst, so the parent
+    is kept (its link cost raised) until ``ctp_poison_after_failures`` in a
+    row, and only then is the route poisoned."""
+    u = Unit(ctp_evict_after_failures=2, ctp_poison_after_failures=4, ctp_max_retries=9)
     u.beacon(1, 10, 0)
-    u.beacon(3, 20, 0)  # our cost through 1 is 20: 3 may route through us
+    u.beacon(3, 30, 5)  # our child
     u.now = 1.0
     u.c.submit(rec(1), u.now)
+    u.sent()
+    for k in range(3):
+        u.result(False)
+        assert u.c.parent == 1 and 1 in u.c.neighbours, k
+        u.advance(u.now + 0.3)  # the retry goes to the same parent
+    assert not any(b.cost >= NO_ROUTE for b in u.sent() if isinstance(b, CtpBeacon))
+    u.result(False)  # the fourth in a row
+    assert u.c.parent is None and 1 not in u.c.neighbours
+    assert u.c.stats.switches_on_eviction == 0 and u.c.stats.evictions == 1
+
+
+def test_a_failing_parent_is_left_for_a_feasible_neighbour_at_the_eviction_threshold() -> None:
+    """Kept while no one else can take over; a neighbour heard meanwhile that can
+    (not our child, below our feasible distance) replaces it at the next failure
+    in a row, without a poison."""
+    u = Unit(
+        ctp_evict_after_failures=2, ctp_poison_after_failures=6, ctp_parent_switch_threshold=200
+    )  # the switch threshold keeps the cost rule out of the way
+    u.beacon(1, 10, 0)
+    u.beacon(3, 30, 5)  # our child
+    u.now = 1.0
+    u.c.submit(rec(1), u.now)
+    u.sent()
     u.result(False)
     u.advance(1.3)
+    u.result(False)  # the eviction threshold, but no one to take over
+    assert u.c.parent == 1
+    u.beacon(2, 15, 0)  # feasible: 15 < our 20
+    assert u.c.parent == 1
+    u.advance(1.6)
     u.result(False)
-    assert u.c.parent is None and u.c.stats.switches_on_eviction == 0
+    assert u.c.parent == 2 and u.c.stats.switches_on_eviction == 1
+    assert not any(b.cost >= NO_ROUTE for b in u.sent() if isinstance(b, CtpBeacon))
 
 
 def test_a_parent_without_route_is_replaced_by_a_feasible_neighbour_without_poison() -> None:
@@ -414,7 +449,10 @@ def test_a_parent_without_route_poisons_us_if_every_neighbour_routes_through_it(
 
 def test_a_neighbour_not_heard_lately_does_not_replace_an_evicted_parent() -> None:
     """A neighbour silent for ctp_switch_fresh may have died with the parent."""
-    u = Unit(ctp_evict_after_failures=2, ctp_switch_fresh=30.0, ctp_parent_switch_threshold=5)
+    u = Unit(
+        ctp_evict_after_failures=2, ctp_poison_after_failures=2, ctp_switch_fresh=30.0,
+        ctp_parent_switch_threshold=5,
+    )  # fmt: skip
     u.beacon(2, 8, 0)
     u.now = 0.5
     u.beacon(1, 0, 0)  # better by the threshold: 1 becomes the parent (cost 10)

@@ -209,6 +209,12 @@ class Routes:
         self._recost(n)
         self._changed(n)
         if n.failures >= cfg.ctp_evict_after_failures:
+            if (
+                node == self._parent
+                and n.failures < cfg.ctp_poison_after_failures
+                and self._alternative(node, now, routeless=False)[0] is None
+            ):
+                return
             self._evict(n.node, now)
 
     # ------------------------------------------------------------------ what we hear
@@ -393,6 +399,13 @@ class Routes:
         if self._replace_parent(node, now, routeless=False):
             self._stats.switches_on_eviction += 1
 
+    def _alternative(
+        self, parent: int, now: float, routeless: bool
+    ) -> tuple[Neighbour | None, int]:
+        fresh = now - self._ctx.config.ctp_switch_fresh
+        not_via = parent if routeless else None
+        return self._best(self._feasible, parent, max(fresh, self._fresh_since), not_via)
+
     def _replace_parent(self, parent: int, now: float, routeless: bool) -> bool:
         """Switch to the best neighbour other than ``parent``, heard within
         ``ctp_switch_fresh`` (and since our last route loss), advertising a
@@ -400,9 +413,7 @@ class Routes:
         when the parent has no route (``routeless``), not routing through it
         (an evicted parent may serve its other children well). Without one,
         poison. True if switched."""
-        fresh = now - self._ctx.config.ctp_switch_fresh
-        not_via = parent if routeless else None
-        alt, path = self._best(self._feasible, parent, max(fresh, self._fresh_since), not_via)
+        alt, path = self._alternative(parent, now, routeless)
         if alt is None:
             self.lose_parent(now)
             return False
