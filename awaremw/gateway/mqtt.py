@@ -43,9 +43,9 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from awaremw.gateway.bridge import RateLimitedLog
+from awaremw.gateway.echoes import Echoes
 from awaremw.gateway.events import Publish
 from awaremw.gateway.inbox import MAX_COMMANDS, MAX_DEFINITIONS, Inbox, Incoming, overflow_report
-from awaremw.gateway.store import payload_hash
 from awaremw.security.redact import mask_url, redact
 
 log = logging.getLogger(__name__)
@@ -56,8 +56,6 @@ OnMessage = Callable[[str, bytes, bool, str], object]  # (rel_topic, payload, re
 STATUS_TOPIC = "gateway/status"
 STATS_TOPIC = "gateway/stats"
 ERRORS_TOPIC = "errors"
-ECHOES_KEPT = 4  # republished definitions per topic awaited back at once
-MAX_ECHO_TOPICS = 4096  # definition topics with a republication awaited back
 HANDLE_SLICE_S = 0.02  # handling yields to the connection this often (wall seconds)
 MAX_PASSWORD_BYTES = 65_535  # MQTT's binary data: a 16-bit length
 
@@ -314,9 +312,9 @@ class MqttBridge:
         self.changed = asyncio.Event()  # set at every connect, failed attempt and disconnect
         self._fifo: deque[_Item] = deque()
         self._retained: dict[str, bytes] = {}  # full topic -> latest payload
-        # Definitions it sent and has not heard back yet (full topic -> hashes): heard
-        # back live, each is its own echo, never to take the place of a client's.
-        self._echoes: dict[str, deque[str]] = {}
+        # Definitions it sent and has not heard back yet: heard back live, each is
+        # its own echo, never to take the place of a client's (monotonic clock).
+        self._echoes = Echoes()
         self._dirty: dict[str, bytes] = {}  # retained topics still to (re)publish
         self._wakeup = asyncio.Event()
         self._stop = asyncio.Event()
@@ -442,6 +440,7 @@ class MqttBridge:
         if self._protocol is None:
             self._protocol = protocol
         self.stats.connects += 1
+        self._echoes.connected(time.monotonic())
         self.stats.protocol = "5" if protocol is aiomqtt.ProtocolVersion.V5 else "3.1.1"
         self.connected.set()
         self.disconnected.clear()
@@ -501,7 +500,7 @@ class MqttBridge:
             self.stats.ignored += 1
             return
         payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
-        if not m.retain and self._heard_back(topic, payload):
+        if not m.retain and self._echoes.heard(topic, payload, time.monotonic()):
             # Its own republication heard back live: the broker got our newer ones
             # after it, in order. Taken in, it could replace a client's definition
             # that came meanwhile (the inbox keeps the newest per topic), or, as a
@@ -526,34 +525,6 @@ class MqttBridge:
             if refused.is_definition:
                 self._burst.set()  # the broker still retains it: read it again
         self._inbox_ready.set()
-
-    def _await_echo(self, topic: str, payload: bytes) -> None:
-        """``payload`` goes to the broker on ``topic`` now: the broker will forward it
-        to our own ``def/#`` subscription once."""
-        if not topic.startswith(self._def_prefix):
-            return
-        seen = self._echoes.pop(topic, None)  # re-inserted: the dict stays in send order
-        if seen is None:
-            if len(self._echoes) >= MAX_ECHO_TOPICS:  # never heard back (a lost link)
-                del self._echoes[next(iter(self._echoes))]
-            seen = deque(maxlen=ECHOES_KEPT)
-        seen.append(payload_hash(payload))
-        self._echoes[topic] = seen
-
-    def _heard_back(self, topic: str, payload: bytes) -> bool:
-        """Whether a live ``payload`` on ``topic`` is one we sent and have not heard
-        back yet; if so it counts as heard. Once only: a client's equal payload
-        after it (a deletion after our clearing) is the client's."""
-        seen = self._echoes.get(topic)
-        if seen is None:
-            return False
-        h = payload_hash(payload)
-        if h not in seen:
-            return False
-        seen.remove(h)
-        if not seen:
-            del self._echoes[topic]
-        return True
 
     async def _handler(self) -> None:
         """Hand the inbox to the gateway, a slice at a time (the connection keeps
@@ -637,7 +608,8 @@ class MqttBridge:
                 if self._dirty and not inflight:
                     topic = next(iter(self._dirty))
                     payload = self._dirty.pop(topic)
-                    self._await_echo(topic, payload)  # it may come back before the PUBACK
+                    if topic.startswith(self._def_prefix):  # back before the PUBACK, maybe
+                        self._echoes.sent(topic, payload, time.monotonic())
                     try:
                         await _publish(client, topic, payload, qos=1, retain=True)
                     except BaseException:
