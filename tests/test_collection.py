@@ -398,6 +398,45 @@ def test_a_failing_parent_with_only_costlier_neighbours_is_kept_until_it_must_po
     assert u.c.stats.switches_on_eviction == 0 and u.c.stats.evictions == 1
 
 
+def test_with_the_defaults_the_packet_at_the_head_outlives_its_poisoned_route() -> None:
+    """The poison comes one failure before the packet's last attempt: it waits for
+    the repair instead of being dropped with the route."""
+    u = Unit()
+    u.beacon(1, 10, 0)
+    u.beacon(3, 30, 5)  # our child: no one can replace 1
+    u.now = 1.0
+    u.c.submit(rec(1), u.now)
+    while u.c.parent is not None:
+        u.result(False)
+        u.advance(u.now + 0.3)
+    assert u.c.queue_length == 1
+    assert not [e for e in u.events() if isinstance(e, DataDropped)]
+
+
+def test_a_parent_taken_again_counts_its_failures_in_a_row_afresh() -> None:
+    """Failures to a neighbour while it was parent do not carry over to its next
+    term: left by the cost rule after three, and taken back, it is kept through
+    two more (the threshold is five in a row, not five over two terms)."""
+    u = Unit(ctp_evict_after_failures=2, ctp_poison_after_failures=5, ctp_max_retries=20)
+    u.beacon(1, 10, 0)
+    u.beacon(3, 30, 5)  # our child: no one can replace 1
+    u.now = 1.0
+    u.c.submit(rec(1), u.now)
+    for _ in range(3):
+        u.result(False)
+        u.advance(u.now + 0.3)
+    assert u.c.parent == 1
+    u.beacon(2, 20, 0)  # 1's link cost rose with its failures: 2 is better by the threshold
+    assert u.c.parent == 2
+    u.beacon(2, 60, 0)  # and now much worse: back to 1
+    assert u.c.parent == 1 and u.c.neighbours[1].failures == 0
+    u.advance(u.now + 0.3)
+    for _ in range(2):
+        u.result(False)
+        u.advance(u.now + 0.3)
+    assert u.c.parent == 1
+
+
 def test_a_failing_parent_is_left_for_a_feasible_neighbour_at_the_eviction_threshold() -> None:
     """Kept while no one else can take over; a neighbour heard meanwhile that can
     (not our child, below our feasible distance) replaces it at the next failure

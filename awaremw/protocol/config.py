@@ -45,8 +45,9 @@ class MiddlewareConfig:
     ctp_max_thl: int = 32
     ctp_parent_switch_threshold: int = 15  # ETX x 10 improvement needed to switch parent
     ctp_evict_after_failures: int = 2  # failed unicasts (after retries) before dropping a parent
-    # ... before a parent no feasible neighbour can replace is given up (poisoning the route)
-    ctp_poison_after_failures: int = 6
+    # ... before a parent no feasible neighbour can replace is given up (poisoning the
+    # route); below ctp_max_retries, so that the packet at the head waits for the repair
+    ctp_poison_after_failures: int = 5
     ctp_switch_fresh: float = 30.0  # s: a neighbour heard within it may replace a lost parent
     ctp_neighbours: int = 16  # routing table size (the parent is never the one replaced)
     ctp_rssi_good: float = -90.0  # dBm at or above which a link costs ETX 1 (CC2420: sens. + 5)

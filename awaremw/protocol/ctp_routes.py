@@ -344,6 +344,7 @@ class Routes:
     def _set_parent(self, n: Neighbour, path: int, now: float) -> None:
         old = self._parent
         self._parent = n.node
+        n.failures = 0  # "in a row" counts from now: failures to it before do not carry over
         self._cost = path
         self._feasible = path if old is None else min(self._feasible, path)
         self._lost_cost = self._lost_parent = None
