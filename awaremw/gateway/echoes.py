@@ -17,16 +17,13 @@ lost with a broken link, or refused by the broker. It is forgotten. Bounded:
 
 from __future__ import annotations
 
-import hashlib
 from collections import deque
+
+from awaremw.gateway.store import payload_hash
 
 ECHOES_KEPT = 4  # publications per topic awaited back at once
 MAX_ECHO_TOPICS = 4096  # topics with a publication awaited back
 ECHO_TTL_S = 60.0
-
-
-def _digest(payload: bytes) -> bytes:
-    return hashlib.sha256(payload).digest()[:16]
 
 
 class Echoes:
@@ -43,7 +40,7 @@ class Echoes:
         self.ttl = ttl
         self.per_topic = per_topic
         self.max_topics = max_topics
-        self._sent: dict[str, deque[tuple[bytes, float]]] = {}  # in send order
+        self._sent: dict[str, deque[tuple[str, float]]] = {}  # in send order
         self._connected_at = float("-inf")
 
     def __len__(self) -> int:
@@ -60,7 +57,7 @@ class Echoes:
             if len(self._sent) >= self.max_topics:
                 del self._sent[next(iter(self._sent))]
             seen = deque(maxlen=self.per_topic)
-        seen.append((_digest(payload), now))
+        seen.append((payload_hash(payload), now))
         self._sent[topic] = seen
 
     def heard(self, topic: str, payload: bytes, now: float) -> bool:
@@ -73,7 +70,7 @@ class Echoes:
         if self._connected_at < stale:
             while seen and seen[0][1] < stale:  # the oldest first
                 seen.popleft()
-        d = _digest(payload)
+        d = payload_hash(payload)
         found = next((e for e in seen if e[0] == d), None)
         if found is not None:
             seen.remove(found)
